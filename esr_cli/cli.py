@@ -1,0 +1,206 @@
+"""The `esr` command line: parse, call, render. Progress and messages go to stderr; stdout
+carries results (artifact paths, tables). Exit codes: 0 success (a cache hit is success),
+1 a failed run, 2 bad usage or a bad spec, 130 interrupted."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from esr_cli import spec as specs
+from esr_cli.store import Store, StoreError
+
+app = typer.Typer(
+    no_args_is_help=True,
+    pretty_exceptions_show_locals=False,
+    add_completion=False,
+    help="Experiments on assistive agents: ESR and baselines, with a content-addressed artifact store.",
+)
+out = Console()
+err = Console(stderr=True)
+
+
+class Exit(Exception):
+    def __init__(self, code: int, message: str = ""):
+        self.code, self.message = code, message
+
+
+class Ctx:
+    store: Store
+    debug: bool
+
+
+STATE = Ctx()
+
+StoreOpt = typer.Option(None, "--store", help="artifact store root (default: $ESR_STORE or ./artifacts)")
+BudgetOpt = typer.Option("paper", "--budget", "-b", help="paper | quick | smoke")
+SetOpt = typer.Option(None, "--set", "-s", help="override a spec field: key.path=value (repeatable)")
+
+
+@app.callback()
+def main_options(
+    store: Optional[Path] = StoreOpt,
+    debug: bool = typer.Option(False, "--debug", help="show tracebacks"),
+):
+    STATE.store = Store(store or os.environ.get("ESR_STORE") or "artifacts")
+    STATE.debug = debug
+
+
+def _load_spec(path: Path, budget: str, sets: Optional[List[str]]):
+    return specs.load(path, budget, list(sets or []))
+
+
+# ---------------------------------------------------------------- train
+@app.command()
+def train(
+    spec_file: Path = typer.Argument(..., help="experiment spec (YAML)", show_default=False),
+    budget: str = BudgetOpt,
+    set_: Optional[List[str]] = SetOpt,
+):
+    """Train a spec (all its seeds in one program); a finished spec is a cache hit."""
+    from esr_cli import runs
+
+    spec = _load_spec(spec_file, budget, set_)
+    path, cached = runs.ensure_run(spec, STATE.store, err)
+    err.print(f"[green]{'cache hit' if cached else 'trained'}[/]: {spec.name} ({spec.budget}) -> {path}")
+    out.print(str(path), soft_wrap=True, highlight=False)
+
+
+# ---------------------------------------------------------------- eval
+@app.command("eval")
+def eval_(
+    target: str = typer.Argument(..., help="a spec file or a training-run artifact (key or path)", show_default=False),
+    budget: str = BudgetOpt,
+    set_: Optional[List[str]] = SetOpt,
+    episodes: Optional[int] = typer.Option(None, "--episodes", "-n", help="episodes per seed and policy (default: spec eval.episodes)"),
+):
+    """Evaluate a trained robot with its human; writes an evaluation artifact, a GIF and a curve."""
+    from esr_cli import runs
+
+    run_path = runs.find_run(target, budget, set_, STATE.store)
+    if episodes is not None and episodes < 1:
+        raise Exit(2, f"--episodes: must be >= 1 (got {episodes})")
+    path, summary, cached = runs.ensure_eval(run_path, STATE.store, episodes, err)
+    table = Table(title=f"{summary['name']} ({summary['budget']}, {len(summary['seeds'])} seed(s), {summary['episodes']} episodes each)")
+    for col in ("policy", "return (mean ± SE)", "success (mean ± SE)"):
+        table.add_column(col)
+    for mode, r in summary["results"].items():
+        table.add_row(mode, f"{r['return_mean']:.2f} ± {r['return_se']:.2f}", f"{r['success_mean']:.3f} ± {r['success_se']:.3f}")
+    err.print(table)
+    err.print(f"[green]{'cache hit' if cached else 'evaluated'}[/]: {path}")
+    for name in ("rollout.gif", "learning_curve.png"):
+        if (path / name).exists():
+            err.print(f"  {name}: {path / name}")
+    out.print(str(path), soft_wrap=True, highlight=False)
+
+
+# ---------------------------------------------------------------- ls / show / verify
+@app.command("ls")
+def ls():
+    """List the artifacts in the store."""
+    table = Table()
+    for col in ("kind", "name", "key", "budget", "seeds", "status", "final return"):
+        table.add_column(col)
+    n = 0
+    for e in STATE.store.entries():
+        m = e.manifest or {}
+        ret = (m.get("summary") or {}).get("return", {}).get("mean")
+        seeds = m.get("seeds")
+        table.add_row(
+            e.kind,
+            str(m.get("name", "?")),
+            e.key[:12],
+            str(m.get("budget", "?")),
+            str(len(seeds)) if seeds else "?",
+            e.status,
+            "" if ret is None else f"{ret:.2f}",
+        )
+        n += 1
+    if n == 0:
+        err.print(f"store {STATE.store.root} is empty")
+        return
+    out.print(table)
+
+
+@app.command()
+def show(ref: str = typer.Argument(..., help="artifact key, key prefix or path", show_default=False)):
+    """Print an artifact's manifest, including every component of its key."""
+    path = STATE.store.resolve(ref)
+    manifest = STATE.store.read_manifest(path)
+    out.print(f"[bold]{path}[/]", highlight=False)
+    out.print_json(json.dumps(manifest))
+
+
+@app.command()
+def verify(ref: Optional[str] = typer.Argument(None, help="artifact key or path (default: every artifact)")):
+    """Re-hash every file of an artifact against its manifest."""
+    paths = [STATE.store.resolve(ref)] if ref else [e.path for e in STATE.store.entries() if e.status == "complete"]
+    bad = 0
+    for p in paths:
+        problems = STATE.store.verify(p)
+        if problems:
+            bad += 1
+            err.print(f"[red]CORRUPT[/] {p}")
+            for prob in problems:
+                err.print(f"  {prob}")
+        else:
+            err.print(f"[green]ok[/] {p}")
+    if bad:
+        raise Exit(1, f"{bad} of {len(paths)} artifact(s) failed verification")
+
+
+# ---------------------------------------------------------------- entry point
+def main(argv: list[str] | None = None) -> int:
+    from esr_cli.core.loop import Diverged, Interrupted
+
+    argv = sys.argv[1:] if argv is None else argv
+    debug = "--debug" in argv
+    try:
+        app(args=argv, standalone_mode=False)
+        return 0
+    except SystemExit as e:  # typer/click's own exits (e.g. --help)
+        return int(e.code or 0)
+    except Exception as e:  # noqa: BLE001 - every failure becomes one line unless --debug
+        import click
+
+        if debug:
+            raise
+        if isinstance(e, click.exceptions.Abort):
+            err.print("aborted")
+            return 130
+        if isinstance(e, click.ClickException):
+            e.show()
+            return 2
+        if isinstance(e, specs.SpecError):
+            code, msg = 2, f"bad spec: {e}"
+        elif isinstance(e, Exit):
+            code, msg = e.code, e.message
+        elif isinstance(e, StoreError):
+            code, msg = 2, str(e)
+        elif isinstance(e, Interrupted):
+            code, msg = 130, f"interrupted after epoch {e.epoch}; the checkpoint is saved: run the same command again to resume"
+        elif isinstance(e, Diverged):
+            code, msg = 1, f"run diverged: {e} (the partial run is kept for inspection)"
+        elif isinstance(e, KeyboardInterrupt):
+            code, msg = 130, "interrupted"
+        else:
+            code, msg = 1, f"{type(e).__name__}: {e} (run with --debug for a traceback)"
+        if msg:
+            err.print(f"[red]error:[/] {msg}", highlight=False, soft_wrap=True)
+        return code
+
+
+def entry() -> None:
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    entry()

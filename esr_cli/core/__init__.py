@@ -1,0 +1,1 @@
+"""The shared training core: replay buffer, soft-Q learner, runner, evaluation."""

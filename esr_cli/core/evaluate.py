@@ -1,0 +1,47 @@
+"""Evaluation of a trained robot with its human: N episodes per seed and policy mode.
+
+Modes: `sample` (the Boltzmann policy the robot trains with) and `greedy` (argmax Q); a
+method that learns no policy is evaluated as `random`. All seeds run in one vmapped program.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from esr_cli.core.train import TrainState, Trainer
+
+EVAL_KEY_SALT = 2**20  # evaluation keys never coincide with training keys
+
+
+def policy_modes(trainer: Trainer) -> tuple[str, ...]:
+    return ("sample", "greedy") if trainer.method.learns_policy else ("random",)
+
+
+def evaluate(trainer: Trainer, state: TrainState, episodes: int, seeds) -> dict:
+    """-> {mode: {"return": float[seeds, episodes], "success": bool[seeds, episodes]}} and one rollout."""
+    out = {}
+    keys = jax.vmap(lambda s: jax.random.PRNGKey(s + EVAL_KEY_SALT))(jnp.asarray(seeds, jnp.int32))
+    for mode in policy_modes(trainer):
+
+        def run(lstate, key, mode=mode):
+            roll = trainer.rollout(lstate, key, episodes, mode)
+            return roll.episodes.reward.sum(axis=1), roll.states
+
+        returns, states = jax.jit(jax.vmap(run))(state.learner, keys)
+        returns = np.asarray(returns)
+        out[mode] = {"return": returns, "success": returns > 0, "states": states}
+    return out
+
+
+def mean_se(values: np.ndarray) -> tuple[float, float]:
+    """Mean across seeds of per-seed means, and its standard error (0 for one seed)."""
+    per_seed = np.asarray(values, dtype=float).reshape(len(values), -1).mean(axis=1)
+    se = float(per_seed.std(ddof=1) / np.sqrt(len(per_seed))) if len(per_seed) > 1 else 0.0
+    return float(per_seed.mean()), se
+
+
+def episode_states(states, seed_index: int, episode: int):
+    """The env-state trajectory [T+1] of one evaluation episode."""
+    return jax.tree.map(lambda x: np.asarray(x[seed_index, :, episode]), states)

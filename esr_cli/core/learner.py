@@ -1,0 +1,101 @@
+"""The robot's soft Q-learner, shared by every method (REFERENCE section 1).
+
+- Critic Q(s, .) over robot actions; target r + gamma (1 - done) max_a' Q_target(s', a');
+  mean squared error; Adam; Polyak-averaged target (rate tau).
+- Policy pi(a | s) = softmax(beta (Q(s, a) - logsumexp_a Q(s, a))).
+- beta is tuned by a gradient step on mean_s (target_entropy - H(pi(. | s)))^2, clipped to
+  [1e-3, 100] (the dual step of the original code; plain gradient descent, rate dual_lr).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from esr_cli.networks import conv_net
+
+BETA_MIN, BETA_MAX = 1e-3, 100.0
+
+
+class LearnerState(NamedTuple):
+    params: dict
+    target_params: dict
+    opt_state: tuple
+    beta: jax.Array  # float32[]
+
+
+def policy_log_probs(q: jax.Array, beta: jax.Array) -> jax.Array:
+    adv = q - jax.nn.logsumexp(q, axis=-1, keepdims=True)
+    return jax.nn.log_softmax(beta * adv, axis=-1)
+
+
+def entropy(log_probs: jax.Array) -> jax.Array:
+    return -jnp.sum(jnp.exp(log_probs) * log_probs, axis=-1)
+
+
+def td_loss(q_all, action, reward, q_next_target_all, done, gamma):
+    """Mean squared TD error of the taken actions (batched)."""
+    q = jnp.take_along_axis(q_all, action[:, None], axis=-1)[:, 0]
+    target = reward + gamma * (1.0 - done) * jnp.max(q_next_target_all, axis=-1)
+    return jnp.mean((q - jax.lax.stop_gradient(target)) ** 2), q
+
+
+def dual_loss(beta, q, target_entropy):
+    return jnp.mean((target_entropy - entropy(policy_log_probs(q, beta))) ** 2)
+
+
+class SoftQLearner(NamedTuple):
+    num_actions: int
+    network_spec: object
+    spec: object  # LearnerSpec
+
+    @property
+    def net(self):
+        return conv_net(self.network_spec, self.num_actions)
+
+    @property
+    def optimizer(self):
+        return optax.adam(self.spec.lr)
+
+    def init(self, key, obs_example) -> LearnerState:
+        params = self.net.init(key, obs_example[None])
+        return LearnerState(
+            params=params,
+            target_params=params,
+            opt_state=self.optimizer.init(params),
+            beta=jnp.asarray(self.spec.initial_beta, jnp.float32),
+        )
+
+    def q_values(self, params, obs):
+        return self.net.apply(params, obs)
+
+    def log_probs(self, state: LearnerState, obs):
+        return policy_log_probs(self.q_values(state.params, obs), state.beta)
+
+    def act(self, state: LearnerState, obs, key):
+        return jax.random.categorical(key, self.log_probs(state, obs)).astype(jnp.int32)
+
+    def greedy(self, state: LearnerState, obs):
+        return jnp.argmax(self.q_values(state.params, obs), axis=-1).astype(jnp.int32)
+
+    def critic_step(self, state: LearnerState, obs, action, reward, next_obs, done):
+        q_next = self.q_values(state.target_params, next_obs)
+
+        def loss_fn(params):
+            return td_loss(self.q_values(params, obs), action, reward, q_next, done, self.spec.gamma)
+
+        (loss, q), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
+        params = optax.apply_updates(state.params, updates)
+        target = optax.incremental_update(params, state.target_params, self.spec.tau)
+        metrics = {"critic_loss": loss, "q_mean": jnp.mean(q)}
+        return state._replace(params=params, target_params=target, opt_state=opt_state), metrics
+
+    def dual_step(self, state: LearnerState, obs):
+        q = jax.lax.stop_gradient(self.q_values(state.params, obs))
+        loss, grad = jax.value_and_grad(dual_loss)(state.beta, q, self.spec.target_entropy)
+        beta = jnp.clip(state.beta - self.spec.dual_lr * grad, BETA_MIN, BETA_MAX)
+        return state._replace(beta=beta), {"dual_loss": loss}

@@ -1,0 +1,203 @@
+"""The host side of training: chunks, progress, metrics, checkpoints, resume.
+
+The Brax pattern: a short Python loop over jitted chunks of `chunk_epochs` epochs (all seeds
+vmapped in one program). Between chunks the host appends the chunk's metrics to
+`metrics.jsonl`, saves an orbax checkpoint of the *whole* training state (parameters,
+optimiser states, replay buffer, RNG keys), and updates the progress bar. A run started again
+in the same directory restores the newest complete checkpoint and continues exactly where it
+stopped; metrics lines past that checkpoint are dropped first.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import time
+from pathlib import Path
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import orbax.checkpoint as ocp
+
+from esr_cli.core.train import TrainState, Trainer, compiled_chunk, compiled_init
+
+METRICS_FILE = "metrics.jsonl"
+CHECKPOINT_DIR = "checkpoints"
+
+
+class Interrupted(Exception):
+    """Ctrl-C arrived; the run stopped at a chunk boundary after saving."""
+
+    def __init__(self, epoch: int):
+        self.epoch = epoch
+        super().__init__(f"interrupted after epoch {epoch}")
+
+
+class Diverged(Exception):
+    """A non-finite value appeared; the run stops and is not committed."""
+
+
+def checkpoint_manager(run_dir: Path) -> ocp.CheckpointManager:
+    return ocp.CheckpointManager(
+        (Path(run_dir) / CHECKPOINT_DIR).absolute(),
+        options=ocp.CheckpointManagerOptions(max_to_keep=2, create=True, enable_async_checkpointing=False),
+    )
+
+
+def restore_latest(trainer: Trainer, run_dir: Path, seeds) -> tuple[TrainState, int]:
+    """The newest checkpoint in `run_dir` (or a fresh state) and its epoch."""
+    template = compiled_init(trainer)(jnp.asarray(seeds, jnp.int32))
+    mngr = checkpoint_manager(run_dir)
+    step = mngr.latest_step()
+    if step is None:
+        return template, 0
+    state = mngr.restore(step, args=ocp.args.StandardRestore(template))
+    return state, int(step)
+
+
+def read_metrics(run_dir: Path) -> list[dict]:
+    path = Path(run_dir) / METRICS_FILE
+    if not path.exists():
+        return []
+    rows = []
+    for line in path.read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            break  # a line cut short by a kill: everything after it is untrusted
+    return rows
+
+
+def _truncate_metrics(run_dir: Path, epoch: int) -> None:
+    """Keep only metrics of epochs <= epoch (those covered by the restored checkpoint)."""
+    rows = [r for r in read_metrics(run_dir) if r["epoch"] <= epoch]
+    text = "".join(json.dumps(r) + "\n" for r in rows)
+    tmp = Path(run_dir) / (METRICS_FILE + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(Path(run_dir) / METRICS_FILE)
+
+
+def _metric_rows(metrics: dict, first_epoch: int, steps_per_epoch: int) -> list[dict]:
+    names = sorted(metrics)
+    n = next(iter(metrics.values())).shape[1]
+    rows = []
+    for i in range(n):
+        epoch = first_epoch + i + 1
+        row = {"epoch": epoch, "env_steps": epoch * steps_per_epoch}
+        for name in names:
+            vals = metrics[name][:, i]
+            row[name] = [None if not math.isfinite(v) else round(float(v), 6) for v in vals]
+        rows.append(row)
+    return rows
+
+
+def _watched_metrics(trainer: Trainer) -> list[str]:
+    """Metrics that must be finite for this method (others are NaN by design)."""
+    watched = []
+    if trainer.method.learns_policy and trainer.spec.learner.updates_per_epoch > 0:
+        watched += ["critic_loss", "q_mean", "reward_mean"]
+    if trainer.method.updates_per_epoch > 0:
+        watched += list(trainer.method.metric_names)
+    return watched
+
+
+def _check_finite(trainer: Trainer, state: TrainState, metrics: dict, seeds, first_epoch: int) -> None:
+    """Stop on NaN/inf in losses, Q-values or parameters, naming quantity, seed and epoch."""
+    for name in _watched_metrics(trainer):
+        bad = ~np.isfinite(metrics[name])
+        if bad.any():
+            s, e = np.argwhere(bad)[0]
+            raise Diverged(f"{name} became {metrics[name][s, e]} at seed {seeds[s]}, epoch {first_epoch + e + 1}")
+    last_epoch = first_epoch + next(iter(metrics.values())).shape[1]
+    params = {"critic": state.learner.params, "method": state.method}
+    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        arr = np.asarray(leaf)
+        if arr.dtype.kind != "f":
+            continue
+        bad_seed = ~np.isfinite(arr.reshape(arr.shape[0], -1)).all(axis=1)
+        if bad_seed.any():
+            s = int(np.argmax(bad_seed))
+            where = jax.tree_util.keystr(path)
+            raise Diverged(f"parameter {where} became non-finite at seed {seeds[s]}, by epoch {last_epoch}")
+
+
+def train(
+    trainer: Trainer,
+    run_dir: Path,
+    on_chunk: Callable[[int, int, dict, float], None] | None = None,
+    on_start: Callable[[int, int], None] | None = None,
+) -> dict:
+    """Train (or resume) in `run_dir` until `spec.train.epochs`; -> summary of the last epoch.
+
+    on_start(start_epoch, total_epochs); on_chunk(epoch, total, last_row, env_steps_per_s).
+    """
+    spec = trainer.spec
+    run_dir = Path(run_dir)
+    seeds = list(spec.train.seeds)
+    total, chunk = spec.train.epochs, spec.train.chunk_epochs
+    steps_per_epoch = spec.train.num_envs * trainer.env.episode_steps
+    state, epoch = restore_latest(trainer, run_dir, seeds)
+    _truncate_metrics(run_dir, epoch)
+    if on_start:
+        on_start(epoch, total)
+    mngr = checkpoint_manager(run_dir)
+
+    interrupted = {"flag": False}
+
+    def on_sigint(signum, frame):
+        interrupted["flag"] = True
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    compiled: dict[int, Callable] = {}
+    try:
+        while epoch < total:
+            n = min(chunk, total - epoch)
+            if n not in compiled:
+                compiled[n] = compiled_chunk(trainer, n)
+            t0 = time.perf_counter()
+            state, metrics = compiled[n](state)
+            metrics = {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
+            elapsed = time.perf_counter() - t0
+            _check_finite(trainer, state, metrics, seeds, epoch)
+            rows = _metric_rows(metrics, epoch, steps_per_epoch)
+            with open(run_dir / METRICS_FILE, "a") as f:
+                f.write("".join(json.dumps(r) + "\n" for r in rows))
+            epoch += n
+            mngr.save(epoch, args=ocp.args.StandardSave(state))
+            mngr.wait_until_finished()
+            if on_chunk:
+                on_chunk(epoch, total, rows[-1], n * steps_per_epoch * len(seeds) / max(elapsed, 1e-9))
+            if interrupted["flag"]:
+                raise Interrupted(epoch)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        mngr.close()
+    return summarize(read_metrics(run_dir))
+
+
+def summarize(rows: list[dict], last: int = 10) -> dict:
+    """Mean over the last `last` epochs of each metric, per seed and across seeds."""
+    if not rows:
+        return {}
+    tail = rows[-last:]
+    out = {"epochs": rows[-1]["epoch"], "env_steps": rows[-1]["env_steps"]}
+    for name in rows[-1]:
+        if name in ("epoch", "env_steps"):
+            continue
+        per_seed = np.array([[np.nan if v is None else v for v in r[name]] for r in tail], dtype=float)
+        seed_means = np.nanmean(per_seed, axis=0) if np.isfinite(per_seed).any() else per_seed[0]
+        out[name] = {
+            "per_seed": [None if not np.isfinite(v) else round(float(v), 6) for v in seed_means],
+            "mean": None if not np.isfinite(seed_means).any() else round(float(np.nanmean(seed_means)), 6),
+        }
+    return out
+
+
+def final_state(trainer: Trainer, run_dir: Path) -> TrainState:
+    state, epoch = restore_latest(trainer, run_dir, list(trainer.spec.train.seeds))
+    if epoch == 0:
+        raise FileNotFoundError(f"no checkpoint in {run_dir}")
+    return state

@@ -1,0 +1,205 @@
+"""The one runner for every method: pure, jitted training chunks.
+
+`make_trainer(spec)` returns a `Trainer` whose functions are pure over pytrees:
+
+    init(seed) -> TrainState
+    epoch(state) -> (state, metrics)   one episode in each of num_envs environments, then
+                                       U_repr method updates, U_critic critic updates and
+                                       U_dual dual updates (REFERENCE section 1)
+    chunk(n)     jit(vmap over seeds(scan of n epochs)), the state donated
+
+The host (core/loop.py) only touches the state between chunks.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from esr_cli.core import buffer as replay
+from esr_cli.core.learner import LearnerState, SoftQLearner, entropy
+from esr_cli.envs import make_env
+from esr_cli.humans import make_human
+from esr_cli.methods import make_method
+
+BASE_METRICS = (
+    "return",
+    "success",
+    "policy_entropy",
+    "beta",
+    "critic_loss",
+    "q_mean",
+    "reward_mean",
+    "dual_loss",
+)
+
+
+class TrainState(NamedTuple):
+    epoch: jax.Array  # int32[]
+    key: jax.Array
+    learner: LearnerState
+    method: Any
+    buffer: replay.Buffer
+
+
+class Rollout(NamedTuple):
+    episodes: replay.Episodes  # [n, T(+1), ...]
+    states: Any  # env states, [T+1, n, ...] (for pictures)
+    log_probs: jax.Array  # robot policy log-probs at each step [T, n, A] (zeros for random)
+
+
+class Trainer(NamedTuple):
+    spec: Any
+    env: Any
+    human: Any
+    method: Any
+    learner: SoftQLearner
+
+    @property
+    def future_gamma(self) -> float:
+        return float(getattr(self.spec.method, "future_gamma", self.spec.learner.gamma))
+
+    @property
+    def metric_names(self) -> tuple[str, ...]:
+        return BASE_METRICS + tuple(self.method.metric_names)
+
+    def obs_example(self):
+        return self.env.observe(self.env.reset(jax.random.PRNGKey(0)))
+
+    # ------------------------------------------------------------ state
+    def init(self, seed) -> TrainState:
+        key = jax.random.PRNGKey(seed)
+        key, k_learner, k_method = jax.random.split(key, 3)
+        obs = self.obs_example()
+        steps = self.env.episode_steps
+        capacity = self.spec.learner.buffer_size // steps
+        return TrainState(
+            epoch=jnp.zeros((), jnp.int32),
+            key=key,
+            learner=self.learner.init(k_learner, obs),
+            method=self.method.init(k_method, obs),
+            buffer=replay.init(capacity, steps, obs.shape, obs.dtype),
+        )
+
+    # ------------------------------------------------------------ acting
+    def robot_action(self, lstate: LearnerState, obs, key, mode: str):
+        """mode: sample (Boltzmann policy), greedy (argmax Q) or random (uniform)."""
+        n = obs.shape[0]
+        if mode == "random" or not self.method.learns_policy:
+            return jnp.zeros((n, self.env.num_robot_actions)), jax.random.randint(
+                key, (n,), 0, self.env.num_robot_actions, dtype=jnp.int32
+            )
+        log_probs = self.learner.log_probs(lstate, obs)
+        if mode == "greedy":
+            return log_probs, jnp.argmax(log_probs, axis=-1).astype(jnp.int32)
+        return log_probs, jax.random.categorical(key, log_probs).astype(jnp.int32)
+
+    def rollout(self, lstate: LearnerState, key, num_envs: int, mode: str = "sample") -> Rollout:
+        env, human = self.env, self.human
+        k_reset, k_steps = jax.random.split(key)
+        states = jax.vmap(env.reset)(jax.random.split(k_reset, num_envs))
+
+        def step(states, key):
+            k_robot, k_human = jax.random.split(key)
+            obs = jax.vmap(env.observe)(states)
+            log_probs, a_r = self.robot_action(lstate, obs, k_robot, mode)
+            a_h = jax.vmap(human.act)(jax.random.split(k_human, num_envs), states)
+            next_states, reward = jax.vmap(env.step)(states, a_r, a_h)
+            return next_states, (states, obs, a_r, a_h, reward, log_probs)
+
+        final, (traj, obs, a_r, a_h, reward, log_probs) = jax.lax.scan(
+            step, states, jax.random.split(k_steps, env.episode_steps)
+        )
+        obs = jnp.concatenate([obs, jax.vmap(env.observe)(final)[None]], axis=0)
+        all_states = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]], axis=0), traj, final)
+        swap = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731 - [T, n] -> [n, T]
+        episodes = replay.Episodes(obs=swap(obs), robot_action=swap(a_r), human_action=swap(a_h), reward=swap(reward))
+        return Rollout(episodes=episodes, states=all_states, log_probs=log_probs)
+
+    # ------------------------------------------------------------ learning
+    def _scan_updates(self, step_fn, carry, key, count: int):
+        """Run `count` update steps, each on a fresh batch; -> (carry, mean metrics)."""
+        if count == 0:
+            return carry, {}
+
+        def body(carry, key):
+            return step_fn(carry, key)
+
+        carry, metrics = jax.lax.scan(body, carry, jax.random.split(key, count))
+        return carry, jax.tree.map(jnp.mean, metrics)
+
+    def epoch(self, state: TrainState):
+        spec = self.spec
+        key, k_roll, k_repr, k_critic, k_dual = jax.random.split(state.key, 5)
+        roll = self.rollout(state.learner, k_roll, spec.train.num_envs, "sample")
+        buf = replay.add(state.buffer, roll.episodes)
+        batch_size, fg = spec.learner.batch_size, self.future_gamma
+
+        def repr_step(mstate, key):
+            k_sample, k_update = jax.random.split(key)
+            batch = replay.sample(buf, k_sample, batch_size, fg)
+            return self.method.update(mstate, batch, k_update)
+
+        mstate, m_metrics = self._scan_updates(repr_step, state.method, k_repr, self.method.updates_per_epoch)
+
+        def critic_step(lstate, key):
+            k_sample, k_reward = jax.random.split(key)
+            batch = replay.sample(buf, k_sample, batch_size, fg)
+            reward = self.method.reward(mstate, batch, k_reward)
+            lstate, metrics = self.learner.critic_step(
+                lstate, batch.obs, batch.robot_action, reward, batch.next_obs, batch.done
+            )
+            return lstate, {**metrics, "reward_mean": jnp.mean(reward)}
+
+        def dual_step(lstate, key):
+            batch = replay.sample(buf, key, batch_size, fg)
+            return self.learner.dual_step(lstate, batch.obs)
+
+        lstate = state.learner
+        c_metrics, d_metrics = {}, {}
+        if self.method.learns_policy:
+            lstate, c_metrics = self._scan_updates(critic_step, lstate, k_critic, spec.learner.updates_per_epoch)
+            lstate, d_metrics = self._scan_updates(dual_step, lstate, k_dual, spec.learner.dual_updates_per_epoch)
+
+        returns = roll.episodes.reward.sum(axis=1)
+        nan = jnp.full((), jnp.nan, jnp.float32)
+        metrics = {name: nan for name in self.metric_names}
+        metrics.update(
+            {
+                "return": returns.mean(),
+                "success": (returns > 0).mean(),
+                "policy_entropy": entropy(roll.log_probs).mean() if self.method.learns_policy else nan,
+                "beta": lstate.beta,
+            }
+        )
+        metrics.update(c_metrics)
+        metrics.update(d_metrics)
+        metrics.update(m_metrics)
+        new_state = TrainState(epoch=state.epoch + 1, key=key, learner=lstate, method=mstate, buffer=buf)
+        return new_state, {k: metrics[k].astype(jnp.float32) for k in self.metric_names}
+
+    def run_epochs(self, state: TrainState, n: int):
+        return jax.lax.scan(lambda s, _: self.epoch(s), state, None, length=n)
+
+
+def make_trainer(spec) -> Trainer:
+    env = make_env(spec.env)
+    return Trainer(
+        spec=spec,
+        env=env,
+        human=make_human(spec.human, env),
+        method=make_method(spec, env),
+        learner=SoftQLearner(num_actions=env.num_robot_actions, network_spec=spec.network, spec=spec.learner),
+    )
+
+
+def compiled_init(trainer: Trainer):
+    return jax.jit(jax.vmap(trainer.init))
+
+
+def compiled_chunk(trainer: Trainer, n: int):
+    """jit(vmap over seeds(scan of n epochs)); metrics come back as [seeds, n]."""
+    return jax.jit(jax.vmap(partial(trainer.run_epochs, n=n)), donate_argnums=0)

@@ -1,0 +1,148 @@
+"""ESR: Empowerment via Successor Representations (the paper's section 4, Algorithm 1).
+
+Three representations, learned contrastively from (s, aR, aH, g) with g a future state of the
+same episode (see core/buffer.py):
+    phi(s, aR, aH)    the controlled model   (12 input channels in the gridworld)
+    phi'(s, aR)       the uncontrolled model = phi with the human-action planes zeroed
+    psi(g)            the future-state representation
+At the optimum phi^T psi and phi'^T psi are log density ratios up to constants, so
+    r(s, aR, aH, g) = (phi(s, aR, aH) - phi'(s, aR))^T psi(g)
+estimates log p(g | s, aR, aH) / p(g | s, aR), whose expectation is the human's conditional
+mutual information I(aH; s+ | s, aR): the robot's reward, resampled with a fresh g at every
+critic update.
+
+As in the original code, phi and phi' are one network (phi' zeroes the human input), logits
+are phi . psi / repr_dim, and the reward is the raw dot product (not divided by repr_dim).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from esr_cli.networks import conv_net
+
+
+def _symmetric_infonce(logits: jax.Array) -> jax.Array:
+    """-(mean log row-softmax diagonal) - (mean log column-softmax diagonal)."""
+    rows = jnp.diagonal(jax.nn.log_softmax(logits, axis=1))
+    cols = jnp.diagonal(jax.nn.log_softmax(logits, axis=0))
+    return -jnp.mean(rows) - jnp.mean(cols)
+
+
+def infonce_loss(phi_s: jax.Array, phi_sa: jax.Array, psi: jax.Array, mode: str = "stacked") -> jax.Array:
+    """The symmetric InfoNCE loss of ESR, logits = x . y / d.
+
+    stacked (original code): one 2B x 2B problem, [phi'; phi] against [psi; psi]. Each positive
+        then appears twice in its row and column, so the loss cannot reach 0.
+    separate (the paper's equation): InfoNCE(phi, psi) + InfoNCE(phi', psi), each B x B.
+    """
+    d = psi.shape[-1]
+    if mode == "stacked":
+        x = jnp.concatenate([phi_s, phi_sa], axis=0)
+        y = jnp.concatenate([psi, psi], axis=0)
+        return _symmetric_infonce(x @ y.T / d)
+    if mode == "separate":
+        return _symmetric_infonce(phi_sa @ psi.T / d) + _symmetric_infonce(phi_s @ psi.T / d)
+    raise ValueError(f"unknown InfoNCE mode {mode!r}")
+
+
+def mutual_information_estimate(phi_s, phi_sa, psi) -> jax.Array:
+    """Mean diagonal logit of phi minus that of phi' (the original's logged MI estimate)."""
+    d = psi.shape[-1]
+    return jnp.mean(jnp.sum((phi_sa - phi_s) * psi, axis=-1)) / d
+
+
+def contrastive_accuracy(phi_sa, psi) -> jax.Array:
+    """How often phi(s, aR, aH) picks its own future among the B in the batch (chance 1/B)."""
+    logits = phi_sa @ psi.T
+    return jnp.mean(jnp.argmax(logits, axis=1) == jnp.arange(logits.shape[0]))
+
+
+def empowerment_reward(phi_s, phi_sa, psi) -> jax.Array:
+    """r = (phi(s, aR, aH) - phi'(s, aR))^T psi(g), per example."""
+    return jnp.sum((phi_sa - phi_s) * psi, axis=-1)
+
+
+class ESRState(NamedTuple):
+    params: dict  # {"phi": ..., "psi": ...}
+    opt_state: tuple
+
+
+class ESR(NamedTuple):
+    env: object
+    spec: object  # ESRMethodSpec
+    network_spec: object
+
+    learns_policy: bool = True
+    metric_names: tuple = ("repr_loss", "mi_estimate", "contrastive_accuracy")
+
+    @property
+    def updates_per_epoch(self) -> int:
+        return self.spec.repr_updates_per_epoch
+
+    @property
+    def phi_net(self):
+        return conv_net(self.network_spec, self.spec.repr_dim)
+
+    @property
+    def psi_net(self):
+        return conv_net(self.network_spec, self.spec.repr_dim)
+
+    @property
+    def optimizer(self):
+        return optax.adam(self.spec.repr_lr)
+
+    def _phi_inputs(self, obs, robot_action, human_action):
+        """[2B, H, W, C]: the phi'(s, aR) inputs stacked on the phi(s, aR, aH) inputs."""
+        ar = jax.vmap(self.env.robot_action_planes)(robot_action)
+        if not self.spec.condition_on_robot_action:
+            ar = jnp.zeros_like(ar)
+        ah = jax.vmap(self.env.human_action_planes)(human_action)
+        base = jnp.concatenate([obs.astype(jnp.float32), ar], axis=-1)
+        with_human = jnp.concatenate([base, ah], axis=-1)
+        without_human = jnp.concatenate([base, jnp.zeros_like(ah)], axis=-1)
+        return jnp.concatenate([without_human, with_human], axis=0)
+
+    def represent(self, params, obs, robot_action, human_action, future_obs):
+        """-> (phi'(s, aR), phi(s, aR, aH), psi(g)), each [B, repr_dim]; phi and phi' in one pass."""
+        both = self.phi_net.apply(params["phi"], self._phi_inputs(obs, robot_action, human_action))
+        phi_s, phi_sa = jnp.split(both, 2, axis=0)
+        psi = self.psi_net.apply(params["psi"], future_obs)
+        return phi_s, phi_sa, psi
+
+    def init(self, key, obs_example) -> ESRState:
+        k_phi, k_psi = jax.random.split(key)
+        a = jnp.zeros((1,), jnp.int32)
+        phi_in = self._phi_inputs(obs_example[None], a, a)[:1]
+        params = {
+            "phi": self.phi_net.init(k_phi, phi_in),
+            "psi": self.psi_net.init(k_psi, obs_example[None]),
+        }
+        return ESRState(params=params, opt_state=self.optimizer.init(params))
+
+    def update(self, state: ESRState, batch, key):
+        def loss_fn(params):
+            phi_s, phi_sa, psi = self.represent(
+                params, batch.obs, batch.robot_action, batch.human_action, batch.future_obs
+            )
+            return infonce_loss(phi_s, phi_sa, psi, self.spec.infonce), (phi_s, phi_sa, psi)
+
+        (loss, (phi_s, phi_sa, psi)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
+        params = optax.apply_updates(state.params, updates)
+        metrics = {
+            "repr_loss": loss,
+            "mi_estimate": mutual_information_estimate(phi_s, phi_sa, psi),
+            "contrastive_accuracy": contrastive_accuracy(phi_sa, psi),
+        }
+        return ESRState(params=params, opt_state=opt_state), metrics
+
+    def reward(self, state: ESRState, batch, key):
+        phi_s, phi_sa, psi = self.represent(
+            state.params, batch.obs, batch.robot_action, batch.human_action, batch.future_obs
+        )
+        return jax.lax.stop_gradient(empowerment_reward(phi_s, phi_sa, psi))

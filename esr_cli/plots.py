@@ -1,0 +1,82 @@
+"""Pictures read from artifacts: learning curves and rollout animations."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+CURVE_PANELS = (
+    ("return", "return (steps on goal)"),
+    ("success", "success rate"),
+    ("mi_estimate", "MI estimate (nats)"),
+    ("contrastive_accuracy", "contrastive accuracy"),
+)
+
+
+def _series(rows: list[dict], name: str) -> tuple[np.ndarray, np.ndarray]:
+    epochs = np.array([r["epoch"] for r in rows])
+    vals = np.array([[np.nan if v is None else v for v in r[name]] for r in rows], dtype=float)
+    return epochs, vals
+
+
+def smooth(y: np.ndarray, window: int) -> np.ndarray:
+    """Trailing moving average along axis 0 (NaN-aware), so early epochs stay visible."""
+    if window <= 1:
+        return y
+    out = np.empty_like(y)
+    for i in range(len(y)):
+        block = y[max(0, i - window + 1) : i + 1]
+        with np.errstate(all="ignore"):
+            out[i] = np.nanmean(block, axis=0) if np.isfinite(block).any() else np.nan
+    return out
+
+
+def learning_curve(rows: list[dict], out_png: Path, title: str, provenance: dict) -> Path:
+    """Return, success, MI estimate and contrastive accuracy vs epoch; mean +- 1 SE over seeds."""
+    panels = [(k, label) for k, label in CURVE_PANELS if rows and k in rows[0]]
+    fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 3.2), squeeze=False)
+    window = max(1, len(rows) // 50)
+    for ax, (name, label) in zip(axes[0], panels):
+        epochs, vals = _series(rows, name)
+        vals = smooth(vals, window)
+        if not np.isfinite(vals).any():
+            ax.text(0.5, 0.5, "not logged for this method", ha="center", va="center", transform=ax.transAxes)
+        else:
+            n = np.isfinite(vals).sum(axis=1)
+            with np.errstate(all="ignore"):
+                mean = np.nanmean(vals, axis=1)
+                se = np.where(n > 1, np.nanstd(vals, axis=1, ddof=min(1, vals.shape[1] - 1)) / np.sqrt(np.maximum(n, 1)), 0.0)
+            ax.plot(epochs, mean, color="C0")
+            ax.fill_between(epochs, mean - se, mean + se, color="C0", alpha=0.25, linewidth=0)
+        ax.set_xlabel("epoch")
+        ax.set_title(label, fontsize=10)
+        ax.grid(alpha=0.3)
+    seeds = len(rows[0]["return"]) if rows else 0
+    fig.suptitle(f"{title}  ({seeds} seed{'s' if seeds != 1 else ''}, mean ± 1 SE)", fontsize=11)
+    fig.tight_layout()
+    return save_figure(fig, out_png, provenance)
+
+
+def save_figure(fig, out_png: Path, provenance: dict) -> Path:
+    """PNG (provenance in its text metadata) plus a sidecar JSON with the same provenance."""
+    out_png = Path(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=110, metadata={"Description": json.dumps(provenance, sort_keys=True)})
+    plt.close(fig)
+    out_png.with_suffix(".json").write_text(json.dumps(provenance, indent=2, sort_keys=True))
+    return out_png
+
+
+def rollout_gif(frames: list[np.ndarray], out_gif: Path, fps: int = 6) -> Path:
+    import imageio.v2 as imageio
+
+    out_gif = Path(out_gif)
+    out_gif.parent.mkdir(parents=True, exist_ok=True)
+    imageio.mimsave(out_gif, frames, duration=1.0 / fps, loop=0)
+    return out_gif

@@ -1,0 +1,100 @@
+"""What produced an artifact: the components of its content key, and provenance facts.
+
+Key components (they decide whether two runs are the same):
+  spec        the validated spec's training sections (never the raw YAML)
+  budget      the budget the spec was resolved at
+  code        a digest of the source files that define training behaviour
+  toolchain   jax / jaxlib versions and the backend (cpu, gpu, ...)
+  dependencies  keys of artifacts this one is built from
+Provenance facts (recorded, not part of the key): git commit and dirty flag, package
+versions, device, host, wall time.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import platform
+import subprocess
+from functools import cache
+from importlib import metadata
+from pathlib import Path
+
+PACKAGE_DIR = Path(__file__).resolve().parent
+# Source that defines what a training run computes. CLI, store, plotting and docs are left
+# out on purpose: changing how results are shown must not invalidate trained artifacts.
+TRAINING_SOURCES = ("envs", "humans", "methods", "core", "networks.py", "spec.py")
+PACKAGES = ("jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy", "esr-cli")
+
+
+@cache
+def code_digest() -> str:
+    h = hashlib.blake2b(digest_size=16)
+    for name in TRAINING_SOURCES:
+        p = PACKAGE_DIR / name
+        files = sorted(p.rglob("*.py")) if p.is_dir() else [p]
+        for f in files:
+            h.update(f.relative_to(PACKAGE_DIR).as_posix().encode() + b"\0")
+            h.update(f.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def toolchain() -> dict:
+    import jax
+    import jaxlib
+
+    return {"jax": jax.__version__, "jaxlib": jaxlib.__version__, "backend": jax.default_backend()}
+
+
+def key_components(kind: str, spec_part: dict, budget: str, dependencies: dict | None = None) -> dict:
+    return {
+        "kind": kind,
+        "spec": spec_part,
+        "budget": budget,
+        "code": code_digest(),
+        "toolchain": toolchain(),
+        "dependencies": dict(sorted((dependencies or {}).items())),
+    }
+
+
+def git_state() -> dict:
+    root = PACKAGE_DIR.parent
+
+    def run(*args):
+        try:
+            out = subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, timeout=10)
+        except (OSError, subprocess.TimeoutExpired):
+            return None
+        return out.stdout.strip() if out.returncode == 0 else None
+
+    commit = run("rev-parse", "HEAD")
+    if commit is None:
+        return {"commit": None, "dirty": None}
+    status = run("status", "--porcelain", "--untracked-files=no", "--", "esr_cli")
+    return {"commit": commit, "dirty": bool(status)}
+
+
+def package_versions() -> dict:
+    out = {}
+    for name in PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def device() -> str:
+    import jax
+
+    d = jax.devices()[0]
+    return f"{d.platform}:{getattr(d, 'device_kind', d.platform)}"
+
+
+def provenance() -> dict:
+    return {
+        "git": git_state(),
+        "packages": package_versions(),
+        "device": device(),
+        "host": platform.node(),
+        "python": platform.python_version(),
+    }

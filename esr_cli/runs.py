@@ -1,0 +1,216 @@
+"""Artifacts made from specs: training runs and evaluations (lookup, lock, resume, commit).
+
+This is the flow of DESIGN.md: key -> lookup (hit: done) -> lock -> partial dir (resume) ->
+train -> commit. Evaluations are artifacts too, keyed by their run and settings; they read
+trained runs only and never train silently.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+from esr_cli import provenance, spec as specs
+from esr_cli.store import Store, StoreError, atomic_write_text, content_key
+
+RUN_KIND, EVAL_KIND = "runs", "evals"
+# Rough upper bound of a checkpoint per seed plus metrics, checked before a run starts.
+MIN_FREE_BYTES_PER_SEED = 32 << 20
+
+
+def run_key(spec) -> tuple[str, dict]:
+    components = provenance.key_components("run", spec.training_part(), spec.budget)
+    return content_key(components), components
+
+
+def _check_disk(store: Store, spec) -> None:
+    need = MIN_FREE_BYTES_PER_SEED * len(spec.train.seeds)
+    free = shutil.disk_usage(store.root).free
+    if free < need:
+        raise StoreError(f"only {free >> 20} MiB free under {store.root}; this run needs about {need >> 20} MiB for checkpoints")
+
+
+def _progress(console: Console) -> Progress:
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[stats]}"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=console,
+        transient=False,
+    )
+
+
+def _fmt_stats(row: dict, steps_per_s: float) -> str:
+    def mean(name):
+        vals = [v for v in row.get(name, []) if v is not None]
+        return float(np.mean(vals)) if vals else float("nan")
+
+    parts = [f"ret {mean('return'):.2f}", f"succ {mean('success'):.2f}"]
+    if "mi_estimate" in row:
+        parts.append(f"MI {mean('mi_estimate'):+.3f}")
+    parts.append(f"{steps_per_s:,.0f} steps/s")
+    return "  ".join(parts)
+
+
+def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
+    """The committed run for `spec`, training it (or resuming it) if needed. -> (path, cache_hit)."""
+    key, components = run_key(spec)
+    hit = store.lookup(RUN_KIND, key)
+    if hit:
+        return hit, True
+    store.ensure_writable()
+
+    def waiting(holder: str):
+        console.print(f"run {key[:12]} is in progress ({holder}); waiting for it to finish")
+
+    with store.lock(RUN_KIND, key, on_wait=waiting):
+        hit = store.lookup(RUN_KIND, key)
+        if hit:
+            return hit, True
+        _check_disk(store, spec)
+        from esr_cli.core import loop
+        from esr_cli.core.train import make_trainer
+
+        pending = {"kind": RUN_KIND, "name": spec.name, "key": key, "budget": spec.budget, "seeds": list(spec.train.seeds)}
+        run_dir = store.begin(RUN_KIND, key, pending)
+        atomic_write_text(run_dir / "spec.yaml", specs.to_yaml(spec))
+        trainer = make_trainer(spec)
+        started = time.time()
+        with _progress(console) as bar:
+            task = bar.add_task(f"{spec.name} [{spec.budget}]", total=spec.train.epochs, stats="compiling...")
+
+            def on_start(epoch, total):
+                if epoch:
+                    console.print(f"resuming {key[:12]} from epoch {epoch} of {total}")
+                bar.update(task, completed=epoch)
+
+            def on_chunk(epoch, total, row, steps_per_s):
+                bar.update(task, completed=epoch, stats=_fmt_stats(row, steps_per_s))
+
+            summary = loop.train(trainer, run_dir, on_chunk=on_chunk, on_start=on_start)
+        rows = loop.read_metrics(run_dir)
+        from esr_cli import plots
+
+        plots.learning_curve(
+            rows,
+            run_dir / "figures" / "learning_curve.png",
+            f"{spec.name} [{spec.method.kind}]",
+            {"artifacts": {RUN_KIND: key}, "budget": spec.budget, "seeds": list(spec.train.seeds)},
+        )
+        manifest = {
+            **pending,
+            "format": 1,
+            "status": "complete",
+            "method": spec.method.kind,
+            "env": spec.env.kind,
+            "key_components": components,
+            "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "wall_time_s": round(time.time() - started, 2),
+            "provenance": provenance.provenance(),
+            "summary": summary,
+        }
+        return store.commit(RUN_KIND, key, manifest), False
+
+
+def find_run(target: str, budget: str, sets, store: Store) -> Path:
+    """A committed run from a spec file (at budget/sets) or an artifact key/path."""
+    p = Path(target)
+    if p.suffix in (".yaml", ".yml") or (p.is_file() and not (p / "manifest.json").exists()):
+        spec = specs.load(p, budget, list(sets or []))
+        key, _ = run_key(spec)
+        hit = store.lookup(RUN_KIND, key)
+        if not hit:
+            cmd = f"esr train {target} --budget {budget}" + "".join(f" --set {s}" for s in (sets or []))
+            raise StoreError(f"{spec.name} ({budget}) is not trained in {store.root}: run `{cmd}` first")
+        return hit
+    path = store.resolve(target)
+    if store.read_manifest(path).get("kind") != RUN_KIND:
+        raise StoreError(f"{target} is not a training run")
+    return path
+
+
+def eval_key(run_manifest: dict, episodes: int) -> tuple[str, dict]:
+    components = {
+        "kind": "eval",
+        "run": run_manifest["key"],
+        "episodes": episodes,
+        "code": provenance.code_digest(),
+        "toolchain": provenance.toolchain(),
+    }
+    return content_key(components), components
+
+
+def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Console) -> tuple[Path, dict, bool]:
+    run_manifest = store.read_manifest(run_path)
+    spec = specs.validate(json.loads(json.dumps(_read_spec(run_path))), str(run_path / "spec.yaml"))
+    episodes = episodes or spec.eval.episodes
+    key, components = eval_key(run_manifest, episodes)
+    hit = store.lookup(EVAL_KIND, key)
+    if hit:
+        return hit, json.loads((hit / "summary.json").read_text()), True
+    store.ensure_writable()
+    with store.lock(EVAL_KIND, key):
+        hit = store.lookup(EVAL_KIND, key)
+        if hit:
+            return hit, json.loads((hit / "summary.json").read_text()), True
+        from esr_cli import plots
+        from esr_cli.core import evaluate as ev, loop
+        from esr_cli.core.train import make_trainer
+
+        pending = {"kind": EVAL_KIND, "name": spec.name, "key": key, "budget": spec.budget, "seeds": list(spec.train.seeds)}
+        eval_dir = store.begin(EVAL_KIND, key, pending)
+        trainer = make_trainer(spec)
+        started = time.time()
+        with console.status(f"evaluating {spec.name}: {episodes} episodes x {len(spec.train.seeds)} seed(s)"):
+            state = loop.final_state(trainer, run_path)
+            results = ev.evaluate(trainer, state, episodes, spec.train.seeds)
+        summary = {"name": spec.name, "budget": spec.budget, "seeds": list(spec.train.seeds), "episodes": episodes,
+                   "run": run_manifest["key"], "results": {}}
+        for mode, r in results.items():
+            rm, rse = ev.mean_se(r["return"])
+            sm, sse = ev.mean_se(r["success"])
+            summary["results"][mode] = {
+                "return_mean": rm, "return_se": rse, "success_mean": sm, "success_se": sse,
+                "return_per_seed": r["return"].mean(axis=1).round(4).tolist(),
+                "success_per_seed": r["success"].mean(axis=1).round(4).tolist(),
+            }
+        atomic_write_text(eval_dir / "summary.json", json.dumps(summary, indent=2))
+        # One picture of the robot at work: the first seed's first episode, first policy mode.
+        mode = ev.policy_modes(trainer)[0]
+        traj = ev.episode_states(results[mode]["states"], 0, 0)
+        frames = [np.asarray(trainer.env.render(_index(traj, t))) for t in range(trainer.env.episode_steps + 1)]
+        plots.rollout_gif(frames, eval_dir / "rollout.gif")
+        prov = {"artifacts": {RUN_KIND: run_manifest["key"], EVAL_KIND: key}, "budget": spec.budget, "seeds": list(spec.train.seeds)}
+        plots.learning_curve(loop.read_metrics(run_path), eval_dir / "learning_curve.png", f"{spec.name} [{spec.method.kind}]", prov)
+        manifest = {
+            **pending,
+            "format": 1,
+            "status": "complete",
+            "key_components": components,
+            "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "wall_time_s": round(time.time() - started, 2),
+            "provenance": provenance.provenance(),
+            "summary": {"return": {"mean": summary["results"][mode]["return_mean"]}, **summary},
+        }
+        return store.commit(EVAL_KIND, key, manifest), summary, False
+
+
+def _read_spec(run_path: Path) -> dict:
+    import yaml
+
+    return yaml.safe_load((run_path / "spec.yaml").read_text())
+
+
+def _index(tree, t: int):
+    import jax
+
+    return jax.tree.map(lambda x: x[t], tree)

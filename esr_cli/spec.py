@@ -1,0 +1,328 @@
+"""Experiment specs: YAML -> validated, frozen pydantic models.
+
+Order of operations (see docs/specs.md):
+  1. read the YAML file (unreadable or missing files are spec errors);
+  2. apply the chosen budget's overrides (`budgets:` in the file, else the defaults below);
+  3. apply `--set key.path=value` overrides from the command line;
+  4. validate the result (unknown keys, types, ranges, cross-field rules).
+Every failure raises `SpecError` naming the file, the key path and the problem.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+BUDGETS = ("paper", "quick", "smoke")
+
+# Budget overrides used when a spec does not define its own `budgets:` entry for that budget.
+# `paper` is the spec as written. `quick` shows learning in minutes on a laptop CPU; `smoke`
+# exercises every code path in seconds (tests).
+DEFAULT_BUDGETS: dict[str, dict[str, Any]] = {
+    "paper": {},
+    "quick": {"train.epochs": 300, "train.seeds": 1, "train.chunk_epochs": 25},
+    "smoke": {
+        "train.epochs": 2,
+        "train.num_envs": 4,
+        "train.seeds": 1,
+        "train.chunk_epochs": 1,
+        "learner.updates_per_epoch": 3,
+        "learner.dual_updates_per_epoch": 3,
+        "learner.batch_size": 16,
+        "method.repr_updates_per_epoch": 3,
+        "eval.episodes": 2,
+    },
+}
+
+
+class SpecError(Exception):
+    """A spec that cannot be used. `str()` is one line naming file, key path and problem."""
+
+    def __init__(self, source: str, path: str, problem: str):
+        self.source, self.path, self.problem = source, path, problem
+        where = f"{source}: " if source else ""
+        key = f"{path}: " if path else ""
+        super().__init__(f"{where}{key}{problem}")
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# ---------------------------------------------------------------- environments
+class GridworldEnvSpec(_Model):
+    kind: Literal["gridworld"]
+    size: int = Field(5, ge=3, le=16, description="grid side length")
+    blocks: int = Field(2, ge=0, description="number of movable blocks")
+    start: Literal["corner", "corner_hard", "center", "random"] = "corner"
+    episode_steps: int = Field(50, ge=1, le=10_000)
+
+    @model_validator(mode="after")
+    def _fits(self):
+        cells = self.size * self.size
+        # The human and the goal each need a cell free of blocks.
+        if self.blocks > cells - 2:
+            raise ValueError(
+                f"blocks={self.blocks} does not fit a {self.size}x{self.size} grid: at most "
+                f"{cells - 2} leave a cell for the human and one for the goal"
+            )
+        if self.start in ("corner", "corner_hard") and self.blocks < 2:
+            raise ValueError(f"start={self.start!r} places two blocks beside the human: needs blocks >= 2")
+        return self
+
+
+EnvSpec = Annotated[Union[GridworldEnvSpec], Field(discriminator="kind")]
+
+
+# ---------------------------------------------------------------- human models
+class NoisyGreedyHumanSpec(_Model):
+    kind: Literal["noisy_greedy"]
+    noise: float = Field(0.2, ge=0.0, le=1.0, description="probability of a uniformly random action")
+
+
+HumanSpec = Annotated[Union[NoisyGreedyHumanSpec], Field(discriminator="kind")]
+
+
+# ---------------------------------------------------------------- methods
+class ESRMethodSpec(_Model):
+    kind: Literal["esr"]
+    repr_dim: int = Field(32, ge=1)
+    reward: Literal["dot"] = "dot"
+    infonce: Literal["stacked", "separate"] = "stacked"
+    condition_on_robot_action: bool = True
+    future_gamma: float = Field(0.9, ge=0.0, lt=1.0, description="future-state horizon: K ~ Geom(1 - future_gamma)")
+    repr_lr: float = Field(1e-4, gt=0.0)
+    repr_updates_per_epoch: int = Field(100, ge=0)
+
+
+class RandomMethodSpec(_Model):
+    kind: Literal["random"]
+
+
+MethodSpec = Annotated[Union[ESRMethodSpec, RandomMethodSpec], Field(discriminator="kind")]
+
+
+# ---------------------------------------------------------------- shared parts
+class NetworkSpec(_Model):
+    conv_channels: tuple[int, ...] = Field((16, 32), description="3x3 SAME convolutions, SiLU")
+    hidden: int = Field(100, ge=1)
+
+    @field_validator("conv_channels")
+    @classmethod
+    def _positive(cls, v):
+        if any(c < 1 for c in v):
+            raise ValueError("every channel count must be >= 1")
+        return v
+
+
+class LearnerSpec(_Model):
+    gamma: float = Field(0.9, ge=0.0, lt=1.0, description="critic discount")
+    lr: float = Field(1e-3, gt=0.0)
+    tau: float = Field(0.005, gt=0.0, le=1.0)
+    target_entropy: float = Field(0.6, ge=0.0)
+    dual_lr: float = Field(0.1, ge=0.0)
+    initial_beta: float = Field(1.0, ge=1e-3, le=100.0)
+    updates_per_epoch: int = Field(100, ge=0)
+    dual_updates_per_epoch: int = Field(100, ge=0)
+    batch_size: int = Field(256, ge=2)
+    buffer_size: int = Field(15_000, ge=1, description="transitions held in the replay buffer")
+
+
+class TrainSpec(_Model):
+    epochs: int = Field(10_000, ge=1)
+    num_envs: int = Field(100, ge=1)
+    seeds: tuple[int, ...] = Field((0, 1, 2, 3, 4), description="a list of seeds, or a count n meaning 0..n-1")
+    chunk_epochs: int = Field(50, ge=1, description="epochs per compiled chunk (progress/checkpoint interval)")
+
+    @field_validator("seeds", mode="before")
+    @classmethod
+    def _count_means_range(cls, v):
+        if isinstance(v, bool):
+            raise ValueError("expected a list of seeds or a count")
+        if isinstance(v, int):
+            if v < 1:
+                raise ValueError("a seed count must be >= 1")
+            return tuple(range(v))
+        return v
+
+    @field_validator("seeds")
+    @classmethod
+    def _distinct(cls, v):
+        if len(v) == 0:
+            raise ValueError("at least one seed is needed")
+        if len(set(v)) != len(v):
+            raise ValueError("seeds must be distinct")
+        if any(s < 0 for s in v):
+            raise ValueError("seeds must be >= 0")
+        return v
+
+
+class EvalSpec(_Model):
+    episodes: int = Field(100, ge=1, description="evaluation episodes per seed and policy")
+
+
+class Spec(_Model):
+    name: str = Field(..., min_length=1, pattern=r"^[A-Za-z0-9_.\-]+$")
+    env: EnvSpec
+    human: HumanSpec
+    method: MethodSpec
+    network: NetworkSpec = NetworkSpec()
+    learner: LearnerSpec = LearnerSpec()
+    train: TrainSpec = TrainSpec()
+    eval: EvalSpec = EvalSpec()
+    budgets: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    budget: Literal["paper", "quick", "smoke"] = "paper"
+
+    @field_validator("budgets")
+    @classmethod
+    def _known_budgets(cls, v):
+        for name in v:
+            if name not in BUDGETS:
+                raise ValueError(f"unknown budget {name!r}; known: {', '.join(BUDGETS)}")
+        return v
+
+    @model_validator(mode="after")
+    def _cross_checks(self):
+        steps = self.env.episode_steps
+        if self.learner.buffer_size < self.train.num_envs * steps:
+            raise ValueError(
+                f"learner.buffer_size={self.learner.buffer_size} cannot hold one epoch "
+                f"(train.num_envs * env.episode_steps = {self.train.num_envs * steps} transitions)"
+            )
+        return self
+
+    def training_part(self) -> dict:
+        """The fields that determine a training run (the artifact key's spec component)."""
+        d = self.model_dump(mode="json")
+        return {k: d[k] for k in ("env", "human", "method", "network", "learner", "train")}
+
+
+# ---------------------------------------------------------------- loading
+def _set_path(tree: dict, dotted: str, value: Any, source: str) -> None:
+    parts = dotted.split(".")
+    if not all(parts):
+        raise SpecError(source, dotted, "malformed key path")
+    node = tree
+    for i, p in enumerate(parts[:-1]):
+        nxt = node.get(p)
+        if nxt is None:
+            nxt = node[p] = {}
+        if not isinstance(nxt, dict):
+            raise SpecError(source, ".".join(parts[: i + 1]), "is not a section, cannot set a key inside it")
+        node = nxt
+    node[parts[-1]] = value
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """`key.path=value` -> (path, YAML-parsed value)."""
+    if "=" not in text:
+        raise SpecError("--set", text, "expected key.path=value")
+    path, raw = text.split("=", 1)
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError as e:
+        raise SpecError("--set", path, f"value is not valid YAML: {e}") from None
+    return path.strip(), value
+
+
+def _coerce_yaml_numbers(tree: Any) -> Any:
+    """PyYAML reads `1e-4` (no dot) as a string; turn such strings back into floats."""
+    if isinstance(tree, dict):
+        return {k: _coerce_yaml_numbers(v) for k, v in tree.items()}
+    if isinstance(tree, list):
+        return [_coerce_yaml_numbers(v) for v in tree]
+    if isinstance(tree, str):
+        try:
+            if any(c in tree.lower() for c in "e.") and tree.strip() == tree:
+                return float(tree)
+        except ValueError:
+            return tree
+    return tree
+
+
+def _format_loc(loc: tuple) -> str:
+    out = []
+    for part in loc:
+        if isinstance(part, int):
+            out.append(f"[{part}]")
+        elif part in ("gridworld", "noisy_greedy", "esr", "random") or "[" in str(part):
+            continue  # pydantic's discriminated-union tags are not user key paths
+        else:
+            out.append(("." if out else "") + str(part))
+    return "".join(out)
+
+
+def validate(raw: dict, source: str = "") -> Spec:
+    try:
+        return Spec.model_validate(raw)
+    except ValidationError as e:
+        err = e.errors()[0]
+        path = _format_loc(tuple(err["loc"]))
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key"
+        elif msg.startswith("Value error, "):
+            msg = msg[len("Value error, ") :]
+        if err["type"] == "union_tag_invalid" or err["type"] == "union_tag_not_found":
+            msg = msg.replace("Input tag", "kind")
+        more = f" (and {len(e.errors()) - 1} more problem(s))" if len(e.errors()) > 1 else ""
+        raise SpecError(source, path, msg + more) from None
+
+
+def load_raw(path: str | Path) -> dict:
+    p = Path(path)
+    source = str(path)
+    if not p.exists():
+        raise SpecError(source, "", "file not found")
+    if not p.is_file():
+        raise SpecError(source, "", "not a file")
+    try:
+        text = p.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise SpecError(source, "", f"cannot read file: {e}") from None
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise SpecError(source, "", f"unreadable YAML{where}: {getattr(e, 'problem', e)}") from None
+    if not isinstance(raw, dict):
+        raise SpecError(source, "", "the top level must be a mapping of sections")
+    return _coerce_yaml_numbers(raw)
+
+
+def resolve(raw: dict, budget: str = "paper", overrides: list[str] | tuple[str, ...] = (), source: str = "") -> Spec:
+    """Apply budget then overrides to a raw spec tree and validate it."""
+    if budget not in BUDGETS:
+        raise SpecError(source, "--budget", f"unknown budget {budget!r}; known: {', '.join(BUDGETS)}")
+    tree = copy.deepcopy(raw)
+    budgets = tree.get("budgets") or {}
+    if not isinstance(budgets, dict):
+        raise SpecError(source, "budgets", "must be a mapping of budget name to overrides")
+    chosen = budgets.get(budget, DEFAULT_BUDGETS[budget])
+    if not isinstance(chosen, dict):
+        raise SpecError(source, f"budgets.{budget}", "must be a mapping of key.path to value")
+    for dotted, value in chosen.items():
+        _set_path(tree, str(dotted), value, source)
+    for text in overrides:
+        dotted, value = parse_override(text)
+        _set_path(tree, dotted, value, "--set")
+    tree["budget"] = budget
+    return validate(tree, source)
+
+
+def load(path: str | Path, budget: str = "paper", overrides: list[str] | tuple[str, ...] = ()) -> Spec:
+    return resolve(load_raw(path), budget, overrides, source=str(path))
+
+
+def canonical_json(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"))
+
+
+def to_yaml(spec: Spec) -> str:
+    return yaml.safe_dump(spec.model_dump(mode="json"), sort_keys=False)
