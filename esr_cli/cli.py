@@ -169,16 +169,14 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as e:  # typer/click's own exits (e.g. --help)
         return int(e.code or 0)
     except Exception as e:  # noqa: BLE001 - every failure becomes one line unless --debug
-        import click
-
         if debug:
             raise
-        if isinstance(e, click.exceptions.Abort):
+        if type(e).__name__ == "Abort":  # the CLI library's Ctrl-C at a prompt
             err.print("aborted")
             return 130
-        if isinstance(e, click.ClickException):
+        if hasattr(e, "show") and hasattr(e, "exit_code"):  # the CLI library's usage errors
             e.show()
-            return 2
+            return int(e.exit_code) if e.exit_code else 2
         if isinstance(e, specs.SpecError):
             code, msg = 2, f"bad spec: {e}"
         elif isinstance(e, Exit):

@@ -25,7 +25,7 @@ BUDGETS = ("paper", "quick", "smoke")
 # exercises every code path in seconds (tests).
 DEFAULT_BUDGETS: dict[str, dict[str, Any]] = {
     "paper": {},
-    "quick": {"train.epochs": 300, "train.seeds": 1, "train.chunk_epochs": 25},
+    "quick": {"train.epochs": 200, "train.seeds": 1, "train.chunk_epochs": 10},
     "smoke": {
         "train.epochs": 2,
         "train.num_envs": 4,
@@ -218,6 +218,22 @@ def _set_path(tree: dict, dotted: str, value: Any, source: str) -> None:
     node[parts[-1]] = value
 
 
+KIND_MODELS = {
+    "env": {"gridworld": GridworldEnvSpec},
+    "human": {"noisy_greedy": NoisyGreedyHumanSpec},
+    "method": {"esr": ESRMethodSpec, "random": RandomMethodSpec},
+}
+
+
+def _kind_has_field(tree: dict, dotted: str) -> bool:
+    section, _, field = dotted.partition(".")
+    if section not in KIND_MODELS:
+        return True
+    kind = (tree.get(section) or {}).get("kind") if isinstance(tree.get(section), dict) else None
+    model = KIND_MODELS[section].get(kind)
+    return model is None or field.split(".")[0] in model.model_fields
+
+
 def parse_override(text: str) -> tuple[str, Any]:
     """`key.path=value` -> (path, YAML-parsed value)."""
     if "=" not in text:
@@ -300,15 +316,21 @@ def resolve(raw: dict, budget: str = "paper", overrides: list[str] | tuple[str, 
     """Apply budget then overrides to a raw spec tree and validate it."""
     if budget not in BUDGETS:
         raise SpecError(source, "--budget", f"unknown budget {budget!r}; known: {', '.join(BUDGETS)}")
+    # The file as written must be valid on its own: a budget must not hide a bad value.
+    validate({**copy.deepcopy(raw), "budget": "paper"}, source)
     tree = copy.deepcopy(raw)
     budgets = tree.get("budgets") or {}
     if not isinstance(budgets, dict):
         raise SpecError(source, "budgets", "must be a mapping of budget name to overrides")
-    chosen = budgets.get(budget, DEFAULT_BUDGETS[budget])
+    own = budget in budgets
+    chosen = budgets[budget] if own else DEFAULT_BUDGETS[budget]
     if not isinstance(chosen, dict):
         raise SpecError(source, f"budgets.{budget}", "must be a mapping of key.path to value")
     for dotted, value in chosen.items():
-        _set_path(tree, str(dotted), value, source)
+        # The default budgets name fields of every kind (e.g. ESR's update count); they apply
+        # only where the spec's kind has that field. A spec's own budgets apply as written.
+        if own or _kind_has_field(tree, str(dotted)):
+            _set_path(tree, str(dotted), value, source)
     for text in overrides:
         dotted, value = parse_override(text)
         _set_path(tree, dotted, value, "--set")

@@ -13,6 +13,7 @@ The host (core/loop.py) only touches the state between chunks.
 
 from __future__ import annotations
 
+import json
 from functools import partial
 from typing import Any, NamedTuple
 
@@ -196,10 +197,22 @@ def make_trainer(spec) -> Trainer:
     )
 
 
+# Jitted programs by (spec, what, n): equal specs compute the same thing, so a process that
+# trains, resumes and evaluates one spec compiles each program once.
+_COMPILED: dict[tuple[str, str, int], Any] = {}
+
+
+def _cached(trainer: Trainer, what: str, n: int, build):
+    key = (json.dumps(trainer.spec.training_part(), sort_keys=True), what, n)
+    if key not in _COMPILED:
+        _COMPILED[key] = build()
+    return _COMPILED[key]
+
+
 def compiled_init(trainer: Trainer):
-    return jax.jit(jax.vmap(trainer.init))
+    return _cached(trainer, "init", 0, lambda: jax.jit(jax.vmap(trainer.init)))
 
 
 def compiled_chunk(trainer: Trainer, n: int):
     """jit(vmap over seeds(scan of n epochs)); metrics come back as [seeds, n]."""
-    return jax.jit(jax.vmap(partial(trainer.run_epochs, n=n)), donate_argnums=0)
+    return _cached(trainer, "chunk", n, lambda: jax.jit(jax.vmap(partial(trainer.run_epochs, n=n)), donate_argnums=0))

@@ -56,10 +56,28 @@ def mutual_information_estimate(phi_s, phi_sa, psi) -> jax.Array:
     return jnp.mean(jnp.sum((phi_sa - phi_s) * psi, axis=-1)) / d
 
 
-def contrastive_accuracy(phi_sa, psi) -> jax.Array:
-    """How often phi(s, aR, aH) picks its own future among the B in the batch (chance 1/B)."""
-    logits = phi_sa @ psi.T
-    return jnp.mean(jnp.argmax(logits, axis=1) == jnp.arange(logits.shape[0]))
+def same_future(future_obs: jax.Array) -> jax.Array:
+    """bool[B, B]: which futures in the batch are the same state (duplicates are common)."""
+    flat = future_obs.reshape(future_obs.shape[0], -1)
+    return jnp.all(flat[:, None, :] == flat[None, :, :], axis=-1)
+
+
+def contrastive_accuracy(phi_sa, psi, same=None) -> jax.Array:
+    """How often phi(s, aR, aH) picks its own future among the B in the batch.
+
+    With `same` (see `same_future`), picking an identical copy of the true future counts as
+    right: the representations cannot tell identical states apart, and in the gridworld many
+    futures in a batch are the same state.
+    """
+    pick = jnp.argmax(phi_sa @ psi.T, axis=1)
+    if same is None:
+        return jnp.mean(pick == jnp.arange(psi.shape[0]))
+    return jnp.mean(same[jnp.arange(psi.shape[0]), pick])
+
+
+def contrastive_chance(same) -> jax.Array:
+    """The accuracy of guessing uniformly among the batch: mean fraction of identical futures."""
+    return jnp.mean(same)
 
 
 def empowerment_reward(phi_s, phi_sa, psi) -> jax.Array:
@@ -78,7 +96,7 @@ class ESR(NamedTuple):
     network_spec: object
 
     learns_policy: bool = True
-    metric_names: tuple = ("repr_loss", "mi_estimate", "contrastive_accuracy")
+    metric_names: tuple = ("repr_loss", "mi_estimate", "contrastive_accuracy", "contrastive_chance")
 
     @property
     def updates_per_epoch(self) -> int:
@@ -132,12 +150,14 @@ class ESR(NamedTuple):
             return infonce_loss(phi_s, phi_sa, psi, self.spec.infonce), (phi_s, phi_sa, psi)
 
         (loss, (phi_s, phi_sa, psi)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        same = same_future(batch.future_obs)
         updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         metrics = {
             "repr_loss": loss,
             "mi_estimate": mutual_information_estimate(phi_s, phi_sa, psi),
-            "contrastive_accuracy": contrastive_accuracy(phi_sa, psi),
+            "contrastive_accuracy": contrastive_accuracy(phi_sa, psi, same),
+            "contrastive_chance": contrastive_chance(same),
         }
         return ESRState(params=params, opt_state=opt_state), metrics
 

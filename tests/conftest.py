@@ -1,0 +1,34 @@
+"""Shared fixtures. Compiled training programs dominate the suite's time, so the one smoke
+run that several end-to-end tests inspect is made once per session."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def esr(*args, store, check=True, timeout=600):
+    """Run the real CLI in a subprocess; -> CompletedProcess."""
+    env = {**os.environ, "ESR_STORE": str(store), "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.run(
+        [sys.executable, "-m", "esr_cli.cli", *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout
+    )
+    if check and proc.returncode != 0:
+        raise AssertionError(f"esr {' '.join(args)} exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}")
+    return proc
+
+
+@pytest.fixture(scope="session")
+def smoke_store(tmp_path_factory):
+    return tmp_path_factory.mktemp("store")
+
+
+@pytest.fixture(scope="session")
+def smoke_run(smoke_store):
+    """`esr train experiments/grid_2.yaml --budget smoke` once: (store, artifact path, process)."""
+    proc = esr("train", "experiments/grid_2.yaml", "--budget", "smoke", store=smoke_store)
+    return smoke_store, Path(proc.stdout.strip().splitlines()[-1]), proc

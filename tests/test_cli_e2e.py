@@ -1,0 +1,105 @@
+"""The real CLI end to end on smoke budgets: train, cache hit, ls, show, verify, eval, resume."""
+
+import json
+import os
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+
+from conftest import esr
+
+
+def test_train_commits_a_complete_artifact(smoke_run):
+    store, path, proc = smoke_run
+    assert path.is_dir() and path.parent.parent.name == "runs"
+    m = json.loads((path / "manifest.json").read_text())
+    assert m["status"] == "complete" and m["name"] == "grid_2" and m["budget"] == "smoke"
+    assert set(m["key_components"]) == {"kind", "spec", "budget", "code", "toolchain", "dependencies"}
+    rows = [json.loads(line) for line in (path / "metrics.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in rows] == [1, 2]
+    for name in ("return", "success", "mi_estimate", "contrastive_accuracy", "beta", "policy_entropy", "critic_loss", "repr_loss"):
+        assert len(rows[-1][name]) == 1 and rows[-1][name][0] is not None, name
+    assert (path / "figures" / "learning_curve.png").stat().st_size > 1000
+    assert (path / "spec.yaml").exists() and list((path / "checkpoints").iterdir())
+    assert not list(path.parent.glob("*.partial"))
+
+
+def test_repeat_is_a_fast_cache_hit(smoke_run):
+    store, path, _ = smoke_run
+    t0 = time.time()
+    proc = esr("train", "experiments/grid_2.yaml", "--budget", "smoke", store=store)
+    assert time.time() - t0 < 10
+    assert proc.stdout.strip() == str(path)
+    assert "cache hit" in proc.stderr
+
+
+def test_ls_show_verify(smoke_run):
+    store, path, _ = smoke_run
+    ls = esr("ls", store=store).stdout
+    assert "grid_2" in ls and path.name[:12] in ls and "complete" in ls
+    show = esr("show", path.name[:8], store=store).stdout
+    assert '"key_components"' in show and '"toolchain"' in show and '"code"' in show
+    assert "verify" and esr("verify", path.name, store=store).returncode == 0
+
+
+def test_unknown_key_is_a_one_line_error(smoke_run):
+    store, _, _ = smoke_run
+    proc = esr("show", "ffffffff", store=store, check=False)
+    assert proc.returncode == 2 and "no artifact" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_eval_writes_summary_gif_and_curve(smoke_run):
+    store, run_path, _ = smoke_run
+    proc = esr("eval", "experiments/grid_2.yaml", "--budget", "smoke", store=store)
+    path = Path(proc.stdout.strip().splitlines()[-1])
+    summary = json.loads((path / "summary.json").read_text())
+    assert set(summary["results"]) == {"sample", "greedy"}
+    assert summary["run"] == run_path.name
+    for r in summary["results"].values():
+        assert 0 <= r["success_mean"] <= 1 and 0 <= r["return_mean"] <= 50
+    assert (path / "rollout.gif").stat().st_size > 500 and (path / "learning_curve.png").exists()
+    again = esr("eval", run_path.name, store=store)
+    assert "cache hit" in again.stderr and again.stdout.strip() == str(path)
+
+
+def test_eval_of_an_untrained_spec_says_how_to_train(smoke_run):
+    store, _, _ = smoke_run
+    proc = esr("eval", "experiments/grid_2.yaml", "--budget", "smoke", "--set", "learner.gamma=0.5", store=store, check=False)
+    assert proc.returncode == 2 and "esr train experiments/grid_2.yaml" in proc.stderr
+
+
+def test_random_robot_runs_on_the_same_runner(smoke_store):
+    proc = esr("train", "experiments/grid_2_random.yaml", "--budget", "smoke", store=smoke_store)
+    path = Path(proc.stdout.strip().splitlines()[-1])
+    row = json.loads((path / "metrics.jsonl").read_text().splitlines()[-1])
+    assert row["return"][0] is not None and row["critic_loss"] == [None]  # learns nothing, by design
+
+
+def test_interrupted_run_resumes_to_the_same_result(tmp_path):
+    """SIGINT after the first chunk: saved, stopped; the second call resumes; the result equals
+    an uninterrupted run's bit for bit."""
+    from esr_cli import spec as specs
+    from esr_cli.core import loop
+    from esr_cli.core.train import make_trainer
+
+    spec = specs.load("experiments/grid_2.yaml", "smoke")
+    trainer = make_trainer(spec)
+    whole = tmp_path / "whole"
+    whole.mkdir()
+    loop.train(trainer, whole)
+
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    try:
+        loop.train(trainer, cut, on_chunk=lambda *a: os.kill(os.getpid(), signal.SIGINT))
+        raise AssertionError("the run did not stop")
+    except loop.Interrupted as e:
+        assert e.epoch == 1
+    assert len(loop.read_metrics(cut)) == 1
+    loop.train(trainer, cut)
+    assert loop.read_metrics(cut) == loop.read_metrics(whole)
+    a, b = loop.final_state(trainer, whole), loop.final_state(trainer, cut)
+    for x, y in zip(__import__("jax").tree.leaves(a), __import__("jax").tree.leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

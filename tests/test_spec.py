@@ -1,0 +1,123 @@
+"""Spec loading and validation: every bad spec names file, key path and problem, exits 2,
+and leaves the store as it was."""
+
+from pathlib import Path
+
+import pytest
+
+from esr_cli import spec as specs
+from esr_cli.cli import main
+
+EXPERIMENTS = sorted(Path("experiments").glob("*.yaml"))
+GOOD = """
+name: t
+env: {kind: gridworld, size: 5, blocks: 2}
+human: {kind: noisy_greedy}
+method: {kind: esr}
+"""
+
+
+@pytest.mark.parametrize("path", EXPERIMENTS, ids=lambda p: p.stem)
+@pytest.mark.parametrize("budget", specs.BUDGETS)
+def test_every_experiment_loads_at_every_budget(path, budget):
+    spec = specs.load(path, budget)
+    assert spec.budget == budget
+
+
+def test_defaults_filled_and_frozen(tmp_path):
+    f = tmp_path / "s.yaml"
+    f.write_text(GOOD)
+    spec = specs.load(f)
+    assert spec.learner.batch_size == 256 and spec.method.repr_dim == 32 and spec.train.seeds == (0, 1, 2, 3, 4)
+    with pytest.raises(Exception):
+        spec.learner.gamma = 0.5  # frozen
+
+
+def test_budgets_and_overrides(tmp_path):
+    f = tmp_path / "s.yaml"
+    f.write_text(GOOD + "budgets: {quick: {train.epochs: 7}}\n")
+    assert specs.load(f, "quick").train.epochs == 7
+    assert specs.load(f, "smoke").train.epochs == specs.DEFAULT_BUDGETS["smoke"]["train.epochs"]
+    s = specs.load(f, "paper", ["learner.gamma=0", "train.seeds=3", "method.repr_lr=1e-5"])
+    assert s.learner.gamma == 0.0 and s.train.seeds == (0, 1, 2) and s.method.repr_lr == 1e-5
+    assert specs.load(f, "paper", ["train.seeds=[4, 9]"]).train.seeds == (4, 9)
+
+
+def test_yaml_exponent_without_dot_is_a_number(tmp_path):
+    f = tmp_path / "s.yaml"
+    f.write_text(GOOD.replace("method: {kind: esr}", "method: {kind: esr, repr_lr: 3e-5}"))
+    assert specs.load(f).method.repr_lr == 3e-5
+
+
+def test_training_part_excludes_name_and_eval(tmp_path):
+    f = tmp_path / "s.yaml"
+    f.write_text(GOOD)
+    a = specs.load(f)
+    b = specs.load(f, "paper", ["name=other", "eval.episodes=5"])
+    assert a.training_part() == b.training_part()
+    assert a.training_part() != specs.load(f, "paper", ["learner.gamma=0"]).training_part()
+
+
+BAD = {
+    "unknown key": (GOOD + "learner: {gama: 0.9}\n", "learner.gama", "unknown key"),
+    "wrong type": (GOOD + "train: {epochs: many}\n", "train.epochs", "integer"),
+    "out of range": (GOOD.replace("blocks: 2}", "blocks: 2, size: 2}"), "env.size", "greater than or equal to 3"),
+    "negative lr": (GOOD + "learner: {lr: -1}\n", "learner.lr", "greater than 0"),
+    "too many blocks": (GOOD.replace("blocks: 2", "blocks: 24"), "env", "does not fit"),
+    "corner needs two blocks": (GOOD.replace("blocks: 2", "blocks: 1"), "env", "blocks >= 2"),
+    "buffer too small": (GOOD + "learner: {buffer_size: 100}\n", "", "cannot hold one epoch"),
+    "unknown kind": (GOOD.replace("kind: esr", "kind: magic"), "method", "kind"),
+    "missing section": ("name: t\nenv: {kind: gridworld}\nhuman: {kind: noisy_greedy}\n", "method", "Field required"),
+    "duplicate seeds": (GOOD + "train: {seeds: [1, 1]}\n", "train.seeds", "distinct"),
+    "unreadable yaml": ("name: t\nenv: {kind: gridworld\n", "", "unreadable YAML"),
+    "not a mapping": ("- 1\n- 2\n", "", "mapping"),
+    "unknown budget entry": (GOOD + "budgets: {huge: {train.epochs: 1}}\n", "budgets", "unknown budget"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_spec_names_key_and_problem(tmp_path, case):
+    text, path, problem = BAD[case]
+    f = tmp_path / "bad.yaml"
+    f.write_text(text)
+    with pytest.raises(specs.SpecError) as e:
+        specs.load(f)
+    assert e.value.path == path
+    assert problem in e.value.problem
+    assert str(f) in str(e.value)
+
+
+def test_missing_file():
+    with pytest.raises(specs.SpecError, match="file not found"):
+        specs.load("experiments/nope.yaml")
+
+
+def test_bad_override():
+    with pytest.raises(specs.SpecError) as e:
+        specs.load("experiments/grid_2.yaml", "paper", ["learner.nope=1"])
+    assert e.value.path == "learner.nope"
+    with pytest.raises(specs.SpecError, match="key.path=value"):
+        specs.load("experiments/grid_2.yaml", "paper", ["learner.gamma"])
+    with pytest.raises(specs.SpecError, match="unknown budget"):
+        specs.load("experiments/grid_2.yaml", "huge")
+
+
+@pytest.mark.parametrize("case", ["unknown key", "wrong type", "out of range", "too many blocks", "unreadable yaml"])
+def test_cli_exits_2_and_leaves_the_store_alone(tmp_path, capsys, case):
+    text, path, problem = BAD[case]
+    f = tmp_path / "bad.yaml"
+    f.write_text(text)
+    store = tmp_path / "store"
+    assert main(["--store", str(store), "train", str(f), "--budget", "smoke"]) == 2
+    msg = capsys.readouterr().err
+    assert str(f) in msg and problem in msg and (path in msg)
+    assert not store.exists()
+
+
+def test_cli_missing_file_and_bad_set(tmp_path, capsys):
+    store = tmp_path / "store"
+    assert main(["--store", str(store), "train", str(tmp_path / "missing.yaml")]) == 2
+    assert "file not found" in capsys.readouterr().err
+    assert main(["--store", str(store), "train", "experiments/grid_2.yaml", "--set", "train.epochs=0"]) == 2
+    assert "train.epochs" in capsys.readouterr().err
+    assert not store.exists()

@@ -1,0 +1,102 @@
+"""The artifact store: keys, atomic commit, locking, verification."""
+
+import json
+import subprocess
+import sys
+import time
+
+import pytest
+
+from esr_cli.store import Store, StoreError, content_key
+
+
+def test_content_key_is_canonical():
+    assert content_key({"a": 1, "b": [1, 2]}) == content_key({"b": [1, 2], "a": 1})
+    assert content_key({"a": 1}) != content_key({"a": 2})
+
+
+def make_artifact(store, key="ab" * 16):
+    d = store.begin("runs", key, {"name": "x", "key": key})
+    (d / "metrics.jsonl").write_text('{"epoch": 1}\n')
+    (d / "sub").mkdir()
+    (d / "sub" / "data.bin").write_bytes(b"\x00\x01\x02")
+    assert store.lookup("runs", key) is None  # not visible before commit
+    return store.commit("runs", key, {"kind": "runs", "name": "x", "key": key})
+
+
+def test_commit_is_a_rename_with_digests(tmp_path):
+    store = Store(tmp_path)
+    key = "ab" * 16
+    path = make_artifact(store, key)
+    assert path == store.lookup("runs", key)
+    assert not store.partial_path("runs", key).exists()
+    m = store.read_manifest(path)
+    assert set(m["files"]) == {"metrics.jsonl", "sub/data.bin"}
+    assert store.verify(path) == []
+    assert store.resolve(key[:6]) == path and store.resolve(str(path)) == path
+
+
+def test_verify_finds_a_flipped_byte_and_a_deleted_file(tmp_path):
+    store = Store(tmp_path)
+    path = make_artifact(store)
+    data = path / "sub" / "data.bin"
+    data.write_bytes(b"\x00\x01\x03")
+    (path / "metrics.jsonl").unlink()
+    problems = store.verify(path)
+    assert any("changed file sub/data.bin" in p for p in problems)
+    assert any("missing file metrics.jsonl" in p for p in problems)
+
+
+def test_resolve_errors(tmp_path):
+    store = Store(tmp_path)
+    first = make_artifact(store, "abcd" + "0" * 28)
+    make_artifact(store, "abcd" + "1" * 28)
+    with pytest.raises(StoreError, match="ambiguous"):
+        store.resolve("abcd")
+    assert store.resolve("abcd0") == first
+    with pytest.raises(StoreError, match="no artifact"):
+        store.resolve("ffff")
+    with pytest.raises(StoreError, match="no artifact"):
+        store.resolve("not-a-key")
+
+
+def test_unwritable_store(tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")  # a store root below a plain file can never be created (root or not)
+    with pytest.raises(StoreError, match="not writable"):
+        Store(blocker / "store").ensure_writable()
+
+
+def test_lock_excludes_a_second_process(tmp_path):
+    store = Store(tmp_path)
+    key = "cd" * 16
+    holder = subprocess.Popen(
+        [sys.executable, "-c", (
+            "import sys, time; from esr_cli.store import Store; s = Store(sys.argv[1]);\n"
+            "with s.lock('runs', sys.argv[2]):\n    print('held', flush=True); time.sleep(3)"
+        ), str(tmp_path), key],
+        stdout=subprocess.PIPE, text=True,
+    )
+    assert holder.stdout.readline().strip() == "held"
+    waited = []
+    t0 = time.time()
+    with store.lock("runs", key, on_wait=waited.append, poll_s=0.1):
+        elapsed = time.time() - t0
+    holder.wait()
+    assert waited and "pid" in waited[0]
+    assert elapsed > 1.0
+
+
+def test_lock_of_a_dead_process_is_free(tmp_path):
+    store = Store(tmp_path)
+    key = "ef" * 16
+    p = subprocess.Popen([sys.executable, "-c", (
+        "import os, sys; from esr_cli.store import Store; s = Store(sys.argv[1]);\n"
+        "with s.lock('runs', sys.argv[2]):\n    os.kill(os.getpid(), 9)"
+    ), str(tmp_path), key])
+    p.wait()
+    assert store.lock_path("runs", key).exists()
+    t0 = time.time()
+    with store.lock("runs", key, on_wait=lambda h: pytest.fail("waited on a dead process")):
+        pass
+    assert time.time() - t0 < 1.0
