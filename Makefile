@@ -1,0 +1,31 @@
+# esr: the two set-up commands are `make demo` and `make test` (each installs first if needed).
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+DEMO_SET := --budget quick --set train.epochs=40
+
+.PHONY: install demo test bench clean-venv
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[test]'
+	@touch $(STAMP)
+
+# A small ESR run on the N = 2 gridworld (a few minutes on 2 CPU cores), then its evaluation:
+# prints the training artifact, the evaluation artifact, its GIF and its learning curve.
+demo: install
+	$(BIN)/esr train experiments/grid_2.yaml $(DEMO_SET)
+	$(BIN)/esr eval experiments/grid_2.yaml $(DEMO_SET)
+
+test: install
+	$(BIN)/python -m pytest
+
+bench: install
+	$(BIN)/python benchmarks/bench.py
+
+clean-venv:
+	rm -rf $(VENV)

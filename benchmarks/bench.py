@@ -1,0 +1,175 @@
+"""Speed and memory of the training core (`make bench`). Not a test: it prints figures.
+
+For each configuration and each number of seeds vmapped in one program, in a fresh
+subprocess (so peak memory is that program's alone):
+  compile time (ahead-of-time lowering + compile of one chunk), seconds per epoch,
+  environment steps per second, gradient updates per second, achieved GFLOP/s (XLA's own
+  count of one epoch's floating-point work), and peak resident memory.
+It also measures this machine's float32 matmul peak, for scale.
+
+Output: a table on stdout, a JSON file (--out), and a last line with the headline figure
+(gridworld paper configuration, seconds per epoch, 1 seed).
+
+    python benchmarks/bench.py                 # grid_2 paper config; seeds 1, 5, 20
+    python benchmarks/bench.py --seeds 1 --epochs 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = {"gridworld grid_2 (paper)": "experiments/grid_2.yaml"}
+
+
+def matmul_peak_gflops(n: int = 2048, reps: int = 10) -> float:
+    import jax
+    import jax.numpy as jnp
+
+    a = jax.random.normal(jax.random.PRNGKey(0), (n, n), jnp.float32)
+    f = jax.jit(lambda x: x @ x)
+    f(a).block_until_ready()
+    t = time.perf_counter()
+    for _ in range(reps):
+        out = f(a)
+    out.block_until_ready()
+    return 2 * n**3 * reps / (time.perf_counter() - t) / 1e9
+
+
+def epoch_flops(trainer) -> float:
+    """XLA's flop count of one epoch, from its parts (scan bodies are counted once by XLA)."""
+    import jax
+    import jax.numpy as jnp
+
+    from esr_cli.core import buffer as replay
+
+    spec = trainer.spec
+    state = trainer.init(0)
+    batch = replay.sample(state.buffer, jax.random.PRNGKey(0), spec.learner.batch_size, trainer.future_gamma)
+
+    def flops(fn, *args):
+        cost = jax.jit(fn).lower(*args).compile().cost_analysis()
+        cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+        return float(cost.get("flops", 0.0))
+
+    total = flops(lambda l, k: trainer.rollout(l, k, spec.train.num_envs), state.learner, jax.random.PRNGKey(1))
+    # The rollout's scan body is counted once: scale by the episode length.
+    total *= trainer.env.episode_steps
+    m = trainer.method
+    if m.updates_per_epoch:
+        total += m.updates_per_epoch * flops(lambda s, b: m.update(s, b, None), state.method, batch)
+    if m.learns_policy:
+        def critic(l, s, b):
+            r = m.reward(s, b, None)
+            return trainer.learner.critic_step(l, b.obs, b.robot_action, r, b.next_obs, b.done)
+
+        total += spec.learner.updates_per_epoch * flops(critic, state.learner, state.method, batch)
+        total += spec.learner.dual_updates_per_epoch * flops(lambda l, o: trainer.learner.dual_step(l, o), state.learner, batch.obs)
+    return total
+
+
+def measure(spec_path: str, seeds: int, epochs: int) -> dict:
+    """One configuration in this process: -> figures."""
+    import resource
+
+    import jax
+    import jax.numpy as jnp
+
+    from esr_cli import spec as specs
+    from esr_cli.core.train import compiled_init, make_trainer
+
+    spec = specs.load(ROOT / spec_path, "paper", [f"train.seeds={seeds}", f"train.chunk_epochs={epochs}"])
+    trainer = make_trainer(spec)
+    state = compiled_init(trainer)(jnp.asarray(spec.train.seeds, jnp.int32))
+    chunk = jax.jit(jax.vmap(lambda s: trainer.run_epochs(s, epochs)), donate_argnums=0)
+    t = time.perf_counter()
+    compiled = chunk.lower(state).compile()
+    compile_s = time.perf_counter() - t
+    state, m = compiled(state)  # warm-up: first call touches all buffers
+    jax.block_until_ready(m)
+    t = time.perf_counter()
+    state, m = compiled(state)
+    jax.block_until_ready(m)
+    per_epoch = (time.perf_counter() - t) / epochs
+    steps = spec.train.num_envs * trainer.env.episode_steps * seeds
+    updates = (
+        trainer.method.updates_per_epoch
+        + (spec.learner.updates_per_epoch + spec.learner.dual_updates_per_epoch) * trainer.method.learns_policy
+    ) * seeds
+    flops = epoch_flops(trainer) * seeds
+    return {
+        "config": spec_path,
+        "seeds": seeds,
+        "num_envs": spec.train.num_envs,
+        "compile_s": round(compile_s, 2),
+        "s_per_epoch": round(per_epoch, 3),
+        "env_steps_per_s": round(steps / per_epoch),
+        "updates_per_s": round(updates / per_epoch, 1),
+        "gflop_per_epoch": round(flops / 1e9, 1),
+        "gflops": round(flops / per_epoch / 1e9, 1),
+        "peak_rss_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
+        "device": str(jax.devices()[0]),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 5, 20])
+    ap.add_argument("--epochs", type=int, default=3, help="epochs per timed chunk")
+    ap.add_argument("--out", default="benchmarks/results.json")
+    ap.add_argument("--one", nargs=3, help=argparse.SUPPRESS)  # internal: spec seeds epochs
+    args = ap.parse_args()
+    if args.one:
+        print(json.dumps(measure(args.one[0], int(args.one[1]), int(args.one[2]))))
+        return
+
+    import jax
+
+    peak = matmul_peak_gflops()
+    rows = []
+    for name, path in CONFIGS.items():
+        for n in args.seeds:
+            print(f"measuring {name}, {n} seed(s)...", file=sys.stderr, flush=True)
+            proc = subprocess.run(
+                [sys.executable, __file__, "--one", path, str(n), str(args.epochs)],
+                capture_output=True, text=True, cwd=ROOT,
+            )
+            if proc.returncode != 0:
+                print(proc.stderr, file=sys.stderr)
+                raise SystemExit(f"benchmark of {name} with {n} seeds failed")
+            rows.append({"name": name, **json.loads(proc.stdout.strip().splitlines()[-1])})
+    machine = {
+        "cpu": platform.processor() or platform.machine(),
+        "cores": os.cpu_count(),
+        "device": str(jax.devices()[0]),
+        "jax": jax.__version__,
+        "matmul_peak_gflops": round(peak, 1),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+    }
+    header = f"{'configuration':28} {'seeds':>5} {'compile s':>9} {'s/epoch':>8} {'steps/s':>9} {'updates/s':>9} {'GFLOP/ep':>8} {'GFLOP/s':>8} {'% peak':>6} {'peak MiB':>8}"
+    print(f"machine: {machine}")
+    print(header)
+    for r in rows:
+        print(
+            f"{r['name']:28} {r['seeds']:>5} {r['compile_s']:>9.1f} {r['s_per_epoch']:>8.3f} {r['env_steps_per_s']:>9,} "
+            f"{r['updates_per_s']:>9.1f} {r['gflop_per_epoch']:>8.1f} {r['gflops']:>8.1f} {100 * r['gflops'] / peak:>6.1f} {r['peak_rss_mib']:>8}"
+        )
+    one = next((r for r in rows if r["seeds"] == 1), rows[0])
+    for r in rows:
+        if r["seeds"] > 1 and r["name"] == one["name"]:
+            print(f"{r['seeds']} seeds: {r['s_per_epoch'] / one['s_per_epoch']:.2f}x the 1-seed time per epoch ({r['seeds']}x would be no gain from vmap)")
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps({"machine": machine, "results": rows}, indent=2))
+    print(f"wrote {args.out}")
+    print(f"headline: gridworld paper config, {one['seeds']} seed: {one['s_per_epoch']:.2f} s per epoch ({one['gflops']:.0f} GFLOP/s, matmul peak {peak:.0f})")
+
+
+if __name__ == "__main__":
+    main()
