@@ -102,6 +102,56 @@ def eval_(
     out.print(str(path), soft_wrap=True, highlight=False)
 
 
+# ---------------------------------------------------------------- exact / plot
+@app.command()
+def exact(
+    spec_file: Path = typer.Argument(..., help="a gridworld spec (YAML)", show_default=False),
+    budget: str = BudgetOpt,
+    set_: Optional[List[str]] = SetOpt,
+    robot: Optional[str] = typer.Option(None, "--robot", help="a training run (key or path) whose Boltzmann policy the robot follows; default uniform"),
+    goal: Optional[str] = typer.Option(None, "--goal", help="the human's goal cell 'row,col' (default: the centre)"),
+    gamma: Optional[float] = typer.Option(None, "--gamma", help="future-state horizon (default: the spec's method.future_gamma)"),
+    seed_index: int = typer.Option(0, "--seed-index", help="which seed of --robot's run"),
+):
+    """Exact effective empowerment of a small gridworld: I(aH; s+ | s, aR) for every state."""
+    from esr_cli import exact_runs
+
+    spec = _load_spec(spec_file, budget, set_)
+    cell = None
+    if goal is not None:
+        try:
+            cell = tuple(int(v) for v in goal.split(","))
+            assert len(cell) == 2
+        except (ValueError, AssertionError):
+            raise Exit(2, f"--goal: expected 'row,col', got {goal!r}") from None
+    path, summary, cached = exact_runs.ensure_exact(spec, STATE.store, cell, gamma, robot, seed_index, err)
+    table = Table(title=f"exact empowerment: {spec.name}, goal {tuple(summary['goal'])}, gamma {summary['gamma']}")
+    table.add_column("quantity")
+    table.add_column("value")
+    for k in ("states", "effective_empowerment", "mean_mi_visited", "mean_mi_uniform_states", "max_mi", "states_with_zero_mi"):
+        v = summary[k]
+        table.add_row(k, f"{v:.4f}" if isinstance(v, float) else str(v))
+    err.print(table)
+    err.print(f"[green]{'cache hit' if cached else 'computed'}[/]: {path}")
+    out.print(str(path), soft_wrap=True, highlight=False)
+
+
+@app.command()
+def plot(
+    figure: str = typer.Argument(..., help="which figure: estimator", show_default=False),
+    ref: str = typer.Argument(..., help="its input artifact (for estimator: an exact artifact made with --robot)", show_default=False),
+):
+    """Draw a figure from artifacts (never trains)."""
+    from esr_cli import exact_runs
+
+    if figure != "estimator":
+        raise Exit(2, f"unknown figure {figure!r}; known: estimator")
+    path, result, cached = exact_runs.ensure_estimator_figure(ref, STATE.store, err)
+    err.print(f"Spearman rank correlation of ESR's reward with the exact MI: {result['spearman']:.3f} over {result['pairs']} (state, robot action) pairs")
+    err.print(f"[green]{'cache hit' if cached else 'drawn'}[/]: {path / 'estimator.png'}")
+    out.print(str(path / "estimator.png"), soft_wrap=True, highlight=False)
+
+
 # ---------------------------------------------------------------- ls / show / verify
 @app.command("ls")
 def ls():
@@ -159,7 +209,7 @@ def verify(ref: Optional[str] = typer.Argument(None, help="artifact key or path 
 
 # ---------------------------------------------------------------- entry point
 def main(argv: list[str] | None = None) -> int:
-    from esr_cli.core.loop import Diverged, Interrupted
+    from esr_cli.core.loop import CorruptCheckpoint, Diverged, Interrupted
 
     argv = sys.argv[1:] if argv is None else argv
     debug = "--debug" in argv
@@ -185,6 +235,8 @@ def main(argv: list[str] | None = None) -> int:
             code, msg = 2, str(e)
         elif isinstance(e, Interrupted):
             code, msg = 130, f"interrupted after epoch {e.epoch}; the checkpoint is saved: run the same command again to resume"
+        elif isinstance(e, CorruptCheckpoint):
+            code, msg = 1, str(e)
         elif isinstance(e, Diverged):
             code, msg = 1, f"run diverged: {e} (the partial run is kept for inspection)"
         elif isinstance(e, KeyboardInterrupt):

@@ -80,3 +80,17 @@ def rollout_gif(frames: list[np.ndarray], out_gif: Path, fps: int = 6) -> Path:
     out_gif.parent.mkdir(parents=True, exist_ok=True)
     imageio.mimsave(out_gif, frames, duration=1.0 / fps, loop=0)
     return out_gif
+
+
+def estimator_scatter(exact_mi, estimate, spearman: float, out_png: Path, provenance: dict) -> Path:
+    """ESR's reward estimate against the exact conditional MI, one point per (state, robot action)."""
+    fig, ax = plt.subplots(figsize=(4.8, 4.2))
+    rng = np.random.default_rng(0)
+    idx = rng.choice(len(exact_mi), size=min(len(exact_mi), 20_000), replace=False)
+    ax.scatter(np.asarray(exact_mi)[idx], np.asarray(estimate)[idx], s=3, alpha=0.3, color="C0", linewidths=0)
+    ax.set_xlabel("exact I(aH; s+ | s, aR)  (nats)")
+    ax.set_ylabel("ESR reward, averaged over g ~ rho")
+    ax.set_title(f"ESR estimator vs exact MI (Spearman {spearman:.3f})", fontsize=10)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return save_figure(fig, out_png, provenance)

@@ -20,16 +20,28 @@ from importlib import metadata
 from pathlib import Path
 
 PACKAGE_DIR = Path(__file__).resolve().parent
-# Source that defines what a training run computes. CLI, store, plotting and docs are left
-# out on purpose: changing how results are shown must not invalidate trained artifacts.
-TRAINING_SOURCES = ("envs", "humans", "methods", "core", "networks.py", "spec.py")
+# Source that defines what a training run computes. The host loop (chunking, checkpoints,
+# progress), CLI, store, plotting and docs are left out on purpose: they do not change the
+# numbers (resuming is bit-identical), and changing how results are shown or stored must not
+# invalidate trained artifacts. Evaluations add the evaluation code.
+TRAINING_SOURCES = (
+    "envs",
+    "humans",
+    "methods",
+    "networks.py",
+    "spec.py",
+    "core/train.py",
+    "core/buffer.py",
+    "core/learner.py",
+)
+EVAL_SOURCES = TRAINING_SOURCES + ("core/evaluate.py",)
 PACKAGES = ("jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy", "esr-cli")
 
 
 @cache
-def code_digest() -> str:
+def code_digest(sources: tuple[str, ...] = TRAINING_SOURCES) -> str:
     h = hashlib.blake2b(digest_size=16)
-    for name in TRAINING_SOURCES:
+    for name in sources:
         p = PACKAGE_DIR / name
         files = sorted(p.rglob("*.py")) if p.is_dir() else [p]
         for f in files:

@@ -24,6 +24,20 @@ RUN_KIND, EVAL_KIND = "runs", "evals"
 MIN_FREE_BYTES_PER_SEED = 32 << 20
 
 
+def enable_compile_cache() -> None:
+    """Keep compiled XLA programs on disk ($ESR_COMPILE_CACHE, default ~/.cache/esr/jax;
+    `off` disables): resuming, evaluating or re-running a spec then skips most compile time."""
+    import os
+
+    import jax
+
+    where = os.environ.get("ESR_COMPILE_CACHE", str(Path.home() / ".cache" / "esr" / "jax"))
+    if where.lower() in ("", "0", "off", "none"):
+        return
+    jax.config.update("jax_compilation_cache_dir", where)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
 def run_key(spec) -> tuple[str, dict]:
     components = provenance.key_components("run", spec.training_part(), spec.budget)
     return content_key(components), components
@@ -68,6 +82,7 @@ def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
     if hit:
         return hit, True
     store.ensure_writable()
+    enable_compile_cache()
 
     def waiting(holder: str):
         console.print(f"run {key[:12]} is in progress ({holder}); waiting for it to finish")
@@ -143,7 +158,7 @@ def eval_key(run_manifest: dict, episodes: int) -> tuple[str, dict]:
         "kind": "eval",
         "run": run_manifest["key"],
         "episodes": episodes,
-        "code": provenance.code_digest(),
+        "code": provenance.code_digest(provenance.EVAL_SOURCES),
         "toolchain": provenance.toolchain(),
     }
     return content_key(components), components
@@ -158,6 +173,7 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
     if hit:
         return hit, json.loads((hit / "summary.json").read_text()), True
     store.ensure_writable()
+    enable_compile_cache()
     with store.lock(EVAL_KIND, key):
         hit = store.lookup(EVAL_KIND, key)
         if hit:

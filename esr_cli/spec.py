@@ -25,7 +25,7 @@ BUDGETS = ("paper", "quick", "smoke")
 # exercises every code path in seconds (tests).
 DEFAULT_BUDGETS: dict[str, dict[str, Any]] = {
     "paper": {},
-    "quick": {"train.epochs": 200, "train.seeds": 1, "train.chunk_epochs": 10},
+    "quick": {"train.epochs": 150, "train.seeds": 1, "train.chunk_epochs": 10},
     "smoke": {
         "train.epochs": 2,
         "train.num_envs": 4,

@@ -28,8 +28,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
 
+from esr_cli import faults
+
 MANIFEST = "manifest.json"
-KINDS = ("runs", "evals")
+KINDS = ("runs", "evals", "exact", "figures")
 
 
 class StoreError(Exception):
@@ -196,6 +198,7 @@ class Store:
         manifest = {**manifest, "files": files}
         atomic_write_text(partial / MANIFEST, json.dumps(manifest, indent=2, sort_keys=True))
         _fsync_dir(partial)
+        faults.reached("before_rename")
         if final.exists():  # a committed copy already exists (should not happen under the lock)
             shutil.rmtree(partial)
             return final

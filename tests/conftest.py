@@ -11,9 +11,22 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def esr(*args, store, check=True, timeout=600):
+@pytest.fixture(scope="session", autouse=True)
+def compile_cache(tmp_path_factory):
+    """One persistent XLA compilation cache for the session: CLI subprocesses that run the
+    same programs (train, resume, eval) compile them once."""
+    path = tmp_path_factory.mktemp("xla-cache")
+    os.environ["ESR_COMPILE_CACHE"] = str(path)
+    yield path
+
+
+def esr_env(store, **extra):
+    return {**os.environ, "ESR_STORE": str(store), "PYTHONUNBUFFERED": "1", **extra}
+
+
+def esr(*args, store, check=True, timeout=600, **extra_env):
     """Run the real CLI in a subprocess; -> CompletedProcess."""
-    env = {**os.environ, "ESR_STORE": str(store), "PYTHONUNBUFFERED": "1"}
+    env = esr_env(store, **extra_env)
     proc = subprocess.run(
         [sys.executable, "-m", "esr_cli.cli", *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout
     )

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
+from esr_cli import faults
 from esr_cli.core.train import TrainState, Trainer, compiled_chunk, compiled_init
 
 METRICS_FILE = "metrics.jsonl"
@@ -36,6 +37,10 @@ class Interrupted(Exception):
         super().__init__(f"interrupted after epoch {epoch}")
 
 
+class CorruptCheckpoint(Exception):
+    """A checkpoint exists but cannot be restored."""
+
+
 class Diverged(Exception):
     """A non-finite value appeared; the run stops and is not committed."""
 
@@ -43,7 +48,11 @@ class Diverged(Exception):
 def checkpoint_manager(run_dir: Path) -> ocp.CheckpointManager:
     return ocp.CheckpointManager(
         (Path(run_dir) / CHECKPOINT_DIR).absolute(),
-        options=ocp.CheckpointManagerOptions(max_to_keep=2, create=True, enable_async_checkpointing=False),
+        # cleanup_tmp_directories: a save cut short by a kill leaves a temporary directory;
+        # it is removed when the run resumes (orbax commits a step by renaming it into place).
+        options=ocp.CheckpointManagerOptions(
+            max_to_keep=2, create=True, enable_async_checkpointing=False, cleanup_tmp_directories=True
+        ),
     )
 
 
@@ -54,7 +63,15 @@ def restore_latest(trainer: Trainer, run_dir: Path, seeds) -> tuple[TrainState, 
     step = mngr.latest_step()
     if step is None:
         return template, 0
-    state = mngr.restore(step, args=ocp.args.StandardRestore(template))
+    try:
+        state = mngr.restore(step, args=ocp.args.StandardRestore(template))
+    except Exception as e:  # noqa: BLE001 - orbax raises many kinds; all mean the same here
+        raise CorruptCheckpoint(
+            f"checkpoint {Path(run_dir) / CHECKPOINT_DIR / str(step)} cannot be read ({type(e).__name__}: "
+            f"{str(e).splitlines()[0] if str(e) else ''}); remove {run_dir} to start this run over"
+        ) from None
+    finally:
+        mngr.close()
     return state, int(step)
 
 
@@ -152,11 +169,13 @@ def train(
 
     previous = signal.signal(signal.SIGINT, on_sigint)
     compiled: dict[int, Callable] = {}
+    chunks_done = 0
     try:
         while epoch < total:
             n = min(chunk, total - epoch)
             if n not in compiled:
                 compiled[n] = compiled_chunk(trainer, n)
+            faults.reached("compile", chunks_done + 1)
             t0 = time.perf_counter()
             state, metrics = compiled[n](state)
             metrics = {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
@@ -166,8 +185,11 @@ def train(
             with open(run_dir / METRICS_FILE, "a") as f:
                 f.write("".join(json.dumps(r) + "\n" for r in rows))
             epoch += n
+            chunks_done += 1
+            faults.reached("after_metrics", chunks_done)
             mngr.save(epoch, args=ocp.args.StandardSave(state))
             mngr.wait_until_finished()
+            faults.reached("after_checkpoint", chunks_done)
             if on_chunk:
                 on_chunk(epoch, total, rows[-1], n * steps_per_epoch * len(seeds) / max(elapsed, 1e-9))
             if interrupted["flag"]:

@@ -1,0 +1,212 @@
+"""Exact effective empowerment on small gridworlds (ground truth for the ESR estimator).
+
+For a gridworld with a fixed goal, every state reachable from the start states is enumerated
+(human cell, set of block cells; blocks are interchangeable, as in the robot's observation).
+The environment's own `step` gives the deterministic transitions next(s, aR, aH), and the
+human model its exact policy pi_H(aH | s). For a robot policy pi_R:
+
+    P[s, s']  = sum_{aR, aH} pi_R(aR | s) pi_H(aH | s) [next(s, aR, aH) = s']
+    M         = (1 - gamma) (I - gamma P)^-1        rows: the discounted occupancy from a state
+    rho(. | s, aR, aH) = M[next(s, aR, aH)]         the future state s+ = s_{t+K},
+                                                    K ~ Geometric(1 - gamma) on {1, 2, ...}
+    rho(. | s, aR)     = sum_aH pi_H(aH | s) rho(. | s, aR, aH)
+    I(aH; s+ | s, aR)  = sum_aH pi_H(aH | s) KL(rho(. | s, aR, aH) || rho(. | s, aR))   (nats)
+
+and the effective empowerment of the policy pair from start distribution mu0,
+    E = sum_t gamma^t E[I(aH_t; s+ | s_t, aR_t)] = mu0 (I - gamma P)^-1 m,
+    m(s) = sum_aR pi_R(aR | s) I(aH; s+ | s, aR).
+
+The MDP is the infinite-horizon one (no 50-step cut-off), matching the geometric future of
+ESR's buffer except near episode ends. Everything is vectorised: transitions by `vmap` of
+the environment, occupancies by one dense linear solve.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from esr_cli.envs.gridworld import GridState, Gridworld
+
+
+@dataclass(frozen=True)
+class StateSpace:
+    env: Gridworld
+    goal: tuple[int, int]
+    human: np.ndarray  # int32[S, 2]
+    blocks: np.ndarray  # int32[S, N, 2], sorted row-major
+    next_state: np.ndarray  # int32[S, A_R, A_H]
+    start: np.ndarray  # float64[S]: the start distribution given this goal
+
+    @property
+    def size(self) -> int:
+        return len(self.human)
+
+    def states(self) -> GridState:
+        n = self.size
+        return GridState(
+            human=jnp.asarray(self.human),
+            blocks=jnp.asarray(self.blocks),
+            goal=jnp.broadcast_to(jnp.asarray(self.goal, jnp.int32), (n, 2)),
+            t=jnp.zeros((n,), jnp.int32),
+        )
+
+
+def _canonical(human: np.ndarray, blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sort each state's blocks row-major so that equal observations are equal states."""
+    order = np.argsort(blocks[..., 0] * 1000 + blocks[..., 1], axis=-1)
+    return human, np.take_along_axis(blocks, order[..., None], axis=-2)
+
+
+def _keys(human: np.ndarray, blocks: np.ndarray) -> list[bytes]:
+    flat = np.concatenate([human.reshape(len(human), -1), blocks.reshape(len(blocks), -1)], axis=1)
+    return [row.astype(np.int8).tobytes() for row in flat]
+
+
+def enumerate_states(env: Gridworld, goal, starts: GridState, max_states: int = 200_000) -> StateSpace:
+    """Breadth-first enumeration of every state reachable from `starts` (a batch of states
+    with this goal) under all joint actions."""
+    goal = tuple(int(g) for g in goal)
+    a_r, a_h = env.num_robot_actions, env.num_human_actions
+    goal_arr = jnp.asarray(goal, jnp.int32)
+
+    @jax.jit
+    def successors(human, blocks):
+        def one(h, b):
+            s = GridState(human=h, blocks=b, goal=goal_arr, t=jnp.zeros((), jnp.int32))
+            def joint(ar, ah):
+                nxt, _ = env.step(s, ar, ah)
+                return nxt.human, nxt.blocks
+            return jax.vmap(lambda ar: jax.vmap(lambda ah: joint(ar, ah))(jnp.arange(a_h)))(jnp.arange(a_r))
+        return jax.vmap(one)(human, blocks)
+
+    start_h, start_b = _canonical(np.asarray(starts.human), np.asarray(starts.blocks))
+    index: dict[bytes, int] = {}
+    humans, blockss, start_ids = [], [], []
+    for k, h, b in zip(_keys(start_h, start_b), start_h, start_b):
+        if k not in index:
+            index[k] = len(humans)
+            humans.append(h)
+            blockss.append(b)
+        start_ids.append(index[k])
+    transitions = []  # per processed state, int[A_R, A_H]
+    done = 0
+    while done < len(humans):
+        batch = slice(done, min(len(humans), done + 512))
+        nh, nb = successors(jnp.asarray(np.stack(humans[batch])), jnp.asarray(np.stack(blockss[batch])))
+        nh, nb = np.asarray(nh), np.asarray(nb)
+        shape = nh.shape[:3]
+        nh, nb = _canonical(nh.reshape(-1, 2), nb.reshape(-1, *nb.shape[3:]))
+        ids = np.empty(len(nh), np.int64)
+        for i, (k, h, b) in enumerate(zip(_keys(nh, nb), nh, nb)):
+            j = index.get(k)
+            if j is None:
+                j = index[k] = len(humans)
+                humans.append(h)
+                blockss.append(b)
+            ids[i] = j
+        transitions.extend(ids.reshape(shape))
+        done = batch.stop
+        if len(humans) > max_states:
+            raise ValueError(f"more than {max_states} reachable states: too large for exact analysis")
+    start = np.bincount(start_ids, minlength=len(humans)).astype(np.float64)
+    return StateSpace(
+        env=env,
+        goal=goal,
+        human=np.stack(humans).astype(np.int32),
+        blocks=np.stack(blockss).astype(np.int32),
+        next_state=np.stack(transitions).astype(np.int32),
+        start=start / start.sum(),
+    )
+
+
+def human_policy(space: StateSpace, human) -> np.ndarray:
+    """float64[S, A_H]: the human model's exact action distribution in every state."""
+    return np.asarray(jax.jit(jax.vmap(human.action_probs))(space.states()), dtype=np.float64)
+
+
+def uniform_robot(space: StateSpace) -> np.ndarray:
+    a = space.env.num_robot_actions
+    return np.full((space.size, a), 1.0 / a)
+
+
+def boltzmann_robot(space: StateSpace, log_probs_fn: Callable) -> np.ndarray:
+    """float64[S, A_R] from a function of a batch of observations -> log-probabilities."""
+    obs = jax.vmap(space.env.observe)(space.states())
+    return np.exp(np.asarray(log_probs_fn(obs), dtype=np.float64))
+
+
+def transition_matrix(space: StateSpace, pi_robot: np.ndarray, pi_human: np.ndarray) -> np.ndarray:
+    """P[s, s'] under the joint policy (dense float64[S, S])."""
+    s, a_r, a_h = space.next_state.shape
+    weights = pi_robot[:, :, None] * pi_human[:, None, :]
+    p = np.zeros((s, s))
+    np.add.at(p, (np.repeat(np.arange(s), a_r * a_h), space.next_state.reshape(-1)), weights.reshape(-1))
+    return p
+
+
+def occupancy(p: np.ndarray, gamma: float) -> np.ndarray:
+    """M = (1 - gamma) (I - gamma P)^-1: row s is the distribution of s_{t+K}, K ~ Geom from s_{t+1} = s."""
+    n = len(p)
+    return (1.0 - gamma) * np.linalg.solve(np.eye(n) - gamma * p, np.eye(n))
+
+
+def _mutual_information(m: np.ndarray, nxt: np.ndarray, pi_h: np.ndarray) -> np.ndarray:
+    """I(aH; s+ | s, aR) for rows of next states nxt int[U, A_H] with human policy pi_h [U, A_H]."""
+    rho = m[nxt]  # [U, A_H, S]
+    mix = np.einsum("uh,uhs->us", pi_h, rho)[:, None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        terms = np.where(rho > 0, rho * np.log(rho / np.where(mix > 0, mix, 1.0)), 0.0)
+    return np.einsum("uh,uh->u", pi_h, terms.sum(axis=-1))
+
+
+@dataclass(frozen=True)
+class Empowerment:
+    mi: np.ndarray  # float64[S, A_R]: I(aH; s+ | s, aR), nats
+    state_mi: np.ndarray  # float64[S]: expected over the robot policy
+    value: np.ndarray  # float64[S]: discounted effective empowerment from each state
+    effective_empowerment: float  # from the start distribution
+    occupancy: np.ndarray  # M, float64[S, S]
+    visitation: np.ndarray  # float64[S]: discounted state distribution from the start, sums to 1
+
+
+def empowerment(space: StateSpace, pi_robot: np.ndarray, pi_human: np.ndarray, gamma: float, batch: int = 256) -> Empowerment:
+    p = transition_matrix(space, pi_robot, pi_human)
+    m = occupancy(p, gamma)
+    # Most robot actions are no-ops or share their effect: compute each distinct
+    # (state, next states over aH) once.
+    s, a_r, a_h = space.next_state.shape
+    rows = np.concatenate([np.repeat(np.arange(s), a_r)[:, None], space.next_state.reshape(s * a_r, a_h)], axis=1)
+    unique, inverse = np.unique(rows, axis=0, return_inverse=True)
+    mi_unique = np.concatenate(
+        [
+            _mutual_information(m, unique[i : i + batch, 1:], pi_human[unique[i : i + batch, 0]])
+            for i in range(0, len(unique), batch)
+        ]
+    )
+    mi = np.maximum(mi_unique[inverse.reshape(-1)].reshape(s, a_r), 0.0)  # KL >= 0; clip rounding
+    state_mi = np.sum(pi_robot * mi, axis=1)
+    a = np.eye(space.size) - gamma * p
+    value = np.linalg.solve(a, state_mi)
+    visitation = (1.0 - gamma) * np.linalg.solve(a.T, space.start)
+    return Empowerment(
+        mi=mi, state_mi=state_mi, value=value, effective_empowerment=float(space.start @ value),
+        occupancy=m, visitation=visitation,
+    )
+
+
+def start_states(env: Gridworld, goal, samples: int = 4096, seed: int = 0) -> GridState:
+    """Start states of `env` whose goal is `goal`: resets are sampled and given this goal, and
+    those where the goal cell is occupied are dropped (the reset never puts the goal there)."""
+    states = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(seed), samples))
+    goal_arr = jnp.asarray(goal, jnp.int32)
+    occupied = jnp.all(states.human == goal_arr, axis=-1) | jnp.any(jnp.all(states.blocks == goal_arr, axis=-1), axis=-1)
+    keep = np.flatnonzero(~np.asarray(occupied))
+    return GridState(
+        human=states.human[keep], blocks=states.blocks[keep],
+        goal=jnp.broadcast_to(goal_arr, (len(keep), 2)), t=states.t[keep],
+    )

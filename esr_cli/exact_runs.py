@@ -1,0 +1,211 @@
+"""Exact-empowerment artifacts (`esr exact`) and the estimator check (`esr plot estimator`).
+
+An exact artifact holds, for one gridworld spec, goal, discount and robot policy (uniform or
+a trained run's Boltzmann policy), the exact I(aH; s+ | s, aR) for every reachable state and
+robot action, and the effective empowerment (esr_cli/analysis/exact.py).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+
+from esr_cli import provenance, spec as specs
+from esr_cli.store import Store, StoreError, atomic_write_text, content_key
+
+EXACT_KIND = "exact"
+FIGURE_KIND = "figures"
+
+
+def _load_run(store: Store, ref: str):
+    """(run path, its spec, its final TrainState) for a committed training run."""
+    from esr_cli.core import loop
+    from esr_cli.core.train import make_trainer
+
+    path = store.resolve(ref)
+    manifest = store.read_manifest(path)
+    if manifest.get("kind") != "runs":
+        raise StoreError(f"{ref} is not a training run")
+    import yaml
+
+    spec = specs.validate(yaml.safe_load((path / "spec.yaml").read_text()), str(path / "spec.yaml"))
+    trainer = make_trainer(spec)
+    return path, manifest, trainer, loop.final_state(trainer, path)
+
+
+def _seed_slice(tree, i: int):
+    import jax
+
+    return jax.tree.map(lambda x: x[i], tree)
+
+
+def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | None, seed_index: int, console: Console):
+    from esr_cli.analysis import exact
+    from esr_cli.envs import make_env
+    from esr_cli.humans import make_human
+
+    if spec.env.kind != "gridworld":
+        raise StoreError("exact empowerment is defined for gridworld specs only")
+    size = spec.env.size
+    goal = tuple(goal) if goal else (size // 2, size // 2)
+    if not all(0 <= g < size for g in goal):
+        raise StoreError(f"--goal {goal} is outside the {size}x{size} grid")
+    gamma = float(gamma if gamma is not None else getattr(spec.method, "future_gamma", spec.learner.gamma))
+    if not 0.0 <= gamma < 1.0:
+        raise StoreError(f"--gamma must be in [0, 1), got {gamma}")
+    robot_manifest = None
+    if robot:
+        run_path, robot_manifest, trainer, state = _load_run(store, robot)
+        if trainer.spec.env != spec.env:
+            raise StoreError(f"robot {robot} was trained on another environment than {spec.name}")
+        if not 0 <= seed_index < len(trainer.spec.train.seeds):
+            raise StoreError(f"--seed-index {seed_index} out of range for a run with {len(trainer.spec.train.seeds)} seeds")
+    components = {
+        "kind": "exact",
+        "env": spec.training_part()["env"],
+        "human": spec.training_part()["human"],
+        "goal": list(goal),
+        "gamma": gamma,
+        "robot": {"run": robot_manifest["key"], "seed_index": seed_index} if robot_manifest else "uniform",
+        "code": provenance.code_digest(provenance.EVAL_SOURCES + ("analysis",)),
+        "toolchain": provenance.toolchain(),
+    }
+    key = content_key(components)
+    hit = store.lookup(EXACT_KIND, key)
+    if hit:
+        return hit, json.loads((hit / "summary.json").read_text()), True
+    store.ensure_writable()
+    with store.lock(EXACT_KIND, key):
+        hit = store.lookup(EXACT_KIND, key)
+        if hit:
+            return hit, json.loads((hit / "summary.json").read_text()), True
+        pending = {"kind": EXACT_KIND, "name": spec.name, "key": key, "budget": spec.budget, "seeds": []}
+        out = store.begin(EXACT_KIND, key, pending)
+        started = time.time()
+        env = make_env(spec.env)
+        human = make_human(spec.human, env)
+        with console.status("enumerating reachable states"):
+            space = exact.enumerate_states(env, goal, exact.start_states(env, goal))
+        console.print(f"{space.size} reachable states, {env.num_robot_actions} robot actions")
+        pi_h = exact.human_policy(space, human)
+        if robot:
+            lstate = _seed_slice(state.learner, seed_index)
+            pi_r = exact.boltzmann_robot(space, lambda obs: trainer.learner.log_probs(lstate, obs))
+        else:
+            pi_r = exact.uniform_robot(space)
+        with console.status("solving for occupancies and mutual information"):
+            emp = exact.empowerment(space, pi_r, pi_h, gamma)
+        np.savez_compressed(
+            out / "exact.npz", human=space.human, blocks=space.blocks, next_state=space.next_state, start=space.start,
+            pi_human=pi_h, pi_robot=pi_r, mi=emp.mi, state_mi=emp.state_mi, value=emp.value,
+        )
+        summary = {
+            "name": spec.name, "goal": list(goal), "gamma": gamma, "states": space.size,
+            "robot": components["robot"],
+            "effective_empowerment": emp.effective_empowerment,
+            "mean_mi_uniform_states": float(emp.state_mi.mean()),
+            "mean_mi_visited": float(emp.visitation @ emp.state_mi),
+            "max_mi": float(emp.mi.max()),
+            "states_with_zero_mi": int((emp.state_mi < 1e-9).sum()),
+        }
+        atomic_write_text(out / "summary.json", json.dumps(summary, indent=2))
+        manifest = {
+            **pending, "format": 1, "status": "complete", "key_components": components,
+            "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "wall_time_s": round(time.time() - started, 2),
+            "provenance": provenance.provenance(), "summary": summary,
+        }
+        return store.commit(EXACT_KIND, key, manifest), summary, False
+
+
+def ensure_estimator_figure(exact_ref: str, store: Store, console: Console) -> tuple[Path, dict, bool]:
+    """`esr plot estimator`: a figure artifact (kind `figures`) from an exact artifact."""
+    exact_path = store.resolve(exact_ref)
+    manifest = store.read_manifest(exact_path)
+    if manifest.get("kind") != EXACT_KIND:
+        raise StoreError(f"{exact_ref} is not an exact-empowerment artifact (make one with `esr exact SPEC --robot RUN`)")
+    components = {"kind": "figure", "figure": "estimator", "exact": manifest["key"],
+                  "code": provenance.code_digest(provenance.EVAL_SOURCES + ("analysis",))}
+    key = content_key(components)
+    hit = store.lookup(FIGURE_KIND, key)
+    if hit:
+        return hit, json.loads((hit / "summary.json").read_text()), True
+    store.ensure_writable()
+    with store.lock(FIGURE_KIND, key):
+        pending = {"kind": FIGURE_KIND, "name": f"estimator-{manifest['name']}", "key": key,
+                   "budget": manifest.get("budget"), "seeds": []}
+        out = store.begin(FIGURE_KIND, key, pending)
+        with console.status("computing ESR's estimate for every state and robot action"):
+            result = estimator_check(exact_path, store, out / "estimator.png")
+        atomic_write_text(out / "summary.json", json.dumps(result, indent=2))
+        manifest_out = {**pending, "format": 1, "status": "complete", "key_components": components,
+                        "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "provenance": provenance.provenance(),
+                        "summary": result}
+        return store.commit(FIGURE_KIND, key, manifest_out), result, False
+
+
+def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None) -> dict:
+    """ESR's reward, averaged over g from the exact future distribution, against the exact MI.
+
+    For every (s, aR): est(s, aR) = sum_aH pi_H(aH | s) (phi(s, aR, aH) - phi'(s, aR)) . psibar,
+    psibar = sum_g rho(g | s, aR, aH) psi(g). The exact artifact must have been computed for
+    the run's own robot (`esr exact SPEC --robot RUN`), so that rho is the future the
+    representations were trained on. -> Spearman rank correlation and a scatter plot.
+    """
+    import jax
+    import jax.numpy as jnp
+    from scipy.stats import spearmanr
+
+    from esr_cli import plots
+    from esr_cli.analysis import exact
+    from esr_cli.envs.gridworld import GridState
+
+    manifest = store.read_manifest(exact_path)
+    robot = manifest["key_components"]["robot"]
+    if robot == "uniform":
+        raise StoreError("this exact artifact is for a uniform robot: run `esr exact SPEC --robot RUN` for an ESR run first")
+    run_path, run_manifest, trainer, state = _load_run(store, robot["run"])
+    if trainer.spec.method.kind != "esr":
+        raise StoreError("the estimator check needs an ESR run")
+    data = np.load(exact_path / "exact.npz")
+    mstate = _seed_slice(state.method, robot["seed_index"])
+    goal = jnp.asarray(manifest["key_components"]["goal"], jnp.int32)
+    n = len(data["human"])
+    states = GridState(jnp.asarray(data["human"]), jnp.asarray(data["blocks"]), jnp.broadcast_to(goal, (n, 2)), jnp.zeros((n,), jnp.int32))
+    env = trainer.env
+    obs = jax.vmap(env.observe)(states)
+    esr = trainer.method
+    psi_all = np.asarray(esr.psi_net.apply(mstate.params["psi"], obs), dtype=np.float64)  # [S, d]
+    gamma = manifest["key_components"]["gamma"]
+    space = exact.StateSpace(env=env, goal=tuple(manifest["key_components"]["goal"]), human=data["human"], blocks=data["blocks"], next_state=data["next_state"], start=data["start"])
+    m = exact.occupancy(exact.transition_matrix(space, data["pi_robot"], data["pi_human"]), gamma)
+    psibar = m @ psi_all  # [S, d]: expected psi(g) from each next state
+    a_r, a_h = env.num_robot_actions, env.num_human_actions
+
+    @jax.jit
+    def phis(obs_b, ar_b, ah_b):
+        phi_s, phi_sa, _ = esr.represent(mstate.params, obs_b, ar_b, ah_b, obs_b)
+        return phi_s, phi_sa
+
+    est = np.zeros((n, a_r))
+    for h in range(a_h):
+        for s0 in range(0, n, 64):
+            sl = slice(s0, min(n, s0 + 64))
+            b = sl.stop - sl.start
+            ob = jnp.repeat(obs[sl], a_r, axis=0)
+            ar = jnp.tile(jnp.arange(a_r), b)
+            phi_s, phi_sa = phis(ob, ar, jnp.full((b * a_r,), h))
+            diff = (np.asarray(phi_sa) - np.asarray(phi_s)).reshape(b, a_r, -1)
+            nxt = data["next_state"][sl, :, h]  # [b, A_R]
+            est[sl] += data["pi_human"][sl, h][:, None] * np.einsum("brd,brd->br", diff, psibar[nxt])
+    mi = data["mi"]
+    rho, _ = spearmanr(est.reshape(-1), mi.reshape(-1))
+    result = {"spearman": float(rho), "pairs": int(mi.size), "run": run_manifest["key"], "exact": manifest["key"]}
+    if out_png is not None:
+        plots.estimator_scatter(mi.reshape(-1), est.reshape(-1), float(rho), out_png,
+                                {"artifacts": {"runs": run_manifest["key"], "exact": manifest["key"]},
+                                 "budget": run_manifest.get("budget"), "seeds": run_manifest.get("seeds")})
+    return result

@@ -1,0 +1,137 @@
+"""Exact empowerment: occupancies are distributions, MI vanishes exactly where the human's
+action cannot matter, and matches a Monte-Carlo estimate from the real environment."""
+
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from esr_cli.analysis import exact
+from esr_cli.envs.gridworld import Gridworld, GridState
+from esr_cli.humans.gridworld import NoisyGreedyHuman
+
+GAMMA = 0.7
+GOAL = (2, 2)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    env = Gridworld(size=3, num_blocks=1, start="random", episode_steps=50)
+    human = NoisyGreedyHuman(env=env, noise=0.3)
+    space = exact.enumerate_states(env, GOAL, exact.start_states(env, GOAL, 512))
+    pi_h = exact.human_policy(space, human)
+    pi_r = exact.uniform_robot(space)
+    return env, human, space, pi_h, pi_r, exact.empowerment(space, pi_r, pi_h, GAMMA)
+
+
+def index_of(space, human, block):
+    hits = np.flatnonzero(np.all(space.human == human, axis=1) & np.all(space.blocks[:, 0] == block, axis=1))
+    assert len(hits) == 1
+    return int(hits[0])
+
+
+def test_enumeration_is_closed_and_complete(tiny):
+    env, _, space, *_ = tiny
+    # 9 human cells x 9 block cells (the block may sit on the human), except the human on the
+    # goal under the block: nothing moves once the human is on its goal, and it cannot step
+    # onto a block.
+    assert space.size == 80
+    assert space.next_state.shape == (80, 45, 5)
+    assert space.next_state.max() < space.size
+    assert abs(space.start.sum() - 1) < 1e-12
+
+
+def test_rho_is_a_distribution(tiny):
+    *_, emp = tiny
+    np.testing.assert_allclose(emp.occupancy.sum(axis=1), 1.0, atol=1e-10)
+    assert (emp.occupancy >= -1e-12).all()
+
+
+def test_mi_is_zero_where_the_human_cannot_matter(tiny):
+    env, _, space, _, _, emp = tiny
+    dead = index_of(space, [1, 1], [1, 1])  # block on the human
+    at_goal = index_of(space, list(GOAL), [0, 0])
+    for s in (dead, at_goal):
+        np.testing.assert_allclose(emp.mi[s], 0.0, atol=1e-12)
+    assert emp.value[dead] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_mi_is_positive_for_a_free_human(tiny):
+    _, _, space, _, _, emp = tiny
+    free = index_of(space, [0, 0], [0, 2])
+    assert (emp.mi[free] > 1e-3).all()
+    assert emp.effective_empowerment > 0
+
+
+def test_mi_matches_monte_carlo_rollouts_of_the_environment(tiny):
+    env, human, space, pi_h, _, emp = tiny
+    s = index_of(space, [0, 0], [1, 1])
+    a_r = 4 * 5 + 1  # push the centre block down
+    n = 40_000
+    goal = jnp.asarray(GOAL, jnp.int32)
+    start = GridState(jnp.asarray(space.human[s]), jnp.asarray(space.blocks[s]), goal, jnp.zeros((), jnp.int32))
+    keys = {tuple(h) + tuple(b.reshape(-1)): i for i, (h, b) in enumerate(zip(space.human, space.blocks))}
+
+    def future(key, a_h):
+        k_geo, k_steps = jax.random.split(key)
+        steps = jax.random.geometric(k_geo, 1 - GAMMA)  # K on {1, 2, ...}
+        first, _ = env.step(start, jnp.asarray(a_r), a_h)
+
+        def body(i, st):
+            k_r, k_h = jax.random.split(jax.random.fold_in(k_steps, i))
+            nxt, _ = env.step(st, jax.random.randint(k_r, (), 0, env.num_robot_actions), human.act(k_h, st))
+            return jax.tree.map(lambda a, b: jnp.where(i < steps - 1, a, b), nxt, st)
+
+        return jax.lax.fori_loop(0, 40, body, first)
+
+    rho_hat = []
+    for a_h in range(5):
+        ends = jax.jit(jax.vmap(lambda k: future(k, jnp.asarray(a_h))))(jax.random.split(jax.random.PRNGKey(a_h), n))
+        h, b = exact._canonical(np.asarray(ends.human), np.asarray(ends.blocks))
+        idx = [keys[tuple(x) + tuple(y.reshape(-1))] for x, y in zip(h, b)]
+        rho_hat.append(np.bincount(idx, minlength=space.size) / n)
+        # the geometric tail beyond 40 steps has mass 0.7^40 ~ 1e-6: negligible
+        np.testing.assert_allclose(rho_hat[-1], emp.occupancy[space.next_state[s, a_r, a_h]], atol=0.01)
+    rho_hat = np.array(rho_hat)
+    mix = pi_h[s] @ rho_hat
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kl = np.where(rho_hat > 0, rho_hat * np.log(rho_hat / mix), 0.0).sum(axis=1)
+    mc = float(pi_h[s] @ kl)
+    assert mc == pytest.approx(emp.mi[s, a_r], abs=0.02)
+    assert emp.mi[s, a_r] > 0.05
+
+
+TINY_SPEC = """
+name: tiny
+env: {kind: gridworld, size: 3, blocks: 2, start: corner}
+human: {kind: noisy_greedy, noise: 0.2}
+method: {kind: esr, future_gamma: 0.7}
+"""
+
+
+def test_exact_and_estimator_cli(tmp_path):
+    from conftest import esr
+
+    spec = tmp_path / "tiny.yaml"
+    spec.write_text(TINY_SPEC)
+    store = tmp_path / "store"
+    uniform = esr("exact", str(spec), "--goal", "1,1", store=store)
+    path = Path(uniform.stdout.strip())
+    summary = json.loads((path / "summary.json").read_text())
+    assert summary["states"] > 50 and summary["effective_empowerment"] > 0 and summary["goal"] == [1, 1]
+    data = np.load(path / "exact.npz")
+    assert data["mi"].shape == (summary["states"], 45) and (data["mi"] >= 0).all()
+    assert "cache hit" in esr("exact", str(spec), "--goal", "1,1", store=store).stderr
+    run = Path(esr("train", str(spec), "--budget", "smoke", store=store).stdout.strip())
+    with_robot = Path(esr("exact", str(spec), "--budget", "smoke", "--goal", "1,1", "--robot", run.name, store=store).stdout.strip())
+    fig = esr("plot", "estimator", with_robot.name, store=store)
+    png = Path(fig.stdout.strip())
+    assert png.exists() and png.with_suffix(".json").exists()
+    assert "Spearman" in fig.stderr
+    result = json.loads((png.parent / "summary.json").read_text())
+    assert -1 <= result["spearman"] <= 1
+    bad = esr("plot", "estimator", path.name, store=store, check=False)
+    assert bad.returncode == 2 and "--robot" in bad.stderr

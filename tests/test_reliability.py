@@ -1,0 +1,161 @@
+"""Reliability: kills at every stage, Ctrl-C, two writers, divergence, corruption, bad input.
+See docs/reliability.md."""
+
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from conftest import ROOT, esr, esr_env
+
+SMOKE = ("train", "experiments/grid_2.yaml", "--budget", "smoke")
+
+
+def committed(store):
+    return [p for p in Path(store).glob("runs/*/*") if p.is_dir() and not p.name.endswith(".partial")]
+
+
+def partials(store):
+    return list(Path(store).glob("runs/*/*.partial"))
+
+
+def final_arrays(run_dir):
+    from esr_cli import spec as specs
+    from esr_cli.core import loop
+    from esr_cli.core.train import make_trainer
+
+    trainer = make_trainer(specs.load("experiments/grid_2.yaml", "smoke"))
+    return [np.asarray(x) for x in jax.tree.leaves(loop.final_state(trainer, run_dir))]
+
+
+@pytest.fixture(scope="module")
+def reference(smoke_run):
+    """The uninterrupted smoke run: metrics text and final training state."""
+    _, path, _ = smoke_run
+    return (path / "metrics.jsonl").read_text(), final_arrays(path)
+
+
+@pytest.mark.parametrize("point", ["compile@1", "after_metrics@1", "after_checkpoint@1", "after_metrics@2", "before_rename"])
+def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path, reference, point):
+    store = tmp_path / "store"
+    killed = esr(*SMOKE, store=store, check=False, ESR_FAULT=point)
+    assert killed.returncode == -signal.SIGKILL
+    assert committed(store) == []  # nothing half-made is ever visible as an artifact
+    assert len(partials(store)) == 1
+    resumed = esr(*SMOKE, store=store)
+    if point != "compile@1":
+        assert "resuming" in resumed.stderr or point == "after_metrics@1"
+    path = Path(resumed.stdout.strip())
+    assert committed(store) == [path] and partials(store) == []
+    assert esr("verify", store=store).returncode == 0
+    want_metrics, want_state = reference
+    assert (path / "metrics.jsonl").read_text() == want_metrics
+    for a, b in zip(final_arrays(path), want_state):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_ctrl_c_stops_at_a_chunk_boundary_and_says_how_to_resume(tmp_path):
+    store = tmp_path / "store"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "esr_cli.cli", *SMOKE, "--set", "train.epochs=400"],
+        cwd=ROOT, env=esr_env(store), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    deadline = time.time() + 300
+    while time.time() < deadline:
+        metrics = list(store.glob("runs/*/*.partial/metrics.jsonl"))
+        if metrics and metrics[0].read_text().count("\n") >= 1:
+            break
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 130, err
+    assert "run the same command again to resume" in err and "Traceback" not in err
+    assert committed(store) == []
+    (part,) = partials(store)
+    assert list((part / "checkpoints").iterdir())
+    n = len((part / "metrics.jsonl").read_text().splitlines())
+    assert 1 <= n < 400
+
+
+def test_two_trainers_of_one_spec_make_one_artifact(tmp_path):
+    store = tmp_path / "store"
+    args = [sys.executable, "-m", "esr_cli.cli", *SMOKE, "--set", "train.epochs=30"]
+    first = subprocess.Popen(args, cwd=ROOT, env=esr_env(store), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 300
+    while not partials(store) and time.time() < deadline:
+        time.sleep(0.1)
+    second = subprocess.Popen(args, cwd=ROOT, env=esr_env(store), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    out1, err1 = first.communicate(timeout=600)
+    out2, err2 = second.communicate(timeout=600)
+    assert first.returncode == 0 and second.returncode == 0, err1 + err2
+    assert out1.strip() == out2.strip()
+    assert "trained" in err1 and "cache hit" in err2
+    assert "in progress" in err2 and "pid" in err2
+    assert len(committed(store)) == 1 and partials(store) == []
+
+
+def test_divergence_stops_with_the_quantity_seed_and_epoch(tmp_path):
+    store = tmp_path / "store"
+    proc = esr(*SMOKE, "--set", "method.repr_lr=1e30", "--set", "learner.lr=1e30", store=store, check=False)
+    assert proc.returncode == 1
+    assert "run diverged" in proc.stderr and "seed 0" in proc.stderr and "epoch" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert committed(store) == [] and len(partials(store)) == 1  # kept for inspection
+
+
+def test_verify_reports_a_flipped_byte_and_a_deleted_file(tmp_path, smoke_run):
+    _, path, _ = smoke_run
+    store = tmp_path / "store"
+    copy = store / path.relative_to(path.parents[2])
+    shutil.copytree(path, copy)
+    assert esr("verify", store=store).returncode == 0
+    data = bytearray((copy / "metrics.jsonl").read_bytes())
+    data[10] ^= 1
+    (copy / "metrics.jsonl").write_bytes(bytes(data))
+    victim = next(p for p in (copy / "checkpoints").rglob("*") if p.is_file())
+    victim.unlink()
+    proc = esr("verify", store=store, check=False)
+    assert proc.returncode == 1
+    assert "changed file metrics.jsonl" in proc.stderr and "missing file" in proc.stderr
+
+
+def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
+    store = tmp_path / "store"
+    assert esr(*SMOKE, store=store, check=False, ESR_FAULT="after_checkpoint@1").returncode == -signal.SIGKILL
+    (part,) = partials(store)
+    for f in (part / "checkpoints").rglob("*"):
+        if f.is_file() and "ocdbt" in str(f.relative_to(part)):
+            f.write_bytes(b"garbage")
+    proc = esr(*SMOKE, store=store, check=False)
+    assert proc.returncode == 1
+    assert "cannot be read" in proc.stderr and "Traceback" not in proc.stderr
+    assert committed(store) == []
+
+
+def test_not_enough_disk_fails_before_any_work(tmp_path, monkeypatch, capsys):
+    from esr_cli import runs
+    from esr_cli.cli import main
+
+    monkeypatch.setattr(runs.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(10**9, 10**9, 1 << 20))
+    store = tmp_path / "store"
+    assert main(["--store", str(store), *SMOKE]) != 0
+    err = capsys.readouterr().err
+    assert "MiB free" in err and partials(store) == [] and committed(store) == []
+
+
+def test_bad_store_and_bad_keys_are_one_line_errors(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    proc = esr(*SMOKE, store=blocker / "store", check=False)
+    assert proc.returncode != 0 and "not writable" in proc.stderr and "Traceback" not in proc.stderr
+    proc = esr("eval", "0123abcd", store=tmp_path / "empty", check=False)
+    assert proc.returncode == 2 and "no artifact" in proc.stderr and "Traceback" not in proc.stderr
+    proc = esr("--debug", "show", "0123abcd", store=tmp_path / "empty", check=False)
+    assert proc.returncode != 0 and "Traceback" in proc.stderr
