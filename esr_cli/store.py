@@ -188,9 +188,9 @@ class Store:
     def commit(self, kind: str, key: str, manifest: dict) -> Path:
         """Digest every file, write the manifest, rename partial -> final (atomic)."""
         partial, final = self.partial_path(kind, key), self.final_path(kind, key)
-        pending = partial / "pending.json"
-        if pending.exists():
-            pending.unlink()
+        for stale in (partial / "pending.json", partial / MANIFEST):  # MANIFEST: a commit cut short
+            if stale.exists():
+                stale.unlink()
         files = {}
         for f in sorted(partial.rglob("*")):
             if f.is_file():

@@ -135,8 +135,25 @@ def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
             f.write_bytes(b"garbage")
     proc = esr(*SMOKE, store=store, check=False)
     assert proc.returncode == 1
-    assert "cannot be read" in proc.stderr and "Traceback" not in proc.stderr
+    assert "no intact checkpoint" in proc.stderr and "Traceback" not in proc.stderr
     assert committed(store) == []
+
+
+def test_a_damaged_newest_checkpoint_falls_back_to_the_one_before(tmp_path, reference):
+    store = tmp_path / "store"
+    assert esr(*SMOKE, store=store, check=False, ESR_FAULT="before_rename").returncode == -signal.SIGKILL
+    (part,) = partials(store)
+    (part / "manifest.json").unlink()
+    newest = max((part / "checkpoints").iterdir(), key=lambda p: int(p.name) if p.name.isdigit() else -1)
+    victim = next(f for f in newest.rglob("*") if f.is_file() and "ocdbt" in str(f))
+    victim.write_bytes(b"garbage")
+    proc = esr(*SMOKE, store=store)
+    assert "resuming" in proc.stderr and "from epoch 1" in proc.stderr
+    path = Path(proc.stdout.strip())
+    want_metrics, want_state = reference
+    assert (path / "metrics.jsonl").read_text() == want_metrics
+    for a, b in zip(final_arrays(path), want_state):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_not_enough_disk_fails_before_any_work(tmp_path, monkeypatch, capsys):

@@ -126,7 +126,8 @@ def enumerate_states(env: Gridworld, goal, starts: GridState, max_states: int = 
 
 def human_policy(space: StateSpace, human) -> np.ndarray:
     """float64[S, A_H]: the human model's exact action distribution in every state."""
-    return np.asarray(jax.jit(jax.vmap(human.action_probs))(space.states()), dtype=np.float64)
+    probs = np.asarray(jax.jit(jax.vmap(human.action_probs))(space.states()), dtype=np.float64)
+    return probs / probs.sum(axis=1, keepdims=True)  # exact in float64 (float32 sums miss 1 by ~1e-8)
 
 
 def uniform_robot(space: StateSpace) -> np.ndarray:
@@ -137,7 +138,8 @@ def uniform_robot(space: StateSpace) -> np.ndarray:
 def boltzmann_robot(space: StateSpace, log_probs_fn: Callable) -> np.ndarray:
     """float64[S, A_R] from a function of a batch of observations -> log-probabilities."""
     obs = jax.vmap(space.env.observe)(space.states())
-    return np.exp(np.asarray(log_probs_fn(obs), dtype=np.float64))
+    probs = np.exp(np.asarray(log_probs_fn(obs), dtype=np.float64))
+    return probs / probs.sum(axis=1, keepdims=True)
 
 
 def transition_matrix(space: StateSpace, pi_robot: np.ndarray, pi_human: np.ndarray) -> np.ndarray:

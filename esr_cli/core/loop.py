@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import signal
 import time
 from pathlib import Path
@@ -23,10 +24,14 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from esr_cli import faults
+from esr_cli.store import atomic_write_text, digest_file
 from esr_cli.core.train import TrainState, Trainer, compiled_chunk, compiled_init
 
 METRICS_FILE = "metrics.jsonl"
 CHECKPOINT_DIR = "checkpoints"
+# Digests of every checkpoint's files, written after the checkpoint is saved: a resume uses
+# only checkpoints that verify, so a damaged newest checkpoint falls back to the one before.
+CHECKPOINT_DIGESTS = "checkpoint_digests.json"
 
 
 class Interrupted(Exception):
@@ -56,20 +61,62 @@ def checkpoint_manager(run_dir: Path) -> ocp.CheckpointManager:
     )
 
 
-def restore_latest(trainer: Trainer, run_dir: Path, seeds) -> tuple[TrainState, int]:
-    """The newest checkpoint in `run_dir` (or a fresh state) and its epoch."""
+def _step_digests(run_dir: Path, step: int) -> dict[str, str]:
+    root = Path(run_dir) / CHECKPOINT_DIR / str(step)
+    return {f.relative_to(root).as_posix(): digest_file(f) for f in sorted(root.rglob("*")) if f.is_file()}
+
+
+def _read_digests(run_dir: Path) -> dict:
+    try:
+        return json.loads((Path(run_dir) / CHECKPOINT_DIGESTS).read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+
+
+def _record_digests(run_dir: Path, steps, saved: int) -> None:
+    """Record the just-saved step's digests; keep those of older steps still present."""
+    known = _read_digests(run_dir)
+    digests = {str(s): known.get(str(s)) for s in steps if s != saved and known.get(str(s))}
+    digests[str(saved)] = _step_digests(run_dir, saved)
+    atomic_write_text(Path(run_dir) / CHECKPOINT_DIGESTS, json.dumps(digests, sort_keys=True))
+
+
+def restore_latest(trainer: Trainer, run_dir: Path, seeds, repair: bool = True) -> tuple[TrainState, int]:
+    """The newest checkpoint in `run_dir` whose files verify (or a fresh state) and its epoch.
+
+    repair=True (a run being resumed): newer checkpoints that fail verification are deleted so
+    training can save those steps again. repair=False (reading a committed artifact): nothing
+    is touched, and only the newest checkpoint is acceptable.
+    """
     template = compiled_init(trainer)(jnp.asarray(seeds, jnp.int32))
     mngr = checkpoint_manager(run_dir)
-    step = mngr.latest_step()
-    if step is None:
-        return template, 0
     try:
-        state = mngr.restore(step, args=ocp.args.StandardRestore(template))
-    except Exception as e:  # noqa: BLE001 - orbax raises many kinds; all mean the same here
-        raise CorruptCheckpoint(
-            f"checkpoint {Path(run_dir) / CHECKPOINT_DIR / str(step)} cannot be read ({type(e).__name__}: "
-            f"{str(e).splitlines()[0] if str(e) else ''}); remove {run_dir} to start this run over"
-        ) from None
+        steps = sorted(mngr.all_steps(), reverse=True)
+        if not steps:
+            return template, 0
+        if (Path(run_dir) / CHECKPOINT_DIGESTS).exists():
+            digests = _read_digests(run_dir)
+            good = [s for s in steps if digests.get(str(s)) and _step_digests(run_dir, s) == digests[str(s)]]
+        else:  # a run written before checkpoint digests were recorded: trust orbax alone
+            good = steps
+        if not good:
+            raise CorruptCheckpoint(
+                f"no intact checkpoint in {Path(run_dir) / CHECKPOINT_DIR} (steps {steps} fail their digests); "
+                f"remove {run_dir} to start this run over"
+            )
+        step = good[0]
+        if step != steps[0] and not repair:
+            raise CorruptCheckpoint(f"the newest checkpoint in {Path(run_dir) / CHECKPOINT_DIR} fails its digests (see `esr verify`)")
+        for newer in (s for s in steps if s > step):  # unverified: a save cut short, or damaged
+            shutil.rmtree(Path(run_dir) / CHECKPOINT_DIR / str(newer))
+        try:
+            state = mngr.restore(step, args=ocp.args.StandardRestore(template))
+        except Exception as e:  # noqa: BLE001 - orbax raises many kinds; all mean the same here
+            first = (str(e).splitlines() or [""])[0][:160]
+            raise CorruptCheckpoint(
+                f"checkpoint {Path(run_dir) / CHECKPOINT_DIR / str(step)} cannot be read ({type(e).__name__}: {first}); "
+                f"remove {run_dir} to start this run over"
+            ) from None
     finally:
         mngr.close()
     return state, int(step)
@@ -189,6 +236,7 @@ def train(
             faults.reached("after_metrics", chunks_done)
             mngr.save(epoch, args=ocp.args.StandardSave(state))
             mngr.wait_until_finished()
+            _record_digests(run_dir, mngr.all_steps(), epoch)
             faults.reached("after_checkpoint", chunks_done)
             if on_chunk:
                 on_chunk(epoch, total, rows[-1], n * steps_per_epoch * len(seeds) / max(elapsed, 1e-9))
@@ -219,7 +267,8 @@ def summarize(rows: list[dict], last: int = 10) -> dict:
 
 
 def final_state(trainer: Trainer, run_dir: Path) -> TrainState:
-    state, epoch = restore_latest(trainer, run_dir, list(trainer.spec.train.seeds))
+    """The last checkpoint of a run (read-only)."""
+    state, epoch = restore_latest(trainer, run_dir, list(trainer.spec.train.seeds), repair=False)
     if epoch == 0:
         raise FileNotFoundError(f"no checkpoint in {run_dir}")
     return state
