@@ -75,14 +75,8 @@ def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | Non
         "toolchain": provenance.toolchain(),
     }
     key = content_key(components)
-    hit = store.lookup(EXACT_KIND, key)
-    if hit:
-        return hit, json.loads((hit / "summary.json").read_text()), True
-    store.ensure_writable()
-    with store.lock(EXACT_KIND, key):
-        hit = store.lookup(EXACT_KIND, key)
-        if hit:
-            return hit, json.loads((hit / "summary.json").read_text()), True
+
+    def make() -> Path:
         pending = {"kind": EXACT_KIND, "name": spec.name, "key": key, "budget": spec.budget, "seeds": []}
         out = store.begin(EXACT_KIND, key, pending)
         started = time.time()
@@ -118,7 +112,10 @@ def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | Non
             "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "wall_time_s": round(time.time() - started, 2),
             "provenance": provenance.provenance(), "summary": summary,
         }
-        return store.commit(EXACT_KIND, key, manifest), summary, False
+        return store.commit(EXACT_KIND, key, manifest)
+
+    path, cached = store.get_or_make(EXACT_KIND, key, make)
+    return path, json.loads((path / "summary.json").read_text()), cached
 
 
 def ensure_estimator_figure(exact_ref: str, store: Store, console: Console) -> tuple[Path, dict, bool]:
@@ -130,11 +127,8 @@ def ensure_estimator_figure(exact_ref: str, store: Store, console: Console) -> t
     components = {"kind": "figure", "figure": "estimator", "exact": manifest["key"],
                   "code": provenance.code_digest(provenance.EVAL_SOURCES + ("analysis",))}
     key = content_key(components)
-    hit = store.lookup(FIGURE_KIND, key)
-    if hit:
-        return hit, json.loads((hit / "summary.json").read_text()), True
-    store.ensure_writable()
-    with store.lock(FIGURE_KIND, key):
+
+    def make() -> Path:
         pending = {"kind": FIGURE_KIND, "name": f"estimator-{manifest['name']}", "key": key,
                    "budget": manifest.get("budget"), "seeds": []}
         out = store.begin(FIGURE_KIND, key, pending)
@@ -144,7 +138,10 @@ def ensure_estimator_figure(exact_ref: str, store: Store, console: Console) -> t
         manifest_out = {**pending, "format": 1, "status": "complete", "key_components": components,
                         "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "provenance": provenance.provenance(),
                         "summary": result}
-        return store.commit(FIGURE_KIND, key, manifest_out), result, False
+        return store.commit(FIGURE_KIND, key, manifest_out)
+
+    path, cached = store.get_or_make(FIGURE_KIND, key, make)
+    return path, json.loads((path / "summary.json").read_text()), cached
 
 
 def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None) -> dict:

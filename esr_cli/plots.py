@@ -54,6 +54,10 @@ def learning_curve(rows: list[dict], out_png: Path, title: str, provenance: dict
                 se = np.where(n > 1, np.nanstd(vals, axis=1, ddof=min(1, vals.shape[1] - 1)) / np.sqrt(np.maximum(n, 1)), 0.0)
             ax.plot(epochs, mean, color="C0")
             ax.fill_between(epochs, mean - se, mean + se, color="C0", alpha=0.25, linewidth=0)
+            if name == "contrastive_accuracy" and "contrastive_chance" in rows[0]:
+                _, chance = _series(rows, "contrastive_chance")
+                ax.plot(epochs, np.nanmean(smooth(chance, window), axis=1), "k--", lw=1, label="chance")
+                ax.legend(fontsize=8, loc="lower right")
         ax.set_xlabel("epoch")
         ax.set_title(label, fontsize=10)
         ax.grid(alpha=0.3)

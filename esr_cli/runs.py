@@ -78,19 +78,12 @@ def _fmt_stats(row: dict, steps_per_s: float) -> str:
 def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
     """The committed run for `spec`, training it (or resuming it) if needed. -> (path, cache_hit)."""
     key, components = run_key(spec)
-    hit = store.lookup(RUN_KIND, key)
-    if hit:
-        return hit, True
-    store.ensure_writable()
-    enable_compile_cache()
 
     def waiting(holder: str):
         console.print(f"run {key[:12]} is in progress ({holder}); waiting for it to finish")
 
-    with store.lock(RUN_KIND, key, on_wait=waiting):
-        hit = store.lookup(RUN_KIND, key)
-        if hit:
-            return hit, True
+    def make() -> Path:
+        enable_compile_cache()
         _check_disk(store, spec)
         from esr_cli.core import loop
         from esr_cli.core.train import make_trainer
@@ -133,7 +126,9 @@ def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
             "provenance": provenance.provenance(),
             "summary": summary,
         }
-        return store.commit(RUN_KIND, key, manifest), False
+        return store.commit(RUN_KIND, key, manifest)
+
+    return store.get_or_make(RUN_KIND, key, make, on_wait=waiting)
 
 
 def find_run(target: str, budget: str, sets, store: Store) -> Path:
@@ -169,15 +164,9 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
     spec = specs.validate(json.loads(json.dumps(_read_spec(run_path))), str(run_path / "spec.yaml"))
     episodes = episodes or spec.eval.episodes
     key, components = eval_key(run_manifest, episodes)
-    hit = store.lookup(EVAL_KIND, key)
-    if hit:
-        return hit, json.loads((hit / "summary.json").read_text()), True
-    store.ensure_writable()
-    enable_compile_cache()
-    with store.lock(EVAL_KIND, key):
-        hit = store.lookup(EVAL_KIND, key)
-        if hit:
-            return hit, json.loads((hit / "summary.json").read_text()), True
+
+    def make() -> Path:
+        enable_compile_cache()
         from esr_cli import plots
         from esr_cli.core import evaluate as ev, loop
         from esr_cli.core.train import make_trainer
@@ -217,7 +206,10 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
             "provenance": provenance.provenance(),
             "summary": {"return": {"mean": summary["results"][mode]["return_mean"]}, **summary},
         }
-        return store.commit(EVAL_KIND, key, manifest), summary, False
+        return store.commit(EVAL_KIND, key, manifest)
+
+    path, cached = store.get_or_make(EVAL_KIND, key, make)
+    return path, json.loads((path / "summary.json").read_text()), cached
 
 
 def _read_spec(run_path: Path) -> dict:

@@ -178,6 +178,22 @@ class Store:
         finally:
             os.close(fd)  # closing releases the flock
 
+    def get_or_make(self, kind: str, key: str, make: Callable[[], Path], on_wait=None) -> tuple[Path, bool]:
+        """The committed artifact `key`, or `make()` under its lock. -> (path, cache_hit).
+
+        The lookup is repeated after the lock is taken: another writer may have finished it
+        while this one waited.
+        """
+        hit = self.lookup(kind, key)
+        if hit:
+            return hit, True
+        self.ensure_writable()
+        with self.lock(kind, key, on_wait=on_wait):
+            hit = self.lookup(kind, key)
+            if hit:
+                return hit, True
+            return make(), False
+
     def begin(self, kind: str, key: str, pending: dict) -> Path:
         """The partial directory for `key` (kept if it exists: a resumed run)."""
         path = self.partial_path(kind, key)
