@@ -46,7 +46,6 @@ def matmul_peak_gflops(n: int = 2048, reps: int = 10) -> float:
 def epoch_flops(trainer) -> float:
     """XLA's flop count of one epoch, from its parts (scan bodies are counted once by XLA)."""
     import jax
-    import jax.numpy as jnp
 
     from esr_cli.core import buffer as replay
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
-from esr_cli import provenance, spec as specs
+from esr_cli import provenance
 from esr_cli.store import Store, StoreError, atomic_write_text, content_key
 
 EXACT_KIND = "exact"
@@ -30,9 +30,9 @@ def _load_run(store: Store, ref: str):
     manifest = store.read_manifest(path)
     if manifest.get("kind") != "runs":
         raise StoreError(f"{ref} is not a training run")
-    import yaml
+    from esr_cli.runs import run_spec
 
-    spec = specs.validate(yaml.safe_load((path / "spec.yaml").read_text()), str(path / "spec.yaml"))
+    spec = run_spec(path)
     trainer = make_trainer(spec)
     return path, manifest, trainer, loop.final_state(trainer, path)
 

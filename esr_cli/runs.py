@@ -161,7 +161,7 @@ def eval_key(run_manifest: dict, episodes: int) -> tuple[str, dict]:
 
 def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Console) -> tuple[Path, dict, bool]:
     run_manifest = store.read_manifest(run_path)
-    spec = specs.validate(json.loads(json.dumps(_read_spec(run_path))), str(run_path / "spec.yaml"))
+    spec = run_spec(run_path)
     episodes = episodes or spec.eval.episodes
     key, components = eval_key(run_manifest, episodes)
 
@@ -212,10 +212,12 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
     return path, json.loads((path / "summary.json").read_text()), cached
 
 
-def _read_spec(run_path: Path) -> dict:
+def run_spec(run_path: Path):
+    """The validated spec a run was trained from (its spec.yaml)."""
     import yaml
 
-    return yaml.safe_load((run_path / "spec.yaml").read_text())
+    source = run_path / "spec.yaml"
+    return specs.validate(yaml.safe_load(source.read_text()), str(source))
 
 
 def _index(tree, t: int):

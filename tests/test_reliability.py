@@ -1,7 +1,6 @@
 """Reliability: kills at every stage, Ctrl-C, two writers, divergence, corruption, bad input.
 See docs/reliability.md."""
 
-import json
 import shutil
 import signal
 import subprocess

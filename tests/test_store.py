@@ -1,6 +1,5 @@
 """The artifact store: keys, atomic commit, locking, verification."""
 
-import json
 import subprocess
 import sys
 import time
