@@ -137,18 +137,29 @@ def exact(
 
 @app.command()
 def plot(
-    figure: str = typer.Argument(..., help="which figure: estimator", show_default=False),
-    ref: str = typer.Argument(..., help="its input artifact (for estimator: an exact artifact made with --robot)", show_default=False),
+    figure: str = typer.Argument(..., help="which figure: estimator | geometry", show_default=False),
+    ref: Optional[str] = typer.Argument(None, help="estimator: an exact artifact made with --robot"),
+    gamma: float = typer.Option(0.2, "--gamma", help="geometry: the future-state horizon"),
+    state: int = typer.Option(0, "--state", help="geometry: which of the 3 states"),
 ):
     """Draw a figure from artifacts (never trains)."""
     from esr_cli import exact_runs
 
-    if figure != "estimator":
-        raise Exit(2, f"unknown figure {figure!r}; known: estimator")
-    path, result, cached = exact_runs.ensure_estimator_figure(ref, STATE.store, err)
-    err.print(f"Spearman rank correlation of ESR's reward with the exact MI: {result['spearman']:.3f} over {result['pairs']} (state, robot action) pairs")
-    err.print(f"[green]{'cache hit' if cached else 'drawn'}[/]: {path / 'estimator.png'}")
-    out.print(str(path / "estimator.png"), soft_wrap=True, highlight=False)
+    if figure == "estimator":
+        if ref is None:
+            raise Exit(2, "esr plot estimator needs an exact artifact: make one with `esr exact SPEC --robot RUN`")
+        path, result, cached = exact_runs.ensure_estimator_figure(ref, STATE.store, err)
+        err.print(f"Spearman rank correlation of ESR's reward with the exact MI: {result['spearman']:.3f} over {result['pairs']} (state, robot action) pairs")
+        png = path / "estimator.png"
+    elif figure == "geometry":
+        path, result, cached = exact_runs.ensure_geometry_figure(STATE.store, gamma, state)
+        err.print(f"3-state MDP, state {state}, gamma {gamma}: capacity I = {result['mutual_information']:.4f} nats "
+                  f"(uniform policy: {result['uniform_policy_mi']:.4f})")
+        png = path / "geometry.png"
+    else:
+        raise Exit(2, f"unknown figure {figure!r}; known: estimator, geometry")
+    err.print(f"[green]{'cache hit' if cached else 'drawn'}[/]: {png}")
+    out.print(str(png), soft_wrap=True, highlight=False)
 
 
 # ---------------------------------------------------------------- ls / show / verify

@@ -206,3 +206,35 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
                                 {"artifacts": {"runs": run_manifest["key"], "exact": manifest["key"]},
                                  "budget": run_manifest.get("budget"), "seeds": run_manifest.get("seeds")})
     return result
+
+
+def ensure_geometry_figure(store: Store, gamma: float, state: int) -> tuple[Path, dict, bool]:
+    """`esr plot geometry`: the information-geometry picture of a 3-state MDP (exact)."""
+    from esr_cli import plots
+    from esr_cli.analysis import geometry
+
+    if not 0.0 <= gamma < 1.0:
+        raise StoreError(f"--gamma must be in [0, 1), got {gamma}")
+    if state not in (0, 1, 2):
+        raise StoreError(f"--state must be 0, 1 or 2, got {state}")
+    components = {"kind": "figure", "figure": "geometry", "gamma": gamma, "state": state,
+                  "code": provenance.code_digest(("analysis", "plots.py"))}
+    key = content_key(components)
+
+    def make() -> Path:
+        pending = {"kind": FIGURE_KIND, "name": "information-geometry", "key": key, "budget": None, "seeds": []}
+        out = store.begin(FIGURE_KIND, key, pending)
+        geo = geometry.geometry(geometry.example_mdp(), state, gamma)
+        plots.information_geometry(geo, gamma, out / "geometry.png", {"artifacts": {}, "budget": None, "seeds": [],
+                                                                     "mdp": "analysis.geometry.example_mdp", "state": state})
+        result = {"gamma": gamma, "state": state, "mutual_information": geo.mutual_information,
+                  "uniform_policy_mi": geo.uniform_mi, "capacity_policy": geo.policy.round(6).tolist(),
+                  "kl_to_centre": geo.kl.round(6).tolist()}
+        atomic_write_text(out / "summary.json", json.dumps(result, indent=2))
+        manifest = {**pending, "format": 1, "status": "complete", "key_components": components,
+                    "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "provenance": provenance.provenance(),
+                    "summary": result}
+        return store.commit(FIGURE_KIND, key, manifest)
+
+    path, cached = store.get_or_make(FIGURE_KIND, key, make)
+    return path, json.loads((path / "summary.json").read_text()), cached

@@ -98,3 +98,36 @@ def estimator_scatter(exact_mi, estimate, spearman: float, out_png: Path, proven
     ax.grid(alpha=0.3)
     fig.tight_layout()
     return save_figure(fig, out_png, provenance)
+
+
+def _barycentric(p: np.ndarray) -> np.ndarray:
+    """Points of the 2-simplex (rows summing to 1) in the plane of an equilateral triangle."""
+    corners = np.array([[0.0, 0.0], [1.0, 0.0], [0.5, np.sqrt(3) / 2]])
+    return np.asarray(p) @ corners
+
+
+def information_geometry(geo, gamma: float, out_png: Path, provenance: dict) -> Path:
+    """The simplex of future-state distributions of a 3-state MDP: the polytope of achievable
+    distributions, its capacity centre, and the KL distances to the vertices."""
+    fig, ax = plt.subplots(figsize=(5.2, 4.8))
+    tri = _barycentric(np.eye(3))
+    ax.fill(tri[:, 0], tri[:, 1], color="0.95", edgecolor="0.3")
+    for i, name in enumerate(("s1", "s2", "s3")):
+        ax.annotate(name, tri[i], textcoords="offset points", xytext=(0, -14 if i < 2 else 6), ha="center")
+    v = _barycentric(geo.vertices)
+    ax.fill(v[:, 0], v[:, 1], color="C0", alpha=0.25, label="state-marginal polytope")
+    c = _barycentric(geo.centre[None])[0]
+    u = _barycentric(geo.uniform_centre[None])[0]
+    top = np.isclose(geo.kl, geo.kl.max(), rtol=1e-6)
+    for k in range(len(v)):
+        ax.plot([c[0], v[k, 0]], [c[1], v[k, 1]], color="C3" if top[k] else "0.5", lw=1.5 if top[k] else 0.8)
+        ax.annotate(f"a{k + 1}: KL {geo.kl[k]:.3f}", v[k], textcoords="offset points", xytext=(5, 5), fontsize=8)
+    ax.scatter(v[:, 0], v[:, 1], color="C0", zorder=3, label="rho(s+ | s, a)")
+    ax.scatter([c[0]], [c[1]], color="C3", marker="*", s=120, zorder=4, label=f"capacity centre (I = {geo.mutual_information:.3f} nats)")
+    ax.scatter([u[0]], [u[1]], color="k", marker="x", zorder=4, label=f"uniform-policy centre (I = {geo.uniform_mi:.3f})")
+    ax.set_aspect("equal")
+    ax.axis("off")
+    ax.set_title(f"Empowerment as a distance in the simplex (gamma {gamma})", fontsize=10)
+    ax.legend(fontsize=7, loc="upper right", bbox_to_anchor=(1.05, 1.0))
+    fig.tight_layout()
+    return save_figure(fig, out_png, provenance)
