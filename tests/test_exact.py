@@ -135,3 +135,19 @@ def test_exact_and_estimator_cli(tmp_path):
     assert -1 <= result["spearman"] <= 1
     bad = esr("plot", "estimator", path.name, store=store, check=False)
     assert bad.returncode == 2 and "--robot" in bad.stderr
+
+
+def test_mi_is_zero_for_a_human_trapped_by_blocks():
+    """Human in a corner, both neighbours blocked: whatever the robot does this step, the
+    human's action cannot change the next state, so I(aH; s+ | s, aR) = 0 for every aR."""
+    env = Gridworld(size=3, num_blocks=2, start="corner", episode_steps=50)
+    human = NoisyGreedyHuman(env=env, noise=0.2)
+    goal = (2, 2)
+    space = exact.enumerate_states(env, goal, exact.start_states(env, goal, 256))
+    emp = exact.empowerment(space, exact.uniform_robot(space), exact.human_policy(space, human), 0.9)
+    trapped = np.flatnonzero(
+        np.all(space.human == [0, 0], axis=1) & np.all(space.blocks == np.array([[0, 1], [1, 0]]), axis=(1, 2))
+    )
+    assert len(trapped) == 1
+    np.testing.assert_allclose(emp.mi[trapped[0]], 0.0, atol=1e-12)
+    assert emp.value[trapped[0]] > 0  # later steps, once freed, do carry information
