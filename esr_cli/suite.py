@@ -1,0 +1,230 @@
+"""Suites: YAML files that name many training runs at once (docs/cluster.md).
+
+A suite is a list of spec files, a grid of `--set` values, or both:
+
+    name: gridworld                  # optional; default: the file's stem
+    specs:                           # paths relative to this file, or entries with their own grid
+      - ../grid_2.yaml
+      - {spec: ../grid_5.yaml, set: {learner.gamma: 0.0}, grid: {method.repr_dim: [8, 32]}}
+    set:  {train.seeds: 20}          # fixed overrides for every entry
+    grid: {learner.lr: [1.0e-3, 3.0e-4]}   # cartesian product for every entry
+    slurm: {partition: gpu, time_min: 720, gpus: 1, mem_gb: 32, cpus: 8}
+
+Each run is the equivalent of `esr train SPEC --budget B --set k=v ...`: the suite-wide `set`,
+then the entry's `set`, then one point of the product of the suite's and the entry's grids
+(an entry's grid key replaces the suite's grid for that key). A top-level list is short for
+`{specs: [...]}`. Every run is loaded and validated before any work, and every problem is a
+`SuiteError` (a `SpecError`, so the CLI exits 2) naming the file, the key and the problem.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from esr_cli import spec as specs
+from esr_cli.store import content_key
+
+
+class SuiteError(specs.SpecError):
+    """A suite that cannot be used; `str()` is one line naming file, key path and problem."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _check_key_paths(v: dict) -> dict:
+    for dotted in v:
+        if not isinstance(dotted, str) or not all(dotted.split(".")):
+            raise ValueError(f"{dotted!r} is not a key path like train.seeds")
+    return v
+
+
+def _check_grid(v: dict) -> dict:
+    _check_key_paths(v)
+    for dotted, values in v.items():
+        # A scalar would silently become a one-point grid; demand the list the user meant.
+        if not isinstance(values, list) or not values:
+            raise ValueError(f"{dotted}: a grid needs a non-empty list of values (got {values!r})")
+    return v
+
+
+class SlurmOptions(_Model):
+    """Resources of each SLURM job (one run per job, submitted as one job array)."""
+
+    partition: Optional[str] = None
+    account: Optional[str] = None
+    qos: Optional[str] = None
+    time_min: int = Field(720, ge=1, description="wall-clock limit of one job, minutes")
+    gpus: int = Field(1, ge=0, description="GPUs per job")
+    cpus: int = Field(8, ge=1, description="CPU cores per job")
+    mem_gb: float = Field(32, gt=0, description="memory per job, GB")
+    array_parallelism: int = Field(64, ge=1, description="at most this many jobs of the array run at once")
+    setup: tuple[str, ...] = Field((), description="shell lines run before each job (module load, ...)")
+    additional: dict[str, Any] = Field(default_factory=dict, description="extra sbatch options, e.g. {constraint: a100}")
+
+
+class EntryModel(_Model):
+    spec: str = Field(..., min_length=1)
+    set: dict[str, Any] = Field(default_factory=dict)
+    grid: dict[str, list[Any]] = Field(default_factory=dict)
+
+    @field_validator("set")
+    @classmethod
+    def _set_keys(cls, v):
+        return _check_key_paths(v)
+
+    @field_validator("grid", mode="before")
+    @classmethod
+    def _grid_lists(cls, v):
+        return _check_grid(v) if isinstance(v, dict) else v
+
+
+class SuiteModel(_Model):
+    name: Optional[str] = Field(None, min_length=1, pattern=r"^[A-Za-z0-9_.\-]+$")
+    specs: tuple[EntryModel, ...] = Field(..., min_length=1)
+    set: dict[str, Any] = Field(default_factory=dict)
+    grid: dict[str, list[Any]] = Field(default_factory=dict)
+    slurm: SlurmOptions = SlurmOptions()
+
+    @field_validator("specs", mode="before")
+    @classmethod
+    def _paths_are_entries(cls, v):
+        if isinstance(v, list):
+            return [{"spec": e} if isinstance(e, str) else e for e in v]
+        return v
+
+    @field_validator("set")
+    @classmethod
+    def _set_keys(cls, v):
+        return _check_key_paths(v)
+
+    @field_validator("grid", mode="before")
+    @classmethod
+    def _grid_lists(cls, v):
+        return _check_grid(v) if isinstance(v, dict) else v
+
+
+@dataclass(frozen=True)
+class Run:
+    """One training run of a suite: the equivalent of `esr train spec_path --budget B --set ...`."""
+
+    spec_path: Path  # absolute
+    sets: tuple[str, ...]  # `--set` texts, in the order they apply
+    spec: specs.Spec  # validated, budget and sets applied
+    key: str  # the training run's content key (runs.run_key)
+
+    @property
+    def label(self) -> str:
+        return " ".join((self.spec.name, *self.sets))
+
+    def command(self, budget: str) -> str:
+        return f"esr train {self.spec_path} --budget {budget}" + "".join(f" --set '{s}'" for s in self.sets)
+
+
+@dataclass(frozen=True)
+class Suite:
+    path: Path
+    name: str
+    budget: str
+    runs: tuple[Run, ...]
+    slurm: SlurmOptions
+    duplicates: int  # entries that named a run another entry already names
+
+    @property
+    def key(self) -> str:
+        """Names the suite's sweep state file: the suite's name, budget and runs as written
+        (spec files and overrides, not the run keys, so a code change keeps its job records)."""
+        return content_key({
+            "name": self.name,
+            "budget": self.budget,
+            "runs": [[r.spec_path.name, list(r.sets)] for r in self.runs],
+        })
+
+
+def _set_text(dotted: str, value: Any) -> str:
+    # JSON is YAML, and `--set` parses its value as YAML: the text round-trips exactly.
+    return f"{dotted}={json.dumps(value, separators=(',', ':'))}"
+
+
+def _format_loc(loc: tuple) -> str:
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (("." if out else "") + str(part))
+    return out
+
+
+def _validate(raw: Any, source: str) -> SuiteModel:
+    if isinstance(raw, list):
+        raw = {"specs": raw}
+    if not isinstance(raw, dict):
+        raise SuiteError(source, "", "a suite is a mapping with a `specs:` list, or a list of spec files")
+    try:
+        return SuiteModel.model_validate(raw)
+    except ValidationError as e:
+        err = e.errors()[0]
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key"
+        elif msg.startswith("Value error, "):
+            msg = msg[len("Value error, "):]
+        more = f" (and {len(e.errors()) - 1} more problem(s))" if len(e.errors()) > 1 else ""
+        raise SuiteError(source, _format_loc(tuple(err["loc"])), msg + more) from None
+
+
+def load(path: str | Path, budget: str = "paper") -> Suite:
+    """Read, validate and expand a suite: every run's spec is loaded and validated here."""
+    p = Path(path)
+    source = str(path)
+    if budget not in specs.BUDGETS:
+        raise SuiteError(source, "--budget", f"unknown budget {budget!r}; known: {', '.join(specs.BUDGETS)}")
+    if not p.is_file():
+        raise SuiteError(source, "", "file not found" if not p.exists() else "not a file")
+    try:
+        raw = yaml.safe_load(p.read_text())
+    except (OSError, UnicodeDecodeError) as e:
+        raise SuiteError(source, "", f"cannot read file: {e}") from None
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise SuiteError(source, "", f"unreadable YAML{where}: {getattr(e, 'problem', e)}") from None
+    model = _validate(specs._coerce_yaml_numbers(raw), source)
+
+    from esr_cli import runs  # the run key needs jax (toolchain); import only when expanding
+
+    base = p.resolve().parent
+    out: list[Run] = []
+    seen: set[str] = set()
+    duplicates = 0
+    for i, entry in enumerate(model.specs):
+        where = f"specs[{i}]"
+        spec_path = (base / entry.spec).resolve()
+        try:
+            raw_spec = specs.load_raw(spec_path)
+        except specs.SpecError as e:
+            raise SuiteError(source, f"{where}.spec", f"{entry.spec}: {e.problem}") from None
+        grid = {**model.grid, **entry.grid}
+        fixed = [_set_text(k, v) for k, v in {**model.set, **entry.set}.items()]
+        names = list(grid)
+        for point in itertools.product(*(grid[k] for k in names)):
+            sets = tuple(fixed + [_set_text(k, v) for k, v in zip(names, point)])
+            try:
+                spec = specs.resolve(raw_spec, budget, list(sets), source=str(spec_path))
+            except specs.SpecError as e:
+                # Name the suite entry and the overrides too: the spec file alone may be fine.
+                at = f" with {' '.join(sets)}" if sets else ""
+                raise SuiteError(source, where, f"{entry.spec}{at}: {e}") from None
+            key, _ = runs.run_key(spec)
+            if key in seen:
+                duplicates += 1
+                continue
+            seen.add(key)
+            out.append(Run(spec_path, sets, spec, key))
+    return Suite(p, model.name or p.stem, budget, tuple(out), model.slurm, duplicates)

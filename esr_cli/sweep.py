@@ -1,0 +1,336 @@
+"""Sweeps: run every training run of a suite, here or on a SLURM cluster (docs/cluster.md).
+
+Executors:
+  local           in this process, one run after another (runs.ensure_run): the default;
+  slurm           one SLURM job per run, submitted as one job array through submitit;
+  submitit-local  the same jobs as `slurm`, started as local processes by submitit (all at
+                  once): checks a suite's job path without a cluster.
+
+Every job is the equivalent of `esr train SPEC --budget B --set ...` with the same store root.
+The store does the coordination: a committed key is skipped, a run whose lock is held is left
+to its holder, and a re-submitted or duplicated job waits on the lock and then finds the
+artifact committed. Job ids go to a small state file, <store>/sweeps/<suite>-<budget>-<key>.json,
+so `--status` can tell a queued or crashed job from a run that was never submitted.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import os
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Optional
+
+from rich.console import Console
+from rich.table import Table
+
+from esr_cli import spec as specs
+from esr_cli.runs import RUN_KIND
+from esr_cli.store import Store, atomic_write_text
+from esr_cli.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
+
+EXECUTORS = ("local", "slurm", "submitit-local")
+STATES = ("done", "running", "queued", "failed", "missing")
+SWEEPS_DIR = "sweeps"
+
+# SLURM job states (sacct) grouped by what they mean for a run that is not committed.
+_QUEUED = {"PENDING", "REQUEUED", "REQUEUE_FED", "REQUEUE_HOLD", "CONFIGURING", "SUSPENDED", "RESIZING"}
+_ALIVE = {"RUNNING", "COMPLETING", "STAGE_OUT", "SIGNALING"}
+
+
+class SweepError(Exception):
+    """A sweep that cannot proceed (e.g. no SLURM here); `str()` is one line."""
+
+
+__all__ = ["EXECUTORS", "RunStatus", "SweepError", "SweepResult", "SuiteError", "load_suite", "run_suite", "status", "status_table"]
+
+
+# ---------------------------------------------------------------- the state file
+def state_path(store: Store, suite: Suite) -> Path:
+    return store.root / SWEEPS_DIR / f"{suite.name}-{suite.budget}-{suite.key[:16]}.json"
+
+
+def read_state(store: Store, suite: Suite) -> dict:
+    try:
+        return json.loads(state_path(store, suite).read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+
+
+@contextmanager
+def _state_lock(store: Store, suite: Suite):
+    """Two sweeps of one suite at once must not lose each other's job records."""
+    path = state_path(store, suite).with_suffix(".lock")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _record_jobs(store: Store, suite: Suite, executor: str, submitted: Iterable[tuple[Run, str, Path]]) -> None:
+    with _state_lock(store, suite):
+        state = read_state(store, suite)
+        state.update({"suite": str(suite.path), "name": suite.name, "budget": suite.budget})
+        jobs = state.setdefault("jobs", {})
+        now = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+        for run, job_id, folder in submitted:
+            jobs[run.key] = {"label": run.label, "executor": executor, "job_id": job_id,
+                             "folder": str(folder), "submitted_at": now}
+        atomic_write_text(state_path(store, suite), json.dumps(state, indent=2, sort_keys=True))
+
+
+# ---------------------------------------------------------------- status
+@dataclass(frozen=True)
+class RunStatus:
+    run: Run
+    state: str  # one of STATES
+    note: str = ""
+    path: Optional[Path] = None  # the committed artifact (done) or the partial directory
+
+
+def _lock_holder(store: Store, key: str) -> Optional[str]:
+    """Who holds the run's lock, or None. Probing takes a shared flock and drops it at once."""
+    path = store.lock_path(RUN_KIND, key)
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        return None
+    except OSError as e:
+        if e.errno not in (errno.EAGAIN, errno.EACCES):
+            raise
+        return os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
+    finally:
+        os.close(fd)  # also releases the probe's lock if it was taken
+
+
+def _job_outcome(rec: dict) -> tuple[str, str]:
+    """(scheduler-level state, detail) of a recorded job: SUCCESS, ERROR, or a scheduler state."""
+    from submitit.core.utils import JobPaths, pickle_load
+
+    job_id = rec["job_id"]
+    paths = JobPaths(rec["folder"], job_id=job_id, task_id=0)
+    if paths.result_pickle.exists():
+        try:
+            outcome, payload = pickle_load(paths.result_pickle)
+        except Exception as e:  # noqa: BLE001 - a truncated pickle says as much as a crash
+            return "ERROR", f"unreadable result ({type(e).__name__})"
+        if outcome == "success":
+            return "SUCCESS", ""
+        last = [ln for ln in str(payload).strip().splitlines() if ln.strip()]
+        return "ERROR", (last[-1].strip() if last else "job raised")[:160]
+    if rec["executor"] == "slurm":
+        try:
+            import submitit
+
+            return str(submitit.SlurmJob(folder=rec["folder"], job_id=job_id).state).upper(), ""
+        except Exception as e:  # noqa: BLE001 - no sacct here (e.g. status read off-cluster)
+            return "UNKNOWN", f"cannot ask SLURM ({type(e).__name__})"
+    # submitit-local: the job id is the controller's pid.
+    try:
+        os.kill(int(job_id), 0)
+        return "RUNNING", ""
+    except (ProcessLookupError, ValueError):
+        return "GONE", "the job's process ended without a result"
+    except PermissionError:
+        return "RUNNING", ""
+
+
+def status(suite: Suite, store: Store) -> list[RunStatus]:
+    """done: committed; running: its lock is held; queued: a recorded job not started yet;
+    failed: a partial run nobody holds, or a recorded job that ended in error; missing: none of those."""
+    jobs = read_state(store, suite).get("jobs", {})
+    out = []
+    for run in suite.runs:
+        hit = store.lookup(RUN_KIND, run.key)
+        if hit:
+            out.append(RunStatus(run, "done", path=hit))
+            continue
+        partial = store.partial_path(RUN_KIND, run.key)
+        holder = _lock_holder(store, run.key)
+        if holder:
+            out.append(RunStatus(run, "running", holder, partial))
+            continue
+        rec = jobs.get(run.key)
+        job_state, detail = _job_outcome(rec) if rec else ("", "")
+        job = f"job {rec['job_id']}" if rec else ""
+        if job_state == "ERROR" or (job_state and job_state not in _QUEUED | _ALIVE | {"SUCCESS", "UNKNOWN", "GONE"}):
+            out.append(RunStatus(run, "failed", f"{job} {job_state}: {detail}".rstrip(": "), partial if partial.is_dir() else None))
+        elif job_state in _QUEUED:
+            out.append(RunStatus(run, "queued", f"{job} {job_state}"))
+        elif job_state in _ALIVE:
+            out.append(RunStatus(run, "running", f"{job} started"))
+        elif partial.is_dir():
+            note = "partial run with no live writer; sweep again (or esr train) to resume it"
+            out.append(RunStatus(run, "failed", f"{job} {job_state}: {note}" if job else note, partial))
+        elif job_state == "SUCCESS":
+            # The job committed a different key: the code or toolchain changed since.
+            out.append(RunStatus(run, "missing", f"{job} finished, but under another key (code changed since?)"))
+        else:
+            out.append(RunStatus(run, "missing", f"{job} {job_state}: {detail}".strip(" :") if job else ""))
+    return out
+
+
+_STYLE = {"done": "green", "running": "cyan", "queued": "blue", "failed": "red", "missing": "yellow"}
+
+
+def status_table(suite: Suite, rows: list[RunStatus]) -> Table:
+    counts = {s: sum(r.state == s for r in rows) for s in STATES}
+    summary = ", ".join(f"{n} {s}" for s, n in counts.items() if n)
+    table = Table(title=f"suite {suite.name} ({suite.budget}): {summary}")
+    for col in ("run", "key", "state", "detail"):
+        table.add_column(col, overflow="fold")
+    for r in rows:
+        detail = str(r.path) if r.state == "done" else r.note
+        table.add_row(r.run.label, r.run.key[:12], f"[{_STYLE[r.state]}]{r.state}[/]", detail)
+    return table
+
+
+def status_json(rows: list[RunStatus]) -> list[dict]:
+    return [{"run": r.run.label, "spec": str(r.run.spec_path), "sets": list(r.run.sets), "key": r.run.key,
+             "state": r.state, "detail": r.note, "path": str(r.path) if r.path else None} for r in rows]
+
+
+# ---------------------------------------------------------------- running
+@dataclass
+class SweepResult:
+    suite: Suite
+    paths: list[Optional[Path]]  # per run, in suite order: the committed artifact, or None
+    submitted: list[tuple[Run, str]] = field(default_factory=list)  # (run, job id); local: "local"
+    skipped: list[RunStatus] = field(default_factory=list)  # done, running or queued before the sweep
+    failed: list[tuple[Run, str]] = field(default_factory=list)
+
+    @property
+    def complete(self) -> bool:
+        return all(p is not None for p in self.paths)
+
+
+def train_job(spec_path: str, budget: str, sets: list[str], store_root: str) -> str:
+    """One job: `esr train spec_path --budget budget --set ...` in-process. -> the artifact path.
+    Module-level so that submitit pickles it by reference."""
+    from esr_cli import runs
+
+    spec = specs.load(spec_path, budget, sets)
+    path, _ = runs.ensure_run(spec, Store(store_root), Console(stderr=True))
+    return str(path)
+
+
+def _executor(kind: str, folder: Path, suite: Suite, opts: SlurmOptions):
+    import submitit
+
+    ex = submitit.AutoExecutor(folder=folder / "%j", cluster="slurm" if kind == "slurm" else "local")
+    params = {"name": f"esr-{suite.name}", "timeout_min": opts.time_min, "cpus_per_task": opts.cpus, "mem_gb": opts.mem_gb}
+    if kind == "slurm":
+        params.update(gpus_per_node=opts.gpus, slurm_partition=opts.partition, slurm_account=opts.account,
+                      slurm_qos=opts.qos, slurm_array_parallelism=opts.array_parallelism,
+                      slurm_setup=list(opts.setup) or None, slurm_additional_parameters=dict(opts.additional) or None)
+    ex.update_parameters(**params)
+    return ex
+
+
+def run_suite(
+    suite: Suite | str | Path,
+    budget: str = "paper",
+    executor: str = "local",
+    store: Store | str | Path = "artifacts",
+    console: Optional[Console] = None,
+    wait: Optional[bool] = None,
+    slurm: Optional[dict] = None,
+) -> SweepResult:
+    """Run or submit every run of `suite` that the store lacks. -> SweepResult (paths per run).
+
+    `wait`: block until submitted jobs end (default: yes except for `slurm`). `slurm`: options
+    that replace the suite file's `slurm:` values (partition, time_min, gpus, cpus, mem_gb, ...).
+    Raises SuiteError (bad suite or spec; nothing has run) or SweepError.
+    """
+    console = console or Console(stderr=True)
+    store = store if isinstance(store, Store) else Store(store)
+    if not isinstance(suite, Suite):
+        suite = load_suite(suite, budget)
+    elif suite.budget != budget:
+        raise SuiteError(str(suite.path), "--budget", f"the suite was loaded for budget {suite.budget!r}, not {budget!r}")
+    if executor not in EXECUTORS:
+        raise SuiteError("--executor", "", f"unknown executor {executor!r}; known: {', '.join(EXECUTORS)}")
+    try:
+        opts = SlurmOptions.model_validate({**suite.slurm.model_dump(), **{k: v for k, v in (slurm or {}).items() if v is not None}})
+    except Exception as e:  # noqa: BLE001 - pydantic's message, made one line
+        raise SuiteError(str(suite.path), "slurm", str(e).splitlines()[-1].strip()) from None
+    wait = executor != "slurm" if wait is None else wait
+    store.ensure_writable()
+
+    before = status(suite, store)
+    result = SweepResult(suite, [None] * len(suite.runs))
+    if executor == "local":
+        # ensure_run waits on a run another process holds, so nothing is skipped but the done.
+        todo = [s for s in before if s.state != "done"]
+    else:
+        todo = [s for s in before if s.state in ("missing", "failed")]
+    todo_keys = {s.run.key for s in todo}
+    result.skipped = [s for s in before if s.run.key not in todo_keys]
+    n_done = sum(s.state == "done" for s in before)
+    console.print(f"suite {suite.name} ({suite.budget}): {len(suite.runs)} run(s); {n_done} done, "
+                  f"{len(result.skipped) - n_done} running or queued, {len(todo)} to {'run' if executor == 'local' else 'submit'}"
+                  + (f" ({suite.duplicates} duplicate(s) dropped)" if suite.duplicates else ""))
+
+    if executor == "local":
+        _run_local(todo, store, console, result)
+    elif todo:
+        _submit(todo, executor, opts, suite, store, console, result, wait)
+
+    for i, run in enumerate(suite.runs):
+        result.paths[i] = store.lookup(RUN_KIND, run.key)
+    return result
+
+
+def _run_local(todo: list[RunStatus], store: Store, console: Console, result: SweepResult) -> None:
+    from esr_cli import runs
+    from esr_cli.core.loop import Interrupted
+
+    for i, s in enumerate(todo, 1):
+        console.print(f"[bold]({i}/{len(todo)})[/] {s.run.label}")
+        try:
+            runs.ensure_run(s.run.spec, store, console)
+            result.submitted.append((s.run, "local"))
+        except (Interrupted, KeyboardInterrupt):
+            raise  # Ctrl-C ends the sweep; the same command resumes it
+        except Exception as e:  # noqa: BLE001 - one failed run must not stop the others
+            console.print(f"[red]failed[/]: {s.run.label}: {type(e).__name__}: {e}")
+            result.failed.append((s.run, f"{type(e).__name__}: {e}"))
+
+
+def _submit(todo, executor, opts, suite, store, console, result, wait) -> None:
+    logs = store.root.absolute() / SWEEPS_DIR / "logs" / state_path(store, suite).stem
+    ex = _executor(executor, logs, suite, opts)
+    jobs = []
+    try:
+        with ex.batch():  # one job array on SLURM
+            for s in todo:
+                jobs.append(ex.submit(train_job, str(s.run.spec_path), suite.budget, list(s.run.sets), str(store.root.absolute())))
+    except FileNotFoundError as e:
+        raise SweepError(f"cannot submit to SLURM from here ({e.filename or e} not found): run on a login node, "
+                         "or use --executor local") from None
+    except Exception as e:  # noqa: BLE001 - sbatch's own refusal (bad partition, limits): one line
+        raise SweepError(f"submission failed: {str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__}") from None
+    _record_jobs(store, suite, executor, [(s.run, j.job_id, logs / "%j") for s, j in zip(todo, jobs)])
+    result.submitted = [(s.run, j.job_id) for s, j in zip(todo, jobs)]
+    console.print(f"submitted {len(jobs)} job(s) ({executor}): {', '.join(j.job_id for j in jobs)}; logs under {logs}")
+    if not wait:
+        return
+    for s, j in zip(todo, jobs):
+        try:
+            j.result()
+            console.print(f"[green]done[/]: {s.run.label} (job {j.job_id})")
+        except Exception as e:  # noqa: BLE001 - submitit's FailedJobError / UncompletedJobError
+            last = [ln for ln in str(e).strip().splitlines() if ln.strip()]
+            msg = last[-1].strip() if last else type(e).__name__
+            console.print(f"[red]failed[/]: {s.run.label} (job {j.job_id}): {msg}")
+            result.failed.append((s.run, msg))

@@ -1,0 +1,165 @@
+"""`esr sweep`: suites expand into runs, go through submitit's local executor, are skipped once
+committed, and report their state. Four smoke runs of one spec share one compiled program
+(the session's compile cache, warmed by `smoke_run`), which keeps this file fast."""
+
+import json
+import os
+import pickle
+from pathlib import Path
+
+import pytest
+from rich.console import Console
+
+from conftest import ROOT, esr
+from esr_cli import sweep
+from esr_cli.store import Store
+from esr_cli.suite import SuiteError
+
+GRID_2 = ROOT / "experiments" / "grid_2.yaml"
+WIDE = {"COLUMNS": "400"}  # rich wraps at 80 columns when not on a terminal
+
+
+def write_suite(tmp_path: Path, text: str, name: str = "suite.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def seeds_suite(tmp_path: Path, n: int) -> Path:
+    seeds = ", ".join(f"[{i}]" for i in range(n))
+    return write_suite(tmp_path, f"name: seeds\nspecs: [{GRID_2}]\ngrid: {{train.seeds: [{seeds}]}}\n")
+
+
+def test_suite_expands_list_and_grid(tmp_path):
+    # Paths are relative to the suite file; an entry's grid multiplies the suite's grid.
+    (tmp_path / "sub").mkdir()
+    rel = os.path.relpath(GRID_2, tmp_path / "sub")
+    path = write_suite(tmp_path / "sub", f"""
+specs:
+  - {rel}
+  - {{spec: {rel}, set: {{learner.gamma: 0.0}}, grid: {{learner.lr: [1.0e-3, 3.0e-4]}}}}
+  - {rel}
+set: {{train.epochs: 3}}
+grid: {{train.seeds: [[0], [1]]}}
+""")
+    suite = sweep.load_suite(path, "smoke")
+    assert suite.name == "suite" and suite.budget == "smoke"
+    # 2 (first entry) + 2 x 2 (second) runs; the third entry repeats the first and is dropped.
+    assert len(suite.runs) == 6 and suite.duplicates == 2
+    assert len({r.key for r in suite.runs}) == 6
+    assert all(r.spec.train.epochs == 3 for r in suite.runs)
+    second = [r for r in suite.runs if r.spec.learner.gamma == 0.0]
+    assert sorted((r.spec.learner.lr, r.spec.train.seeds) for r in second) == [
+        (3e-4, (0,)), (3e-4, (1,)), (1e-3, (0,)), (1e-3, (1,))]
+    assert second[0].sets[0] == "train.epochs=3" and "learner.gamma=0.0" in second[0].sets
+    # A top-level list is short for `specs:`.
+    short = sweep.load_suite(write_suite(tmp_path, f"- {GRID_2}\n", "short.yaml"), "smoke")
+    assert [r.spec.name for r in short.runs] == ["grid_2"] and short.runs[0].sets == ()
+
+
+def test_paper_gridworld_suite_lists_the_four_settings():
+    suite = sweep.load_suite(ROOT / "experiments" / "suites" / "gridworld.yaml", "paper")
+    assert [r.spec.env.blocks for r in suite.runs] == [2, 5, 7, 10]
+    assert all(len(r.spec.train.seeds) == 20 for r in suite.runs)
+    assert suite.slurm.gpus == 1
+
+
+@pytest.mark.parametrize("text, where, problem", [
+    ("specs: []\n", "specs", "at least 1"),
+    (f"specs: [{GRID_2}]\nexecutor: slurm\n", "executor", "unknown key"),
+    (f"specs: [{GRID_2}]\ngrid: {{train.seeds: 3}}\n", "grid", "train.seeds: a grid needs a non-empty list"),
+    (f"specs: [{GRID_2}]\nset: {{'train..seeds': 3}}\n", "set", "not a key path"),
+    ("specs: [no_such_spec.yaml]\n", "specs[0].spec", "file not found"),
+    (f"specs: [{GRID_2}]\ngrid: {{learner.gamma: [0.5, 2.0]}}\n", "specs[0]", "learner.gamma: Input should be less than 1"),
+    (f"specs: [{GRID_2}]\nset: {{method.no_such_field: 1}}\n", "specs[0]", "method.no_such_field: unknown key"),
+    (f"specs: [{GRID_2}]\nslurm: {{gpus: -1}}\n", "slurm.gpus", "greater than or equal to 0"),
+    ("just a string\n", "", "a suite is a mapping"),
+    ("specs: [unclosed\n", "", "unreadable YAML"),
+])
+def test_bad_suites_name_the_key(tmp_path, text, where, problem):
+    path = write_suite(tmp_path, text)
+    with pytest.raises(SuiteError) as e:
+        sweep.load_suite(path, "smoke")
+    assert e.value.path == where and problem in str(e.value), str(e.value)
+    assert str(path) in str(e.value)
+
+
+def test_bad_suite_exits_2_before_any_work(tmp_path):
+    store = tmp_path / "store"
+    path = write_suite(tmp_path, f"specs: [{GRID_2}]\ngrid: {{learner.gamma: [0.5, 2.0]}}\n")
+    proc = esr("sweep", str(path), "--budget", "smoke", "--executor", "submitit-local", store=store, check=False, **WIDE)
+    assert proc.returncode == 2
+    assert "bad suite" in proc.stderr and "specs[0]" in proc.stderr and "learner.gamma" in proc.stderr
+    assert not store.exists()
+    proc = esr("sweep", str(seeds_suite(tmp_path, 1)), "--executor", "nope", store=store, check=False, **WIDE)
+    assert proc.returncode == 2 and "unknown executor 'nope'" in proc.stderr and not store.exists()
+
+
+def test_sweep_through_submitit_local(smoke_run, tmp_path):
+    # smoke_run compiled grid_2's smoke program into the session cache; the four jobs reuse it.
+    store = tmp_path / "store"
+    path = seeds_suite(tmp_path, 4)
+    proc = esr("sweep", str(path), "--budget", "smoke", "--executor", "submitit-local", store=store, **WIDE)
+    assert "0 done, 0 running or queued, 4 to submit" in proc.stderr
+    assert "4 of 4 run(s) done; 4 submitted this time" in proc.stderr
+    paths = [Path(p) for p in proc.stdout.split()]
+    assert len(set(paths)) == 4
+    seeds = sorted(json.loads((p / "manifest.json").read_text())["seeds"] for p in paths)
+    assert seeds == [[0], [1], [2], [3]]
+
+    # Each run went through its own submitit job, recorded in the sweep's state file.
+    (state_file,) = (store / "sweeps").glob("seeds-smoke-*.json")
+    state = json.loads(state_file.read_text())
+    assert len(state["jobs"]) == 4 and {j["executor"] for j in state["jobs"].values()} == {"submitit-local"}
+    logs = state_file.parent / "logs" / state_file.stem
+    job_dirs = sorted(d.name for d in logs.iterdir() if d.name != "%j")  # submitit's own template dir
+    assert job_dirs == sorted(j["job_id"] for j in state["jobs"].values())
+    for d in job_dirs:
+        assert (logs / d / f"{d}_0_result.pkl").exists()
+
+    # Again: everything is committed, so nothing is submitted and the state file is untouched.
+    before = state_file.read_text()
+    again = esr("sweep", str(path), "--budget", "smoke", "--executor", "submitit-local", store=store, **WIDE)
+    assert "4 done, 0 running or queued, 0 to submit" in again.stderr
+    assert "0 submitted this time" in again.stderr
+    assert [Path(p) for p in again.stdout.split()] == paths
+    assert state_file.read_text() == before
+    assert sorted(d.name for d in logs.iterdir() if d.name != "%j") == job_dirs
+
+    # --status: all done, as JSON and as a table.
+    rows = json.loads(esr("sweep", str(path), "--budget", "smoke", "--status", "--json", store=store).stdout)
+    assert [r["state"] for r in rows] == ["done"] * 4
+    assert [Path(r["path"]) for r in rows] == paths
+    table = esr("sweep", str(path), "--budget", "smoke", "--status", store=store, **WIDE).stdout
+    assert "suite seeds (smoke): 4 done" in table
+    assert sum(" done " in line for line in table.splitlines() if "│" in line) == 4
+
+    # The importable API (for paper figures) returns the same paths; the local executor
+    # finds every run committed and trains nothing.
+    result = sweep.run_suite(path, "smoke", "local", Store(store), Console(stderr=True, quiet=True))
+    assert result.paths == paths and result.complete and result.submitted == [] and len(result.skipped) == 4
+
+
+def test_status_tells_running_failed_queued_missing(tmp_path):
+    store = Store(tmp_path / "store")
+    suite = sweep.load_suite(seeds_suite(tmp_path, 5), "smoke")
+    r = suite.runs
+    # 0: a partial run that nobody holds (a killed writer) -> failed.
+    store.partial_path("runs", r[0].key).mkdir(parents=True)
+    # 2: a job that raised; 3: a job whose process is alive but has not taken the lock yet.
+    folder = tmp_path / "logs" / "%j"
+    sweep._record_jobs(store, suite, "submitit-local", [(r[2], "999999", folder), (r[3], str(os.getpid()), folder)])
+    result = tmp_path / "logs" / "999999" / "999999_0_result.pkl"
+    result.parent.mkdir(parents=True)
+    result.write_bytes(pickle.dumps(("error", "Traceback (most recent call last):\n  ...\nValueError: boom\n")))
+    # 1: its lock is held (flock conflicts between two open files, even in one process).
+    with store.lock("runs", r[1].key):
+        rows = sweep.status(suite, store)
+    assert [row.state for row in rows] == ["failed", "running", "failed", "running", "missing"]
+    assert "no live writer" in rows[0].note
+    assert f"pid {os.getpid()}" in rows[1].note
+    assert "job 999999" in rows[2].note and "ValueError: boom" in rows[2].note
+    # Once the lock is free again, run 1 (no partial, no job) is missing.
+    assert sweep.status(suite, store)[1].state == "missing"
+    table = sweep.status_table(suite, rows)
+    assert table.row_count == 5 and "2 failed" in str(table.title) and "1 missing" in str(table.title)
