@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 DEMO_SET := --budget quick --set train.epochs=40
 
-.PHONY: install demo test bench clean-venv
+.PHONY: install demo test bench sweep clean-venv
 
 install: $(STAMP)
 
@@ -26,6 +26,14 @@ test: install
 
 bench: install
 	$(BIN)/python benchmarks/bench.py
+
+# Every run of a suite that the store lacks (docs/cluster.md), e.g.
+#   make sweep SUITE=experiments/suites/gridworld.yaml BUDGET=quick EXECUTOR=slurm
+SUITE    ?= experiments/suites/gridworld.yaml
+BUDGET   ?= paper
+EXECUTOR ?= local
+sweep: install
+	$(BIN)/esr sweep $(SUITE) --budget $(BUDGET) --executor $(EXECUTOR)
 
 clean-venv:
 	rm -rf $(VENV)

@@ -73,6 +73,49 @@ def train(
     out.print(str(path), soft_wrap=True, highlight=False)
 
 
+# ---------------------------------------------------------------- sweep
+@app.command()
+def sweep(
+    suite_file: Path = typer.Argument(..., help="a suite (YAML): spec files and/or a grid of --set values", show_default=False),
+    budget: str = BudgetOpt,
+    executor: str = typer.Option("local", "--executor", "-e", help="local (here, one after another) | slurm | submitit-local"),
+    show_status: bool = typer.Option(False, "--status", help="only show each run's state: done / running / queued / failed / missing"),
+    as_json: bool = typer.Option(False, "--json", help="--status: print JSON instead of a table"),
+    wait: Optional[bool] = typer.Option(None, "--wait/--no-wait", help="wait for submitted jobs (default: wait, except for slurm)"),
+    partition: Optional[str] = typer.Option(None, "--partition", help="slurm: partition (default: the suite's slurm.partition)"),
+    time_min: Optional[int] = typer.Option(None, "--time-min", help="slurm: wall-clock limit per job, minutes"),
+    gpus: Optional[int] = typer.Option(None, "--gpus", help="slurm: GPUs per job"),
+    cpus: Optional[int] = typer.Option(None, "--cpus", help="slurm: CPU cores per job"),
+    mem_gb: Optional[float] = typer.Option(None, "--mem-gb", help="slurm: memory per job, GB"),
+):
+    """Train every run of a suite that the store lacks: here, or as SLURM jobs (docs/cluster.md)."""
+    from esr_cli import sweep as sw
+
+    try:
+        suite = sw.load_suite(suite_file, budget)
+        if show_status:
+            rows = sw.status(suite, STATE.store)
+            if as_json:
+                out.print_json(json.dumps(sw.status_json(rows)))
+            else:
+                out.print(sw.status_table(suite, rows))
+            return
+        result = sw.run_suite(suite, budget, executor, STATE.store, err, wait,
+                              {"partition": partition, "time_min": time_min, "gpus": gpus, "cpus": cpus, "mem_gb": mem_gb})
+    except sw.SuiteError as e:
+        raise Exit(2, f"bad suite: {e}") from None
+    except sw.SweepError as e:
+        raise Exit(1, str(e)) from None
+    for p in result.paths:
+        if p is not None:
+            out.print(str(p), soft_wrap=True, highlight=False)
+    done = sum(p is not None for p in result.paths)
+    err.print(f"[green]{done} of {len(result.paths)} run(s) done[/]; {len(result.submitted)} "
+              f"{'run' if executor == 'local' else 'submitted'} this time; `esr sweep --status {suite_file}` shows each")
+    if result.failed:
+        raise Exit(1, f"{len(result.failed)} run(s) failed: " + "; ".join(f"{r.label}: {m}" for r, m in result.failed))
+
+
 # ---------------------------------------------------------------- eval
 @app.command("eval")
 def eval_(
