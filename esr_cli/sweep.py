@@ -38,7 +38,8 @@ STATES = ("done", "running", "queued", "failed", "missing")
 SWEEPS_DIR = "sweeps"
 
 # SLURM job states (sacct) grouped by what they mean for a run that is not committed.
-_QUEUED = {"PENDING", "REQUEUED", "REQUEUE_FED", "REQUEUE_HOLD", "CONFIGURING", "SUSPENDED", "RESIZING"}
+# UNKNOWN (sacct unreachable) counts as queued: a sweep then does not submit the run twice.
+_QUEUED = {"PENDING", "REQUEUED", "REQUEUE_FED", "REQUEUE_HOLD", "CONFIGURING", "SUSPENDED", "RESIZING", "UNKNOWN"}
 _ALIVE = {"RUNNING", "COMPLETING", "STAGE_OUT", "SIGNALING"}
 
 
@@ -129,12 +130,17 @@ def _job_outcome(rec: dict) -> tuple[str, str]:
         last = [ln for ln in str(payload).strip().splitlines() if ln.strip()]
         return "ERROR", (last[-1].strip() if last else "job raised")[:160]
     if rec["executor"] == "slurm":
-        try:
-            import submitit
+        import logging
 
-            return str(submitit.SlurmJob(folder=rec["folder"], job_id=job_id).state).upper(), ""
-        except Exception as e:  # noqa: BLE001 - no sacct here (e.g. status read off-cluster)
-            return "UNKNOWN", f"cannot ask SLURM ({type(e).__name__})"
+        import submitit
+
+        # Off the cluster submitit warns on every sacct call; UNKNOWN below says it once per run.
+        logging.getLogger("submitit").setLevel(logging.ERROR)
+        try:
+            state = str(submitit.SlurmJob(folder=rec["folder"], job_id=job_id).state).upper()
+        except Exception:  # noqa: BLE001 - sacct missing or refusing: the state is unknown
+            state = "UNKNOWN"
+        return state, "SLURM state unknown here (no sacct?)" if state == "UNKNOWN" else ""
     # submitit-local: the job id is the controller's pid.
     try:
         os.kill(int(job_id), 0)
@@ -163,10 +169,10 @@ def status(suite: Suite, store: Store) -> list[RunStatus]:
         rec = jobs.get(run.key)
         job_state, detail = _job_outcome(rec) if rec else ("", "")
         job = f"job {rec['job_id']}" if rec else ""
-        if job_state == "ERROR" or (job_state and job_state not in _QUEUED | _ALIVE | {"SUCCESS", "UNKNOWN", "GONE"}):
+        if job_state == "ERROR" or (job_state and job_state not in _QUEUED | _ALIVE | {"SUCCESS", "GONE"}):
             out.append(RunStatus(run, "failed", f"{job} {job_state}: {detail}".rstrip(": "), partial if partial.is_dir() else None))
         elif job_state in _QUEUED:
-            out.append(RunStatus(run, "queued", f"{job} {job_state}"))
+            out.append(RunStatus(run, "queued", f"{job} {job_state}: {detail}".rstrip(": ")))
         elif job_state in _ALIVE:
             out.append(RunStatus(run, "running", f"{job} started"))
         elif partial.is_dir():
@@ -309,7 +315,10 @@ def _run_local(todo: list[RunStatus], store: Store, console: Console, result: Sw
 
 def _submit(todo, executor, opts, suite, store, console, result, wait) -> None:
     logs = store.root.absolute() / SWEEPS_DIR / "logs" / state_path(store, suite).stem
-    ex = _executor(executor, logs, suite, opts)
+    try:
+        ex = _executor(executor, logs, suite, opts)
+    except RuntimeError as e:  # submitit: no srun on this machine
+        raise SweepError(f"{e} (submit from a SLURM login node, or use --executor local)") from None
     jobs = []
     try:
         with ex.batch():  # one job array on SLURM

@@ -11,7 +11,7 @@ import pytest
 from rich.console import Console
 
 from conftest import ROOT, esr
-from esr_cli import sweep
+from esr_cli import provenance, sweep
 from esr_cli.store import Store
 from esr_cli.suite import SuiteError
 
@@ -135,7 +135,9 @@ def test_sweep_through_submitit_local(smoke_run, tmp_path):
     assert sum(" done " in line for line in table.splitlines() if "│" in line) == 4
 
     # The importable API (for paper figures) returns the same paths; the local executor
-    # finds every run committed and trains nothing.
+    # finds every run committed and trains nothing. Keys are computed afresh, as a new `esr`
+    # process would (this process cached its code digest before the jobs ran).
+    provenance.code_digest.cache_clear()
     result = sweep.run_suite(path, "smoke", "local", Store(store), Console(stderr=True, quiet=True))
     assert result.paths == paths and result.complete and result.submitted == [] and len(result.skipped) == 4
 
@@ -163,3 +165,37 @@ def test_status_tells_running_failed_queued_missing(tmp_path):
     assert sweep.status(suite, store)[1].state == "missing"
     table = sweep.status_table(suite, rows)
     assert table.row_count == 5 and "2 failed" in str(table.title) and "1 missing" in str(table.title)
+
+
+FAKE_SBATCH = """#!/bin/sh
+# Stands in for SLURM's sbatch: keeps the job script and answers as sbatch does.
+cp "$1" "$(dirname "$0")/script.sh"
+echo "Submitted batch job 4242"
+"""
+
+
+def test_slurm_submission_builds_one_job_array(tmp_path, monkeypatch):
+    # No cluster here: stand-ins for sbatch and srun (submitit looks for srun), and no sacct.
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "sbatch").write_text(FAKE_SBATCH)
+    (bin_dir / "srun").write_text("#!/bin/sh\nexit 0\n")
+    for f in bin_dir.iterdir():
+        f.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_dir}:{os.environ['PATH']}")
+    path = write_suite(tmp_path, f"specs: [{GRID_2}]\ngrid: {{train.seeds: [[0], [1], [2]]}}\n"
+                                 "slurm: {partition: gpu, gpus: 1, time_min: 600, mem_gb: 16, setup: [module load cuda]}\n")
+    store = Store(tmp_path / "store")
+    quiet = Console(stderr=True, quiet=True)
+    result = sweep.run_suite(path, "smoke", "slurm", store, quiet, slurm={"time_min": 90})
+    assert [job for _, job in result.submitted] == ["4242_0", "4242_1", "4242_2"]
+    assert result.paths == [None] * 3 and not result.complete  # submitted, not waited for
+    script = (bin_dir / "script.sh").read_text()
+    for line in ("#SBATCH --array=0-2", "#SBATCH --partition=gpu", "#SBATCH --gpus-per-node=1",
+                 "#SBATCH --time=90", "#SBATCH --mem=16GB", "module load cuda"):
+        assert line in script, line
+    # The jobs are recorded: status says queued (no sacct here), and a second sweep submits nothing.
+    rows = sweep.status(sweep.load_suite(path, "smoke"), store)
+    assert [r.state for r in rows] == ["queued"] * 3 and "job 4242_0" in rows[0].note
+    again = sweep.run_suite(path, "smoke", "slurm", store, quiet)
+    assert again.submitted == [] and len(again.skipped) == 3
