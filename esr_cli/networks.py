@@ -54,5 +54,26 @@ class ConvNet(nn.Module):
         return nn.Dense(self.out)(x)
 
 
-def conv_net(network_spec, out: int) -> ConvNet:
+class MLP(nn.Module):
+    """Flatten the [..., H, W, C] input, then tanh Dense layers with orthogonal init (the
+    original Overcooked networks: 64-64)."""
+
+    hidden: Sequence[int]
+    out: int
+    out_scale: float = 1.0
+
+    @nn.compact
+    def __call__(self, x):
+        x = x.astype(jnp.float32)
+        x = x.reshape(x.shape[:-3] + (-1,))
+        for h in self.hidden:
+            x = nn.tanh(nn.Dense(h, kernel_init=nn.initializers.orthogonal(2**0.5), bias_init=nn.initializers.zeros_init())(x))
+        return nn.Dense(self.out, kernel_init=nn.initializers.orthogonal(self.out_scale), bias_init=nn.initializers.zeros_init())(x)
+
+
+def conv_net(network_spec, out: int) -> nn.Module:
+    """The network a spec's `network` section asks for: the conv net (kind conv, the default)
+    or the MLP (kind mlp). Every method and the learner build their networks here."""
+    if getattr(network_spec, "kind", "conv") == "mlp":
+        return MLP(hidden=tuple(network_spec.mlp_layers), out=out)
     return ConvNet(conv_channels=tuple(network_spec.conv_channels), hidden=network_spec.hidden, out=out)

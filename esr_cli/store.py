@@ -31,7 +31,7 @@ from typing import Callable, Iterator
 from esr_cli import faults
 
 MANIFEST = "manifest.json"
-KINDS = ("runs", "evals", "exact", "figures")
+KINDS = ("runs", "evals", "exact", "figures", "humandata", "humans")
 
 
 class StoreError(Exception):

@@ -12,4 +12,8 @@ def make_env(env_spec):
         from esr_cli.envs import gridworld
 
         return gridworld.make(env_spec)
+    if env_spec.kind == "overcooked":
+        from esr_cli.envs import overcooked
+
+        return overcooked.make(env_spec)
     raise ValueError(f"unknown env kind {env_spec.kind!r}")

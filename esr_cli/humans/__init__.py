@@ -1,11 +1,31 @@
-"""Human models. Each has `act(key, env_state) -> action`."""
+"""Human models. Each has `act(key, env_state) -> action`.
+
+A human that keeps learning during training (humans/bc.py with `adapt`) also has
+`learns = True`, `metric_names`, `init(key) -> hstate`, `act_with(hstate, key, env_state)`
+and `update(hstate, states, human_actions, rewards, key) -> (hstate, metrics)`; the runner
+keeps `hstate` in its training state.
+"""
 
 from __future__ import annotations
 
 
-def make_human(human_spec, env):
+def make_human(human_spec, env, store=None):
+    """`store`: where stored human models (kind bc) are loaded from."""
     if human_spec.kind == "noisy_greedy":
         from esr_cli.humans.gridworld import NoisyGreedyHuman
 
         return NoisyGreedyHuman(env=env, noise=float(human_spec.noise))
+    if human_spec.kind == "bc":
+        from esr_cli.human_runs import human_params
+        from esr_cli.humans.bc import BCHuman
+
+        return BCHuman(
+            env=env,
+            params=human_params(human_spec, env.layout, store),
+            hidden=tuple(human_spec.hidden),
+            adapt=bool(human_spec.adapt),
+            adapt_lr=float(human_spec.adapt_lr),
+            adapt_kl=float(human_spec.adapt_kl),
+            adapt_gamma=float(human_spec.adapt_gamma),
+        )
     raise ValueError(f"unknown human kind {human_spec.kind!r}")

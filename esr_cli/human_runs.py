@@ -1,0 +1,189 @@
+"""Human-model artifacts: the converted human data and the BC human, one per layout.
+
+Two kinds in the store, each built the first time something needs it (lookup, lock,
+partial directory, atomic commit: store.get_or_make), like training runs:
+
+  humandata  the 2019 trials of one layout as (observation, action) pairs from both players'
+             views (data.npz), with a replay check of the conversion in the manifest
+  humans     the cloned policy (params.msgpack + policy.json) with its accuracies and BC+BC
+             self-play return in the manifest; depends on the humandata key
+
+A training run with a BC human lists the human's key among its key's dependencies.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+
+from esr_cli import provenance
+from esr_cli.store import Store, StoreError, atomic_write_text, content_key
+
+DATA_KIND, HUMAN_KIND = "humandata", "humans"
+DATA_SOURCES = ("envs/overcooked.py", "humans/overcooked_data.py")
+BC_SOURCES = DATA_SOURCES + ("humans/bc.py", "networks.py")
+# Rows checked by replaying the recorded joint action when the data artifact is built.
+REPLAY_SAMPLE = 1000
+PARAMS_FILE, POLICY_FILE, DATA_FILE = "params.msgpack", "policy.json", "data.npz"
+
+
+def _version(name: str) -> str | None:
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def data_key(layout: str) -> tuple[str, dict]:
+    from esr_cli.humans import overcooked_data as od
+
+    components = {
+        "kind": "humandata",
+        "layout": layout,
+        "data": {"package": f"{od.PACKAGE}=={od.PACKAGE_VERSION}", "sha256": od.checksums()},
+        "code": provenance.code_digest(DATA_SOURCES),
+        "packages": {"jaxmarl": _version("jaxmarl")},
+        "toolchain": provenance.toolchain(),
+    }
+    return content_key(components), components
+
+
+def human_key(human_spec, layout: str) -> tuple[str, dict]:
+    part = human_spec.cloning_part(layout)
+    components = {
+        "kind": "human",
+        "spec": part,
+        "code": provenance.code_digest(BC_SOURCES),
+        "packages": {"jaxmarl": _version("jaxmarl")},
+        "toolchain": provenance.toolchain(),
+        "dependencies": {DATA_KIND: data_key(part["layout"])[0]},
+    }
+    return content_key(components), components
+
+
+def dependencies(spec) -> dict:
+    """Artifact keys a training run of `spec` is built from ({} when it needs none)."""
+    if spec.human.kind == "bc":
+        return {HUMAN_KIND: human_key(spec.human, spec.env.layout)[0]}
+    return {}
+
+
+# ---------------------------------------------------------------- building
+def ensure_data(layout: str, store: Store, console: Console) -> tuple[Path, bool]:
+    key, components = data_key(layout)
+
+    def make() -> Path:
+        from esr_cli.humans import overcooked_data as od
+
+        started = time.time()
+        pending = {"kind": DATA_KIND, "name": layout, "key": key}
+        out = store.begin(DATA_KIND, key, pending)
+        with console.status(f"converting the human data of {layout} to JaxMARL observations"):
+            data = od.convert(layout)
+            check = od.replay_match(layout, "train", sample=REPLAY_SAMPLE)
+        if check["matched"] != check["checked"]:
+            raise StoreError(
+                f"the human data of {layout} does not replay in JaxMARL ({check['matched']}/{check['checked']} rows; "
+                f"first mismatch at row {check['first_mismatch']}): not stored"
+            )
+        np.savez_compressed(out / DATA_FILE, **data)
+        counts = np.bincount(data["action"], minlength=6)
+        manifest = {
+            **pending,
+            "format": 1,
+            "status": "complete",
+            "key_components": components,
+            "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "wall_time_s": round(time.time() - started, 2),
+            "provenance": provenance.provenance(),
+            "summary": {
+                "pairs": {"train": int((~data["test"]).sum()), "test": int(data["test"].sum())},
+                "action_fraction": [round(float(c) / len(data["action"]), 4) for c in counts],
+                "replay_check": check,
+            },
+        }
+        return store.commit(DATA_KIND, key, manifest)
+
+    return store.get_or_make(DATA_KIND, key, make)
+
+
+def load_data(path: Path) -> dict[str, np.ndarray]:
+    with np.load(Path(path) / DATA_FILE) as f:
+        return {k: f[k] for k in f.files}
+
+
+def ensure_human(human_spec, layout: str, store: Store, console: Console) -> tuple[Path, bool]:
+    """The committed BC human for `human_spec` on `layout`, building it (and its data) if needed."""
+    key, components = human_key(human_spec, layout)
+    layout = human_spec.layout or layout
+
+    def make() -> Path:
+        from flax import serialization
+
+        from esr_cli.envs.overcooked import Overcooked
+        from esr_cli.humans import bc
+
+        data_path, _ = ensure_data(layout, store, console)
+        started = time.time()
+        pending = {"kind": HUMAN_KIND, "name": f"bc_{layout}", "key": key}
+        out = store.begin(HUMAN_KIND, key, pending)
+        data = load_data(data_path)
+        train, test = ~data["test"], data["test"]
+        with console.status(f"cloning the human of {layout} ({int(train.sum())} pairs, {human_spec.epochs} epochs)"):
+            params, losses = bc.train_bc(data["obs"][train], data["action"][train], human_spec, seed=human_spec.seed)
+        acc_train = bc.accuracies(params, human_spec.hidden, data["obs"][train], data["action"][train])
+        acc_test = bc.accuracies(params, human_spec.hidden, data["obs"][test], data["action"][test])
+        with console.status(f"BC+BC self-play on {layout}: {human_spec.selfplay_episodes} episodes"):
+            returns = bc.selfplay_returns(Overcooked(layout, 400), params, human_spec.hidden, human_spec.selfplay_episodes)
+        se = float(returns.std(ddof=1) / np.sqrt(len(returns)))
+        (out / PARAMS_FILE).write_bytes(serialization.msgpack_serialize(serialization.to_state_dict(params)))
+        atomic_write_text(out / POLICY_FILE, json.dumps({"layout": layout, "hidden": list(human_spec.hidden), "actions": 6,
+                                                          "input": "agent's own view, (H, W, 26), urgency channel zeroed"}))
+        summary = {
+            "layout": layout,
+            "train": acc_train,
+            "test": acc_test,
+            "selfplay_return": {"mean": round(float(returns.mean()), 3), "se": round(se, 3), "episodes": len(returns),
+                                "episode_steps": 400},
+            "final_train_loss": round(losses[-1], 5),
+        }
+        manifest = {
+            **pending,
+            "format": 1,
+            "status": "complete",
+            "key_components": components,
+            "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "wall_time_s": round(time.time() - started, 2),
+            "provenance": provenance.provenance(),
+            "summary": summary,
+        }
+        path = store.commit(HUMAN_KIND, key, manifest)
+        console.print(
+            f"BC human {key[:12]} ({layout}): test accuracy {acc_test['accuracy']:.3f}, non-stay "
+            f"{acc_test['non_stay_accuracy']:.3f}; BC+BC self-play {returns.mean():.1f} +- {se:.1f}"
+        )
+        return path
+
+    return store.get_or_make(HUMAN_KIND, key, make)
+
+
+def load_params(path: Path):
+    from flax import serialization
+
+    return serialization.msgpack_restore((Path(path) / PARAMS_FILE).read_bytes())
+
+
+def human_params(human_spec, layout: str, store: Store | None):
+    """The committed BC human's parameters (it must have been built: see ensure_human)."""
+    key, _ = human_key(human_spec, layout)
+    if store is None:
+        raise StoreError("a BC human is a stored artifact: this command needs the store to load it")
+    path = store.lookup(HUMAN_KIND, key)
+    if path is None:
+        raise StoreError(f"BC human {key[:12]} ({human_spec.layout or layout}) is not built in {store.root}: `esr train` builds it")
+    return load_params(path)
