@@ -220,7 +220,8 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
             except specs.SpecError as e:
                 # Name the suite entry and the overrides too: the spec file alone may be fine.
                 at = f" with {' '.join(sets)}" if sets else ""
-                raise SuiteError(source, where, f"{entry.spec}{at}: {e}") from None
+                inner = f"{e.path}: {e.problem}" if e.path else e.problem
+                raise SuiteError(source, where, f"{entry.spec}{at}: {inner}") from None
             key, _ = runs.run_key(spec)
             if key in seen:
                 duplicates += 1
