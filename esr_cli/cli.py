@@ -91,6 +91,8 @@ def sweep(
     """Train every run of a suite that the store lacks: here, or as SLURM jobs (docs/cluster.md)."""
     from esr_cli import sweep as sw
 
+    if executor not in sw.EXECUTORS:
+        raise Exit(2, f"--executor: unknown executor {executor!r}; known: {', '.join(sw.EXECUTORS)}")
     try:
         suite = sw.load_suite(suite_file, budget)
         if show_status:

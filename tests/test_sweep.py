@@ -25,9 +25,9 @@ def write_suite(tmp_path: Path, text: str, name: str = "suite.yaml") -> Path:
     return path
 
 
-def seeds_suite(tmp_path: Path, n: int) -> Path:
+def seeds_suite(tmp_path: Path, n: int, name: str = "suite.yaml") -> Path:
     seeds = ", ".join(f"[{i}]" for i in range(n))
-    return write_suite(tmp_path, f"name: seeds\nspecs: [{GRID_2}]\ngrid: {{train.seeds: [{seeds}]}}\n")
+    return write_suite(tmp_path, f"name: seeds\nspecs: [{GRID_2}]\ngrid: {{train.seeds: [{seeds}]}}\n", name)
 
 
 def test_suite_expands_list_and_grid(tmp_path):
@@ -134,12 +134,15 @@ def test_sweep_through_submitit_local(smoke_run, tmp_path):
     assert "suite seeds (smoke): 4 done" in table
     assert sum(" done " in line for line in table.splitlines() if "│" in line) == 4
 
-    # The importable API (for paper figures) returns the same paths; the local executor
-    # finds every run committed and trains nothing. Keys are computed afresh, as a new `esr`
-    # process would (this process cached its code digest before the jobs ran).
+    # The importable API (for paper figures), local executor, one seed more: the four
+    # committed runs are skipped and only the fifth trains, here in this process. Keys are
+    # computed afresh, as a new `esr` process would (this one cached its code digest earlier).
     provenance.code_digest.cache_clear()
-    result = sweep.run_suite(path, "smoke", "local", Store(store), Console(stderr=True, quiet=True))
-    assert result.paths == paths and result.complete and result.submitted == [] and len(result.skipped) == 4
+    five = seeds_suite(tmp_path, 5, "five.yaml")
+    result = sweep.run_suite(five, "smoke", "local", Store(store), Console(stderr=True, quiet=True))
+    assert result.paths[:4] == paths and result.complete and len(result.skipped) == 4
+    assert [run.spec.train.seeds for run, _ in result.submitted] == [(4,)] and result.failed == []
+    assert json.loads((result.paths[4] / "manifest.json").read_text())["seeds"] == [4]
 
 
 def test_status_tells_running_failed_queued_missing(tmp_path):
