@@ -39,7 +39,10 @@ def enable_compile_cache() -> None:
 
 
 def run_key(spec) -> tuple[str, dict]:
-    components = provenance.key_components("run", spec.training_part(), spec.budget)
+    from esr_cli.human_runs import dependencies
+
+    # A stored human (BC) is a dependency: its key is part of the run's key.
+    components = provenance.key_components("run", spec.training_part(), spec.budget, dependencies(spec))
     return content_key(components), components
 
 
@@ -91,7 +94,7 @@ def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
         pending = {"kind": RUN_KIND, "name": spec.name, "key": key, "budget": spec.budget, "seeds": list(spec.train.seeds)}
         run_dir = store.begin(RUN_KIND, key, pending)
         atomic_write_text(run_dir / "spec.yaml", specs.to_yaml(spec))
-        trainer = make_trainer(spec)
+        trainer = make_trainer(spec, store)
         started = time.time()
         with _progress(console) as bar:
             task = bar.add_task(f"{spec.name} [{spec.budget}]", total=spec.train.epochs, stats="compiling...")
@@ -128,6 +131,11 @@ def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
         }
         return store.commit(RUN_KIND, key, manifest)
 
+    if spec.human.kind == "bc":  # the stored human this run trains with comes first
+        from esr_cli.human_runs import ensure_human
+
+        human_path, human_cached = ensure_human(spec.human, spec.env.layout, store, console)
+        console.print(f"BC human ({'cache hit' if human_cached else 'built'}): {human_path}")
     return store.get_or_make(RUN_KIND, key, make, on_wait=waiting)
 
 
@@ -173,7 +181,7 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
 
         pending = {"kind": EVAL_KIND, "name": spec.name, "key": key, "budget": spec.budget, "seeds": list(spec.train.seeds)}
         eval_dir = store.begin(EVAL_KIND, key, pending)
-        trainer = make_trainer(spec)
+        trainer = make_trainer(spec, store)
         started = time.time()
         with console.status(f"evaluating {spec.name}: {episodes} episodes x {len(spec.train.seeds)} seed(s)"):
             state = loop.final_state(trainer, run_path)

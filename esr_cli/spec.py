@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 import json
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, Optional, Union
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -76,7 +76,18 @@ class GridworldEnvSpec(_Model):
         return self
 
 
-EnvSpec = Annotated[Union[GridworldEnvSpec], Field(discriminator="kind")]
+OVERCOOKED_LAYOUTS = ("cramped_room", "coord_ring", "asymm_advantages", "forced_coord", "counter_circuit")
+
+
+class OvercookedEnvSpec(_Model):
+    """JaxMARL's Overcooked: robot = agent_0, human = agent_1 (docs/overcooked.md)."""
+
+    kind: Literal["overcooked"]
+    layout: Literal[OVERCOOKED_LAYOUTS]
+    episode_steps: int = Field(400, ge=1, le=10_000)
+
+
+EnvSpec = Annotated[Union[GridworldEnvSpec, OvercookedEnvSpec], Field(discriminator="kind")]
 
 
 # ---------------------------------------------------------------- human models
@@ -85,7 +96,40 @@ class NoisyGreedyHumanSpec(_Model):
     noise: float = Field(0.2, ge=0.0, le=1.0, description="probability of a uniformly random action")
 
 
-HumanSpec = Annotated[Union[NoisyGreedyHumanSpec], Field(discriminator="kind")]
+class BCHumanSpec(_Model):
+    """Behavioural cloning on the 2019 human-human trials; a stored artifact of kind humans
+    (docs/overcooked.md). The cloning fields make the artifact's key; the adapt fields act
+    only during training."""
+
+    kind: Literal["bc"]
+    layout: Optional[Literal[OVERCOOKED_LAYOUTS]] = Field(None, description="the data's layout; default: env.layout")
+    hidden: tuple[int, ...] = Field((64, 64), description="MLP widths (tanh, orthogonal init)")
+    stay_weight: float = Field(0.1, gt=0.0, le=1.0, description="cross-entropy weight of 'stay' samples")
+    epochs: int = Field(60, ge=1)
+    lr: float = Field(1e-3, gt=0.0)
+    batch_size: int = Field(256, ge=1)
+    seed: int = Field(0, ge=0)
+    selfplay_episodes: int = Field(64, ge=2, description="BC+BC episodes for the recorded self-play return")
+    adapt: bool = Field(False, description="the human keeps learning alongside the robot")
+    adapt_lr: float = Field(1e-4, gt=0.0)
+    adapt_kl: float = Field(1.0, ge=0.0, description="weight of KL(pi_BC || pi) in the human's loss")
+    adapt_gamma: float = Field(0.99, ge=0.0, le=1.0, description="the human's discount for reward-to-go")
+
+    @field_validator("hidden")
+    @classmethod
+    def _widths(cls, v):
+        if not v or any(h < 1 for h in v):
+            raise ValueError("needs at least one layer, every width >= 1")
+        return v
+
+    def cloning_part(self, layout: str) -> dict:
+        """The fields that decide the cloned policy (the human artifact's key)."""
+        d = self.model_dump(mode="json")
+        keep = ("hidden", "stay_weight", "epochs", "lr", "batch_size", "seed", "selfplay_episodes")
+        return {"layout": self.layout or layout, **{k: d[k] for k in keep}}
+
+
+HumanSpec = Annotated[Union[NoisyGreedyHumanSpec, BCHumanSpec], Field(discriminator="kind")]
 
 
 # ---------------------------------------------------------------- methods
@@ -109,6 +153,8 @@ MethodSpec = Annotated[Union[ESRMethodSpec, RandomMethodSpec], Field(discriminat
 
 # ---------------------------------------------------------------- shared parts
 class NetworkSpec(_Model):
+    kind: Literal["conv", "mlp"] = Field("conv", description="conv: the gridworld conv net; mlp: flattened input, tanh")
+    mlp_layers: tuple[int, ...] = Field((64, 64), description="MLP widths (kind mlp)")
     conv_channels: tuple[int, ...] = Field((16, 32), description="3x3 SAME convolutions, SiLU")
     hidden: int = Field(100, ge=1)
 
@@ -188,6 +234,12 @@ class Spec(_Model):
 
     @model_validator(mode="after")
     def _cross_checks(self):
+        if self.human.kind == "bc" and self.env.kind != "overcooked":
+            raise ValueError("human.kind=bc is cloned from Overcooked play: it needs env.kind: overcooked")
+        if self.human.kind == "noisy_greedy" and self.env.kind != "gridworld":
+            raise ValueError("human.kind=noisy_greedy walks to a gridworld goal: it needs env.kind: gridworld")
+        if self.human.kind == "bc" and self.human.layout not in (None, self.env.layout):
+            raise ValueError(f"human.layout={self.human.layout!r} differs from env.layout={self.env.layout!r}")
         steps = self.env.episode_steps
         if self.learner.buffer_size < self.train.num_envs * steps:
             raise ValueError(
@@ -219,8 +271,8 @@ def _set_path(tree: dict, dotted: str, value: Any, source: str) -> None:
 
 
 KIND_MODELS = {
-    "env": {"gridworld": GridworldEnvSpec},
-    "human": {"noisy_greedy": NoisyGreedyHumanSpec},
+    "env": {"gridworld": GridworldEnvSpec, "overcooked": OvercookedEnvSpec},
+    "human": {"noisy_greedy": NoisyGreedyHumanSpec, "bc": BCHumanSpec},
     "method": {"esr": ESRMethodSpec, "random": RandomMethodSpec},
 }
 
@@ -266,7 +318,7 @@ def _format_loc(loc: tuple) -> str:
     for part in loc:
         if isinstance(part, int):
             out.append(f"[{part}]")
-        elif part in ("gridworld", "noisy_greedy", "esr", "random") or "[" in str(part):
+        elif part in ("gridworld", "overcooked", "noisy_greedy", "bc", "esr", "random") or "[" in str(part):
             continue  # pydantic's discriminated-union tags are not user key paths
         else:
             out.append(("." if out else "") + str(part))

@@ -25,11 +25,11 @@ def evaluate(trainer: Trainer, state: TrainState, episodes: int, seeds) -> dict:
     keys = jax.vmap(lambda s: jax.random.PRNGKey(s + EVAL_KEY_SALT))(jnp.asarray(seeds, jnp.int32))
     for mode in policy_modes(trainer):
 
-        def run(lstate, key, mode=mode):
-            roll = trainer.rollout(lstate, key, episodes, mode)
+        def run(lstate, hstate, key, mode=mode):
+            roll = trainer.rollout(lstate, key, episodes, mode, hstate=hstate)
             return roll.episodes.reward.sum(axis=1), roll.states
 
-        returns, states = jax.jit(jax.vmap(run))(state.learner, keys)
+        returns, states = jax.jit(jax.vmap(run))(state.learner, state.human, keys)
         returns = np.asarray(returns)
         out[mode] = {"return": returns, "success": returns > 0, "states": states}
     return out

@@ -44,6 +44,7 @@ class TrainState(NamedTuple):
     learner: LearnerState
     method: Any
     buffer: replay.Buffer
+    human: Any = ()  # a learning human's state (humans/__init__.py); () for a fixed human
 
 
 class Rollout(NamedTuple):
@@ -65,7 +66,11 @@ class Trainer(NamedTuple):
 
     @property
     def metric_names(self) -> tuple[str, ...]:
-        return BASE_METRICS + tuple(self.method.metric_names)
+        return BASE_METRICS + tuple(self.method.metric_names) + tuple(getattr(self.human, "metric_names", ()))
+
+    @property
+    def human_learns(self) -> bool:
+        return bool(getattr(self.human, "learns", False))
 
     def obs_example(self):
         return self.env.observe(self.env.reset(jax.random.PRNGKey(0)))
@@ -83,6 +88,8 @@ class Trainer(NamedTuple):
             learner=self.learner.init(k_learner, obs),
             method=self.method.init(k_method, obs),
             buffer=replay.init(capacity, steps, obs.shape, obs.dtype),
+            # fold_in: the other keys stay as they were for humans that learn nothing
+            human=self.human.init(jax.random.fold_in(key, 1)) if self.human_learns else (),
         )
 
     # ------------------------------------------------------------ acting
@@ -98,7 +105,7 @@ class Trainer(NamedTuple):
             return log_probs, jnp.argmax(log_probs, axis=-1).astype(jnp.int32)
         return log_probs, jax.random.categorical(key, log_probs).astype(jnp.int32)
 
-    def rollout(self, lstate: LearnerState, key, num_envs: int, mode: str = "sample") -> Rollout:
+    def rollout(self, lstate: LearnerState, key, num_envs: int, mode: str = "sample", hstate=()) -> Rollout:
         env, human = self.env, self.human
         k_reset, k_steps = jax.random.split(key)
         states = jax.vmap(env.reset)(jax.random.split(k_reset, num_envs))
@@ -107,7 +114,11 @@ class Trainer(NamedTuple):
             k_robot, k_human = jax.random.split(key)
             obs = jax.vmap(env.observe)(states)
             log_probs, a_r = self.robot_action(lstate, obs, k_robot, mode)
-            a_h = jax.vmap(human.act)(jax.random.split(k_human, num_envs), states)
+            k_each = jax.random.split(k_human, num_envs)
+            if self.human_learns:
+                a_h = jax.vmap(human.act_with, in_axes=(None, 0, 0))(hstate, k_each, states)
+            else:
+                a_h = jax.vmap(human.act)(k_each, states)
             next_states, reward = jax.vmap(env.step)(states, a_r, a_h)
             return next_states, (states, obs, a_r, a_h, reward, log_probs)
 
@@ -135,8 +146,12 @@ class Trainer(NamedTuple):
     def epoch(self, state: TrainState):
         spec = self.spec
         key, k_roll, k_repr, k_critic, k_dual = jax.random.split(state.key, 5)
-        roll = self.rollout(state.learner, k_roll, spec.train.num_envs, "sample")
+        roll = self.rollout(state.learner, k_roll, spec.train.num_envs, "sample", hstate=state.human)
         buf = replay.add(state.buffer, roll.episodes)
+        hstate, h_metrics = state.human, {}
+        if self.human_learns:  # the human learns from the episodes it just played
+            ep = roll.episodes
+            hstate, h_metrics = self.human.update(state.human, roll.states, ep.human_action, ep.reward, jax.random.fold_in(key, 2))
         batch_size, fg = spec.learner.batch_size, self.future_gamma
 
         def repr_step(mstate, key):
@@ -179,19 +194,21 @@ class Trainer(NamedTuple):
         metrics.update(c_metrics)
         metrics.update(d_metrics)
         metrics.update(m_metrics)
-        new_state = TrainState(epoch=state.epoch + 1, key=key, learner=lstate, method=mstate, buffer=buf)
+        metrics.update(h_metrics)
+        new_state = TrainState(epoch=state.epoch + 1, key=key, learner=lstate, method=mstate, buffer=buf, human=hstate)
         return new_state, {k: metrics[k].astype(jnp.float32) for k in self.metric_names}
 
     def run_epochs(self, state: TrainState, n: int):
         return jax.lax.scan(lambda s, _: self.epoch(s), state, None, length=n)
 
 
-def make_trainer(spec) -> Trainer:
+def make_trainer(spec, store=None) -> Trainer:
+    """`store`: where stored dependencies (a BC human) are loaded from."""
     env = make_env(spec.env)
     return Trainer(
         spec=spec,
         env=env,
-        human=make_human(spec.human, env),
+        human=make_human(spec.human, env, store),
         method=make_method(spec, env),
         learner=SoftQLearner(num_actions=env.num_robot_actions, network_spec=spec.network, spec=spec.learner),
     )

@@ -62,7 +62,9 @@ def jaxmarl_env(layout: str, max_steps: int):
     """JaxMARL's Overcooked for `layout` (imported lazily: jaxmarl prints on import)."""
     import warnings
 
-    with stdout_to_stderr(), warnings.catch_warnings():
+    # ensure_compile_time_eval: jaxmarl makes module-level arrays on import, and this may
+    # first run inside a traced function; the result is cached, so it must hold no tracer.
+    with stdout_to_stderr(), warnings.catch_warnings(), jax.ensure_compile_time_eval():
         warnings.simplefilter("ignore", DeprecationWarning)
         from flax.core.frozen_dict import FrozenDict
         from jaxmarl.environments.overcooked import Overcooked as JaxmarlOvercooked

@@ -173,8 +173,9 @@ class BCHuman(NamedTuple):
     def act_with(self, hstate: AdaptState, key, env_state) -> jax.Array:
         return jax.random.categorical(key, self.logits(hstate.params, env_state)).astype(jnp.int32)
 
-    def loss(self, params, obs, actions, rewards):
-        """obs [T, n, H, W, 26], actions [T, n], rewards [T, n] -> (loss, (pg, kl, entropy))."""
+    def loss(self, params, obs, actions, rewards, kl_weight=None):
+        """obs [T, n, H, W, 26], actions [T, n], rewards [T, n] -> (loss, (pg, kl, entropy)).
+        kl_weight: the KL's weight (default adapt_kl)."""
         apply = logits_fn(self.hidden)
 
         def to_go(carry, r):
@@ -190,7 +191,8 @@ class BCHuman(NamedTuple):
         pg = -jnp.mean(taken * jax.lax.stop_gradient(advantage))
         kl = jnp.mean(jnp.sum(jnp.exp(logp_bc) * (logp_bc - logp), axis=-1))
         entropy = -jnp.mean(jnp.sum(jnp.exp(logp) * logp, axis=-1))
-        return pg + self.adapt_kl * kl, (pg, kl, entropy)
+        kl_weight = self.adapt_kl if kl_weight is None else kl_weight
+        return pg + kl_weight * kl, (pg, kl, entropy)
 
     def update(self, hstate: AdaptState, states, human_actions, rewards, key):
         """One gradient step on one epoch's episodes. states: env states [T(+1), n, ...]

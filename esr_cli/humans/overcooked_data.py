@@ -135,7 +135,7 @@ def to_jaxmarl(env: Overcooked, texts) -> object:
     Built in numpy from the layout's fixed parts (walls, piles, pots, goal): agents, their
     orientation and inventory, loose objects and pot contents come from the data.
     """
-    template = env.reset(jax.random.PRNGKey(0))
+    template = jax.jit(env.reset)(jax.random.PRNGKey(0))  # jit: eager JaxMARL is slow
     base_map = np.array(template.maze_map)
     pad = (base_map.shape[0] - env.height) // 2
     for x, y in np.asarray(template.agent_pos):  # the template's agents leave empty floor

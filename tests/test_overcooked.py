@@ -1,0 +1,200 @@
+"""Overcooked: the JaxMARL adapter, the human-data conversion (replayed through JaxMARL), the
+BC loss and the co-adapting human's update."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from esr_cli import spec as specs
+from esr_cli.envs.overcooked import INTERACT, LAYOUTS, NUM_ACTIONS, STAY, Overcooked
+from esr_cli.humans import bc
+from esr_cli.humans import overcooked_data as od
+
+
+@pytest.fixture(scope="module")
+def cramped():
+    return Overcooked("cramped_room", 400)
+
+
+def test_env_interface(cramped):
+    env = cramped
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    obs, h = jax.jit(lambda s: (env.observe(s), env.observe_human(s)))(s)
+    assert obs.shape == env.obs_shape == (4, 5, 26) and obs.dtype == jnp.uint8
+    # agent_0 (the robot) sees itself in channel 0, the human in channel 1; the human's view swaps them.
+    assert (obs[..., 0] == h[..., 1]).all() and (obs[..., 1] == h[..., 0]).all()
+    assert env.num_robot_actions == env.num_human_actions == NUM_ACTIONS == 6
+    planes = env.robot_action_planes(jnp.int32(INTERACT))
+    assert planes.shape == (4, 5, 6) and (planes[..., INTERACT] == 1).all() and planes.sum() == 20
+    s2, r = jax.jit(env.step)(s, jnp.int32(STAY), jnp.int32(STAY))
+    assert float(r) == 0.0 and int(s2.step) == 1
+    assert (np.asarray(s2.agent_pos) == np.asarray(s.agent_pos)).all()
+    img = env.render(s2)
+    assert img.shape == (4 * 32, 5 * 32, 3) and img.dtype == np.uint8 and img.std() > 0
+
+
+def test_an_episode_runs_400_steps_without_reset(cramped):
+    env = cramped
+
+    def step(s, k):
+        a = jax.random.randint(k, (2,), 0, 6)
+        s, r = env.step(s, a[0], a[1])
+        return s, r
+
+    @jax.jit
+    def episode(k0, k1):
+        final, rewards = jax.lax.scan(step, env.reset(k0), jax.random.split(k1, 400))
+        return final, rewards, env.observe(final)
+
+    final, rewards, obs = episode(jax.random.PRNGKey(2), jax.random.PRNGKey(3))
+    assert rewards.shape == (400,) and int(final.step) == 400
+    assert obs[0, 0, 25] == 1  # the urgency channel is on at the end
+
+
+def test_conversion_details(cramped):
+    # players[0] at (1, 2) facing west holding a plated soup ('soup'); players[1] at (3, 1)
+    # facing north holding an empty plate ('dish'); 2 onions in the pot at (2, 0); a loose
+    # onion on the counter at (4, 2).
+    state = {
+        "players": [
+            {"position": [1, 2], "orientation": [-1, 0], "held_object": {"name": "soup", "position": [1, 2], "state": ["onion", 3, 20]}},
+            {"position": [3, 1], "orientation": [0, -1], "held_object": {"name": "dish", "position": [3, 1]}},
+        ],
+        "objects": {
+            "2,0": {"name": "soup", "position": [2, 0], "state": ["onion", 2, 0]},
+            "4,2": {"name": "onion", "position": [4, 2]},
+        },
+    }
+    s = jax.tree.map(lambda a: a[0], od.to_jaxmarl(cramped, [state]))
+    obs = jax.jit(cramped.observe)(s)
+    assert np.asarray(s.agent_pos).tolist() == [[1, 2], [3, 1]]
+    assert np.asarray(s.agent_dir_idx).tolist() == [3, 0]
+    assert np.asarray(s.agent_inv).tolist() == [od.DISH, od.PLATE]
+    pad = (s.maze_map.shape[0] - 4) // 2
+    assert int(s.maze_map[pad + 0, pad + 2, 2]) == 21  # 2 onions: status 23 - 2
+    assert int(s.maze_map[pad + 2, pad + 4, 0]) == od.ONION
+    assert int(obs[0, 2, 16]) == 2  # onions-in-pot channel
+    # Cooking: 3 onions at tick t -> status 20 - t, clamped at 0 (the data's tick runs past 20).
+    assert od._pot_status(["onion", 3, 5]) == 15 and od._pot_status(["onion", 3, 27]) == 0
+    assert od.parse_joint_action("[[0, -1], 'INTERACT']") == (0, INTERACT)
+    assert od.parse_joint_action("[[0, 0], [-1, 0]]") == (STAY, 3)
+
+
+@pytest.mark.parametrize("layout,split", list(zip(LAYOUTS, ("train", "test", "train", "test", "train"))))
+def test_recorded_joint_actions_replay_in_jaxmarl(layout, split):
+    """Stepping JaxMARL from a converted state with the recorded joint action gives the
+    converted recorded next state, for a random sample of rows of each layout (every layout
+    loads; the data artifact checks 1,000 rows of its layout when it is built)."""
+    check = od.replay_match(layout, split, sample=50, seed=1)
+    assert check["checked"] == 50
+    assert check["matched"] == 50, check
+
+
+def test_checksum_mismatch_is_refused(tmp_path, monkeypatch):
+    for name, _ in od.FILES.values():
+        (tmp_path / name).write_bytes(b"not the trials")
+    monkeypatch.setattr(od, "data_dir", lambda: tmp_path)
+    with pytest.raises(od.HumanDataError, match="sha256"):
+        od.verified_files()
+
+
+def test_missing_package_says_how_to_install(monkeypatch):
+    monkeypatch.setattr(od.importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(od.HumanDataError, match="make install"):
+        od.data_dir()
+
+
+# ---------------------------------------------------------------- BC
+def test_weighted_ce_downweights_stay():
+    logits = jnp.zeros((4, NUM_ACTIONS)).at[:, STAY].set(3.0)  # a policy that loves staying
+    actions = jnp.array([STAY, STAY, STAY, INTERACT])
+    full, light = bc.weighted_ce(logits, actions, 1.0), bc.weighted_ce(logits, actions, 0.1)
+    assert float(light) > float(full)  # the mistaken non-stay sample counts for more
+    nll_interact = -jax.nn.log_softmax(logits[3])[INTERACT]
+    nll_stay = -jax.nn.log_softmax(logits[0])[STAY]
+    np.testing.assert_allclose(float(light), float((3 * 0.1 * nll_stay + nll_interact) / 1.3), rtol=1e-6)
+
+
+def test_bc_learns_a_state_dependent_rule_and_reports_non_stay_accuracy():
+    # Synthetic: the action is which of 3 cells holds a 1 (else stay); stays dominate.
+    rng = np.random.default_rng(0)
+    n = 1000
+    obs = np.zeros((n, 4, 5, 26), np.uint8)
+    action = np.full(n, STAY, np.int8)
+    moving = rng.random(n) < 0.3
+    which = rng.integers(0, 3, n)
+    obs[moving, 0, which[moving], 3] = 1
+    action[moving] = which[moving]
+    spec = specs.BCHumanSpec(kind="bc", epochs=10, lr=5e-3, batch_size=100)
+    params, losses = bc.train_bc(obs, action, spec)
+    assert losses[-1] < losses[0]
+    acc = bc.accuracies(params, spec.hidden, obs, action)
+    assert acc["non_stay_accuracy"] > 0.95 and acc["accuracy"] > 0.9
+    assert abs(acc["stay_fraction"] - (1 - moving.mean())) < 1e-3
+
+
+def test_urgency_channel_is_ignored():
+    x = jnp.ones((2, 4, 5, 26), jnp.uint8)
+    assert float(bc.prepare(x)[..., 25].sum()) == 0 and float(bc.prepare(x)[..., 24].sum()) == 40
+
+
+# ---------------------------------------------------------------- co-adaptation
+def _human(env, **kw):
+    net = bc.policy_net((16,))
+    params = net.init(jax.random.PRNGKey(0), jnp.zeros((1,) + env.obs_shape))
+    return bc.BCHuman(env=env, params=params, hidden=(16,), adapt=True, **kw)
+
+
+@pytest.fixture(scope="module")
+def played(cramped):
+    """States [T, n] and human actions [n, T] of short episodes (robot stays, human samples)."""
+    human = _human(cramped)
+
+    @jax.jit
+    def play(key):
+        def one(key):
+            def step(s, k):
+                a_h = human.act(k, s)
+                return cramped.step(s, jnp.int32(STAY), a_h)[0], (s, a_h)
+
+            return jax.lax.scan(step, cramped.reset(key), jax.random.split(key, 24))[1]
+
+        states, actions = jax.vmap(one)(jax.random.split(key, 6))
+        return jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1), states), actions
+
+    return play(jax.random.PRNGKey(0))
+
+
+def test_adapting_human_follows_the_reward_and_the_kl_holds_it_back(cramped, played):
+    """Reward every step on which the human interacted: policy gradient raises the
+    probability of interacting; a strong KL weight keeps the policy nearer the clone.
+    Without reward the clone is a fixed point: zero policy gradient, zero KL gradient."""
+    import optax
+
+    states, actions = played
+    interact = (actions == INTERACT).astype(jnp.float32).T
+    obs = jax.vmap(jax.vmap(cramped.observe_human))(states)
+    human = _human(cramped, adapt_gamma=0.0)
+    opt = optax.adam(3e-2)
+
+    @jax.jit
+    def learn(kl_weight, rewards):
+        def step(carry, _):
+            params, opt_state = carry
+            grads, (pg, kl, _) = jax.grad(human.loss, has_aux=True)(params, obs, actions.T, rewards, kl_weight)
+            updates, opt_state = opt.update(grads, opt_state, params)
+            biggest = jnp.max(jnp.stack([jnp.abs(g).max() for g in jax.tree.leaves(grads)]))
+            return (optax.apply_updates(params, updates), opt_state), (kl, biggest)
+
+        (params, _), (kls, grads) = jax.lax.scan(step, (human.params, opt.init(human.params)), None, length=20)
+        p = jax.nn.softmax(bc.logits_fn((16,))(params, obs))[..., INTERACT].mean()
+        return p, kls[-1], kls[0] + grads[0]  # kls[0], grads[0]: at the clone
+
+    _, _, at_clone = learn(jnp.float32(1.0), jnp.zeros_like(interact))
+    assert float(at_clone) < 1e-6
+    p_clone = float(jax.nn.softmax(bc.logits_fn((16,))(human.params, obs))[..., INTERACT].mean())
+    (p_free, kl_free, _), (p_held, kl_held, _) = [tuple(map(float, learn(jnp.float32(w), interact))) for w in (0.0, 10.0)]
+    assert p_free > p_clone + 0.1
+    assert p_clone < p_held < p_free
+    assert kl_held < kl_free

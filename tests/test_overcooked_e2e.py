@@ -1,0 +1,178 @@
+"""Overcooked end to end on a small slice of the human data: the data and BC-human artifacts
+(built once, then cache hits), a smoke training run that depends on the human by key, a
+co-adapting human inside the runner, spec errors and the MLP network."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from rich.console import Console
+
+from esr_cli import human_runs, runs, spec as specs
+from esr_cli.humans import overcooked_data as od
+from esr_cli.networks import MLP, conv_net
+from esr_cli.store import Store, StoreError
+
+ROWS = 150  # rows per split: enough to exercise every step, small enough to be quick
+SMALL_HUMAN = ["human.epochs=2", "human.selfplay_episodes=2"]
+
+
+@pytest.fixture(scope="module")
+def small_data():
+    """Restrict the human data to its first ROWS rows per split for this module."""
+    mp = pytest.MonkeyPatch()
+    full = od.load_rows
+    mp.setattr(od, "load_rows", lambda layout, split: full(layout, split).iloc[:ROWS].reset_index(drop=True))
+    yield
+    mp.undo()
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    return Store(tmp_path_factory.mktemp("oc-store"))
+
+
+@pytest.fixture(scope="module")
+def console():
+    return Console(stderr=True)
+
+
+@pytest.fixture(scope="module")
+def random_smoke(small_data, store, console):
+    """A smoke run of the Random robot with a co-adapting BC human (one compile for both)."""
+    spec = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN + ["human.adapt=true", "human.adapt_lr=0.01"])
+    path, cached = runs.ensure_run(spec, store, console)
+    return spec, path, cached
+
+
+def test_human_and_data_artifacts(random_smoke, store, console):
+    spec, _, _ = random_smoke
+    key, components = human_runs.human_key(spec.human, "coord_ring")
+    path = store.lookup(human_runs.HUMAN_KIND, key)
+    assert path is not None
+    m = json.loads((path / "manifest.json").read_text())
+    s = m["summary"]
+    for split in ("train", "test"):
+        assert 0.0 <= s[split]["accuracy"] <= 1.0 and 0.0 <= s[split]["non_stay_accuracy"] <= 1.0
+        assert s[split]["samples"] == 2 * ROWS  # both players' views
+    assert s["selfplay_return"]["episodes"] == 2 and s["selfplay_return"]["mean"] >= 0
+    data_key = components["dependencies"][human_runs.DATA_KIND]
+    data_path = store.lookup(human_runs.DATA_KIND, data_key)
+    dm = json.loads((data_path / "manifest.json").read_text())
+    assert dm["summary"]["replay_check"]["rate"] == 1.0 and dm["summary"]["replay_check"]["checked"] == ROWS
+    assert dm["key_components"]["data"]["sha256"] == od.checksums()
+    data = human_runs.load_data(data_path)
+    assert data["obs"].shape == (4 * ROWS, 5, 5, 26) and set(np.unique(data["player"])) == {0, 1}
+    assert not store.verify(path) and not store.verify(data_path)
+    # Built once: asking again is a cache hit for both.
+    assert human_runs.ensure_human(spec.human, "coord_ring", store, console) == (path, True)
+    assert human_runs.ensure_data("coord_ring", store, console) == (data_path, True)
+    # The stored parameters load back into the policy the manifest describes.
+    params = human_runs.human_params(spec.human, "coord_ring", store)
+    logits = MLP(hidden=(64, 64), out=6, out_scale=0.01).apply(params, jnp.zeros((1, 5, 5, 26)))
+    assert logits.shape == (1, 6)
+
+
+def test_run_depends_on_the_human_by_key_and_repeats_as_a_cache_hit(random_smoke, store, console):
+    spec, path, cached = random_smoke
+    assert not cached
+    m = json.loads((path / "manifest.json").read_text())
+    human_key, _ = human_runs.human_key(spec.human, "coord_ring")
+    assert m["key_components"]["dependencies"] == {"humans": human_key}
+    assert m["env"] == "overcooked" and m["summary"]["epochs"] == 2
+    assert runs.ensure_run(spec, store, console) == (path, True)
+    # Another human (different cloning settings) is another dependency, hence another run.
+    other = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN + ["human.stay_weight=0.2"])
+    assert runs.run_key(other)[0] != runs.run_key(spec)[0]
+
+
+def test_a_missing_human_is_a_clear_error(small_data, tmp_path):
+    spec = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN)
+    with pytest.raises(StoreError, match="not built"):
+        human_runs.human_params(spec.human, "coord_ring", Store(tmp_path))
+    with pytest.raises(StoreError, match="needs the store"):
+        human_runs.human_params(spec.human, "coord_ring", None)
+
+
+def test_co_adapting_human_learns_inside_the_runner(random_smoke, store):
+    from esr_cli.core import loop
+    from esr_cli.core.train import make_trainer
+
+    spec, path, _ = random_smoke
+    trainer = make_trainer(spec, store)
+    assert trainer.human_learns and "human_kl_to_bc" in trainer.metric_names
+    state = loop.final_state(trainer, path)  # the human's state is checkpointed with the rest
+    clone = human_runs.human_params(spec.human, "coord_ring", store)
+    moved = max(float(np.abs(np.asarray(a)[0] - b).max()) for a, b in zip(jax.tree.leaves(state.human.params), jax.tree.leaves(clone)))
+    assert moved > 0
+    rows = loop.read_metrics(path)
+    assert rows[0]["human_kl_to_bc"][0] == pytest.approx(0.0, abs=1e-6)  # the first update starts at the clone
+    assert rows[-1]["human_kl_to_bc"][0] > 0 and rows[-1]["human_entropy"][0] > 0
+
+
+def test_esr_takes_overcooked_batches():
+    """ESR's input construction (observation + broadcast action planes) on Overcooked, MLP nets."""
+    from esr_cli.core.buffer import Batch
+    from esr_cli.envs.overcooked import Overcooked
+    from esr_cli.methods.esr import ESR
+
+    spec = specs.load("experiments/cramped_room.yaml", "smoke")
+    env = Overcooked("cramped_room", 400)
+    esr = ESR(env=env, spec=spec.method, network_spec=spec.network)
+    obs = jax.jit(env.observe)(jax.jit(env.reset)(jax.random.PRNGKey(0)))
+    b = 8
+    grid = jnp.broadcast_to(obs, (b,) + obs.shape)
+    a = jnp.arange(b, dtype=jnp.int32) % 6
+    batch = Batch(obs=grid, next_obs=grid, future_obs=grid, robot_action=a, human_action=a[::-1],
+                  reward=jnp.zeros(b), done=jnp.zeros(b), offset=jnp.ones(b, jnp.int32))
+    state = esr.init(jax.random.PRNGKey(1), obs)
+    assert state.params["phi"]["params"]["Dense_0"]["kernel"].shape == (4 * 5 * (26 + 6 + 6), 64)
+    state, metrics = jax.jit(esr.update)(state, batch, jax.random.PRNGKey(2))
+    reward = jax.jit(esr.reward)(state, batch, jax.random.PRNGKey(3))
+    assert reward.shape == (b,) and np.isfinite(np.asarray(reward)).all() and np.isfinite(float(metrics["repr_loss"]))
+
+
+def test_overcooked_spec_errors():
+    base = {"name": "x", "env": {"kind": "overcooked", "layout": "coord_ring"}, "human": {"kind": "bc"},
+            "method": {"kind": "random"}, "learner": {"buffer_size": 40000}}
+    cases = [
+        ({"env": {"kind": "overcooked", "layout": "kitchen"}}, "env.layout"),
+        ({"human": {"kind": "bc", "layout": "cramped_room"}}, "differs from env.layout"),
+        ({"human": {"kind": "noisy_greedy"}}, "needs env.kind: gridworld"),
+        ({"human": {"kind": "bc", "stay_weight": 0}}, "human.stay_weight"),
+        ({"human": {"kind": "bc", "hidden": []}}, "human.hidden"),
+        ({"network": {"kind": "transformer"}}, "network.kind"),
+        ({"learner": {"buffer_size": 1000}}, "cannot hold one epoch"),
+    ]
+    for change, expected in cases:
+        with pytest.raises(specs.SpecError) as e:
+            specs.validate({**base, **change}, "f.yaml")
+        assert expected in str(e.value) and "\n" not in str(e.value)
+    grid = {"name": "g", "env": {"kind": "gridworld"}, "human": {"kind": "bc"}, "method": {"kind": "random"}}
+    with pytest.raises(specs.SpecError, match="needs env.kind: overcooked"):
+        specs.validate(grid, "g.yaml")
+
+
+def test_all_overcooked_specs_load():
+    for layout in ("cramped_room", "coord_ring", "asymm_advantages", "forced_coord", "counter_circuit"):
+        for suffix in ("", "_random"):
+            for budget in ("paper", "quick", "smoke"):
+                s = specs.load(f"experiments/{layout}{suffix}.yaml", budget)
+                assert s.env.layout == layout and s.human.kind == "bc" and s.network.kind == "mlp"
+    paper = specs.load("experiments/cramped_room.yaml")
+    assert (paper.learner.lr, paper.method.repr_lr, paper.learner.tau, paper.learner.gamma) == (1e-5, 3e-5, 1e-5, 0.8)
+    assert (paper.learner.updates_per_epoch, paper.method.repr_updates_per_epoch, paper.learner.dual_updates_per_epoch) == (30, 100, 100)
+    assert paper.learner.buffer_size == 200_000 and paper.learner.target_entropy == 0.9 and len(paper.train.seeds) == 15
+
+
+def test_mlp_network_flattens_the_grid():
+    net_spec = specs.NetworkSpec(kind="mlp", mlp_layers=(8, 8))
+    net = conv_net(net_spec, 3)
+    x = jnp.ones((2, 4, 5, 7))
+    params = net.init(jax.random.PRNGKey(0), x)
+    assert net.apply(params, x).shape == (2, 3)
+    assert params["params"]["Dense_0"]["kernel"].shape == (4 * 5 * 7, 8)
+    w = np.asarray(params["params"]["Dense_1"]["kernel"])
+    np.testing.assert_allclose(w.T @ w, 2.0 * np.eye(8), atol=1e-5)  # orthogonal, gain sqrt(2)
