@@ -79,6 +79,16 @@ def test_conversion_details(cramped):
     assert od._pot_status(["onion", 3, 5]) == 15 and od._pot_status(["onion", 3, 27]) == 0
     assert od.parse_joint_action("[[0, -1], 'INTERACT']") == (0, INTERACT)
     assert od.parse_joint_action("[[0, 0], [-1, 0]]") == (STAY, 3)
+    # The observation decodes back to this state (AvE's rollouts start from observations),
+    # and so do recorded states with cooking and ready pots, plated soups, plates and onions.
+    rows = od.load_rows("cramped_room", "train")
+    rows = rows[rows["state"].str.contains("soup")].iloc[::40][:100]
+    states = od.to_jaxmarl(cramped, [state] + list(rows["state"]))
+    decoded = jax.jit(jax.vmap(lambda s: cramped.state_from_obs(cramped.observe(s))))(states)
+    for field in ("agent_pos", "agent_dir_idx", "agent_inv", "maze_map"):
+        assert (np.asarray(getattr(decoded, field)) == np.asarray(getattr(states, field))).all(), field
+    statuses = np.asarray(states.maze_map)[:, pad + 0, pad + 2, 2]
+    assert (statuses == 0).any() and ((statuses > 0) & (statuses < 20)).any()  # ready and cooking pots seen
 
 
 @pytest.mark.parametrize("layout,split", list(zip(LAYOUTS, ("train", "test", "train", "test", "train"))))
@@ -198,3 +208,29 @@ def test_adapting_human_follows_the_reward_and_the_kl_holds_it_back(cramped, pla
     assert p_free > p_clone + 0.1
     assert p_clone < p_held < p_free
     assert kl_held < kl_free
+
+
+def test_observation_decodes_back_to_the_state(cramped):
+    """state_from_obs inverts observe (agents, orientations, inventories, map) along random
+    play, which AvE's rollouts from observations rely on."""
+    env = cramped
+
+    @jax.jit
+    def play(key):
+        def step(s, k):
+            a = jax.random.randint(k, (2,), 0, 6)
+            s2 = env.step(s, a[0], a[1])[0]
+            d = env.state_from_obs(env.observe(s2))
+            same = jnp.stack([
+                (d.agent_pos == s2.agent_pos).all(), (d.agent_dir_idx == s2.agent_dir_idx).all(),
+                (d.agent_inv == s2.agent_inv).all(), (d.maze_map == s2.maze_map).all(),
+                (env.observe(d) == env.observe(s2)).all()])
+            return s2, (same, (s2.agent_inv != 1).any())
+
+        return jax.lax.scan(step, env.reset(key), jax.random.split(key, 400))[1]
+
+    same, holding = play(jax.random.PRNGKey(4))
+    assert np.asarray(same).all(axis=0).tolist() == [True] * 5
+    assert np.asarray(holding).any()  # the random play did pick things up
+    futures = jax.jit(env.random_human_futures)(env.observe(env.reset(jax.random.PRNGKey(5))), jnp.zeros((3, 2), jnp.int32))
+    assert futures.shape == (3, 4 * 5 * 26)

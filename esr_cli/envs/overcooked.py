@@ -28,6 +28,8 @@ NUM_ACTIONS = 6
 UP, DOWN, RIGHT, LEFT, STAY, INTERACT = range(NUM_ACTIONS)
 ACTION_NAMES = ("up", "down", "right", "left", "stay", "interact")
 URGENCY_CHANNEL = 25  # 1 everywhere in the last 40 steps of an episode
+# JaxMARL's OBJECT_TO_INDEX values used when decoding an observation.
+_EMPTY, _ONION, _PLATE, _DISH, _AGENT = 1, 3, 5, 9, 10
 
 
 @contextlib.contextmanager
@@ -141,6 +143,65 @@ class Overcooked(NamedTuple):
     def human_action_planes(self, action: jax.Array) -> jax.Array:
         """float32[H, W, 6]: the human action's one-hot, broadcast over the grid."""
         return self._action_planes(action)
+
+    # ---------------------------------------------------------------- decoding
+    def state_from_obs(self, obs: jax.Array):
+        """The JaxMARL state a robot observation encodes (the encoding is lossless but for
+        the step count: the result has step 0, or step episode_steps - 39 when the urgency
+        channel is on, so that it stays on). Layout parts come from the layout itself."""
+        from jaxmarl.environments.overcooked.common import OBJECT_INDEX_TO_VEC
+
+        template = self.reset(jax.random.PRNGKey(0))
+        h, w = self.height, self.width
+        pad = (template.maze_map.shape[0] - h) // 2
+        obs = obs.astype(jnp.int32)
+
+        def where_is(plane):
+            i = jnp.argmax(plane.reshape(-1))
+            return jnp.stack([i % w, i // w]).astype(jnp.uint32)
+
+        pos = jnp.stack([where_is(obs[..., 0]), where_is(obs[..., 1])])
+        dir_idx = jnp.stack([jnp.argmax(obs[pos[0, 1], pos[0, 0], 2:6]), jnp.argmax(obs[pos[1, 1], pos[1, 0], 6:10])]).astype(jnp.int32)
+        # Loose objects and held ones share the plate (22), onion (23) and soup-ready (21) layers.
+        item = jnp.where(obs[..., 22] > 0, _PLATE, jnp.where(obs[..., 23] > 0, _ONION, jnp.where(obs[..., 21] > 0, _DISH, _EMPTY)))
+        is_pot = obs[..., 10] > 0
+        inv = jnp.stack([item[pos[0, 1], pos[0, 0]], item[pos[1, 1], pos[1, 0]]]).astype(jnp.int32)
+        inner = template.maze_map[pad : pad + h, pad : pad + w]
+        for a in range(2):  # the template's agents leave empty floor
+            inner = inner.at[template.agent_pos[a, 1], template.agent_pos[a, 0]].set(OBJECT_INDEX_TO_VEC[_EMPTY])
+        loose = (item != _EMPTY) & ~is_pot
+        inner = jnp.where(loose[..., None], OBJECT_INDEX_TO_VEC[item], inner)
+        status = jnp.where(obs[..., 21] > 0, 0, jnp.where(obs[..., 20] > 0, obs[..., 20], 23 - obs[..., 16]))
+        inner = jnp.where(is_pot[..., None], inner.at[..., 2].set(status.astype(jnp.uint8)), inner)
+        for a in range(2):
+            inner = inner.at[pos[a, 1], pos[a, 0]].set(jnp.array([_AGENT, 2 * a, 0], jnp.uint8).at[2].set(dir_idx[a].astype(jnp.uint8)))
+        maze = template.maze_map.at[pad : pad + h, pad : pad + w].set(inner)
+        from jaxmarl.environments.overcooked.common import DIR_TO_VEC
+
+        urgent = obs[0, 0, URGENCY_CHANNEL] > 0
+        return template.replace(
+            agent_pos=pos,
+            agent_dir_idx=dir_idx,
+            agent_dir=DIR_TO_VEC[dir_idx],
+            agent_inv=inv,
+            maze_map=maze,
+            step=jnp.where(urgent, self.episode_steps - 39, 0).astype(template.step.dtype),
+        )
+
+    def random_human_futures(self, obs: jax.Array, human_actions: jax.Array) -> jax.Array:
+        """float32[M, H*W*26]: the human's observation after each of M sequences of L human
+        actions (int[M, L]) from the observed state, the robot staying (AvE's rollouts; the
+        features are the human's observation, as in the original code)."""
+        start = self.state_from_obs(obs)
+
+        def walk(actions):
+            def step(s, a):
+                return self.step(s, jnp.int32(STAY), a)[0], None
+
+            end, _ = jax.lax.scan(step, start, actions)
+            return self.observe_human(end).reshape(-1).astype(jnp.float32)
+
+        return jax.vmap(walk)(human_actions)
 
     # ---------------------------------------------------------------- pictures
     def render(self, state, cell_px: int = 32) -> np.ndarray:
