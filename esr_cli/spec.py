@@ -35,6 +35,7 @@ DEFAULT_BUDGETS: dict[str, dict[str, Any]] = {
         "learner.dual_updates_per_epoch": 3,
         "learner.batch_size": 16,
         "method.repr_updates_per_epoch": 3,
+        "method.updates_per_epoch": 3,
         "eval.episodes": 2,
     },
 }
@@ -61,6 +62,7 @@ class GridworldEnvSpec(_Model):
     blocks: int = Field(2, ge=0, description="number of movable blocks")
     start: Literal["corner", "corner_hard", "center", "random"] = "corner"
     episode_steps: int = Field(50, ge=1, le=10_000)
+    goal_visible: bool = Field(False, description="add a goal plane to the robot's observation (the Oracle)")
 
     @model_validator(mode="after")
     def _fits(self):
@@ -148,7 +150,49 @@ class RandomMethodSpec(_Model):
     kind: Literal["random"]
 
 
-MethodSpec = Annotated[Union[ESRMethodSpec, RandomMethodSpec], Field(discriminator="kind")]
+class AvEMethodSpec(_Model):
+    """Assistance via Empowerment (Du et al. 2020): reward = log variance of the human's
+    position after random human rollouts from the current state (docs/baselines.md)."""
+
+    kind: Literal["ave"]
+    num_rollouts: int = Field(20, ge=2, description="M rollouts per state")
+    rollout_length: int = Field(5, ge=1, description="L random human actions per rollout")
+    variant: Literal["fixed", "original"] = Field(
+        "fixed", description="original: the published code's action sampling and features (docs/baselines.md)"
+    )
+
+
+class GoalInferenceMethodSpec(_Model):
+    """Bayesian goal inference under the known human model, then a rule that clears the
+    human's way to the most probable goal (docs/baselines.md)."""
+
+    kind: Literal["goal_inference"]
+
+
+class IQLearnMethodSpec(_Model):
+    """Reward inference with IQ-Learn (Garg et al. 2021): a soft Q of the human fitted online
+    from the human's transitions; the robot is rewarded with r = Q(s, aH) - gamma V(s')."""
+
+    kind: Literal["iq_learn"]
+    gamma: float = Field(0.9, ge=0.0, lt=1.0, description="the human's discount in the inverse soft-Q objective")
+    alpha: float = Field(1.0, gt=0.0, description="the human's soft-max temperature: V = alpha logsumexp(Q / alpha)")
+    chi2: float = Field(0.5, ge=0.0, description="weight of the chi-squared regulariser on the recovered reward")
+    lr: float = Field(1e-4, gt=0.0)
+    updates_per_epoch: int = Field(100, ge=0)
+
+
+class OracleMethodSpec(_Model):
+    """An upper bound: the robot sees the goal (env.goal_visible) and gets the human's reward."""
+
+    kind: Literal["oracle"]
+
+
+MethodSpec = Annotated[
+    Union[
+        ESRMethodSpec, RandomMethodSpec, AvEMethodSpec, GoalInferenceMethodSpec, IQLearnMethodSpec, OracleMethodSpec
+    ],
+    Field(discriminator="kind"),
+]
 
 
 # ---------------------------------------------------------------- shared parts
@@ -172,11 +216,17 @@ class LearnerSpec(_Model):
     tau: float = Field(0.005, gt=0.0, le=1.0)
     target_entropy: float = Field(0.6, ge=0.0)
     dual_lr: float = Field(0.1, ge=0.0)
+    dual: Literal["squared", "linear"] = Field(
+        "squared", description="beta's dual step: squared (original) or linear (SAC-style, on log beta)"
+    )
     initial_beta: float = Field(1.0, ge=1e-3, le=100.0)
     updates_per_epoch: int = Field(100, ge=0)
     dual_updates_per_epoch: int = Field(100, ge=0)
     batch_size: int = Field(256, ge=2)
     buffer_size: int = Field(15_000, ge=1, description="transitions held in the replay buffer")
+    warmup_epochs: int = Field(
+        0, ge=0, description="epochs in which the robot acts uniformly at random while every update runs"
+    )
 
 
 class TrainSpec(_Model):
@@ -240,6 +290,10 @@ class Spec(_Model):
             raise ValueError("human.kind=noisy_greedy walks to a gridworld goal: it needs env.kind: gridworld")
         if self.human.kind == "bc" and self.human.layout not in (None, self.env.layout):
             raise ValueError(f"human.layout={self.human.layout!r} differs from env.layout={self.env.layout!r}")
+        if self.method.kind == "oracle" and not getattr(self.env, "goal_visible", False):
+            raise ValueError("method.kind=oracle needs env.goal_visible: true (the oracle sees the goal)")
+        if self.method.kind == "goal_inference" and self.env.kind != "gridworld":
+            raise ValueError("method.kind=goal_inference needs the gridworld's known human model (env.kind: gridworld)")
         steps = self.env.episode_steps
         if self.learner.buffer_size < self.train.num_envs * steps:
             raise ValueError(
@@ -273,7 +327,14 @@ def _set_path(tree: dict, dotted: str, value: Any, source: str) -> None:
 KIND_MODELS = {
     "env": {"gridworld": GridworldEnvSpec, "overcooked": OvercookedEnvSpec},
     "human": {"noisy_greedy": NoisyGreedyHumanSpec, "bc": BCHumanSpec},
-    "method": {"esr": ESRMethodSpec, "random": RandomMethodSpec},
+    "method": {
+        "esr": ESRMethodSpec,
+        "random": RandomMethodSpec,
+        "ave": AvEMethodSpec,
+        "goal_inference": GoalInferenceMethodSpec,
+        "iq_learn": IQLearnMethodSpec,
+        "oracle": OracleMethodSpec,
+    },
 }
 
 
@@ -318,7 +379,7 @@ def _format_loc(loc: tuple) -> str:
     for part in loc:
         if isinstance(part, int):
             out.append(f"[{part}]")
-        elif part in ("gridworld", "overcooked", "noisy_greedy", "bc", "esr", "random") or "[" in str(part):
+        elif any(part in kinds for kinds in KIND_MODELS.values()) or "[" in str(part):
             continue  # pydantic's discriminated-union tags are not user key paths
         else:
             out.append(("." if out else "") + str(part))
@@ -342,7 +403,37 @@ def validate(raw: dict, source: str = "") -> Spec:
         raise SpecError(source, path, msg + more) from None
 
 
-def load_raw(path: str | Path) -> dict:
+def _merge(base: dict, child: dict) -> dict:
+    """`child` over `base`, section by section. A child section naming a different `kind`
+    replaces the base section (its fields belong to another model); otherwise keys merge."""
+    out = copy.deepcopy(base)
+    for key, value in child.items():
+        old = out.get(key)
+        if isinstance(old, dict) and isinstance(value, dict) and value.get("kind", old.get("kind")) == old.get("kind"):
+            out[key] = _merge(old, value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def load_raw(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict:
+    """The YAML tree of a spec file. `extends: other.yaml` (relative to this file) starts from
+    that spec and applies this file's keys over it (see `_merge`)."""
+    raw = _read_yaml(path)
+    parent = raw.pop("extends", None)
+    if parent is None:
+        return raw
+    if not isinstance(parent, str) or not parent:
+        raise SpecError(str(path), "extends", "must be the path of another spec file")
+    base_path = (Path(path).parent / parent).resolve()
+    if base_path in _seen or base_path == Path(path).resolve():
+        raise SpecError(str(path), "extends", f"circular: {parent} extends this file again")
+    if not base_path.exists():
+        raise SpecError(str(path), "extends", f"file not found: {parent}")
+    return _merge(load_raw(base_path, _seen + (Path(path).resolve(),)), raw)
+
+
+def _read_yaml(path: str | Path) -> dict:
     p = Path(path)
     source = str(path)
     if not p.exists():

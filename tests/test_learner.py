@@ -48,3 +48,51 @@ def test_dual_step_moves_beta_toward_the_target_entropy():
 def test_dual_loss_is_zero_at_the_target():
     q = jnp.array([[0.0, 0.0]])
     assert float(dual_loss(1.0, q, float(np.log(2)))) == pytest.approx(0.0, abs=1e-10)
+
+
+def test_linear_dual_step_moves_log_beta_by_the_entropy_gap():
+    import jax
+
+    from esr_cli import spec as specs
+    from esr_cli.core.learner import LearnerState, SoftQLearner
+
+    spec = specs.load("experiments/grid_2.yaml", "smoke", ["learner.dual=linear", "learner.dual_lr=0.1"])
+    learner = SoftQLearner(num_actions=125, network_spec=spec.network, spec=spec.learner)
+    obs = jnp.zeros((4, 5, 5, 2)) + jnp.arange(4)[:, None, None, None]
+    st = learner.init(jax.random.PRNGKey(0), obs[0])
+    # At beta = 50: log beta moves by dual_lr * (H - target), whatever dH/dbeta is.
+    st_hi = LearnerState(st.params, st.target_params, st.opt_state, jnp.array(50.0))
+    q = learner.q_values(st.params, obs)
+    h = float(jnp.mean(entropy(policy_log_probs(q, 50.0))))
+    got = float(learner.dual_step(st_hi, obs)[0].beta)
+    assert got == pytest.approx(50.0 * np.exp(0.1 * (h - spec.learner.target_entropy)), rel=1e-4)
+    # ... and stays inside [BETA_MIN, BETA_MAX].
+    st_max = LearnerState(st.params, st.target_params, st.opt_state, jnp.array(BETA_MAX))
+    assert float(learner.dual_step(st_max, obs)[0].beta) == BETA_MAX
+    # Near-uniform policy (beta small): H > target, so log beta grows by dual_lr * (H - target).
+    st_lo = LearnerState(st.params, st.target_params, st.opt_state, jnp.array(0.01))
+    h_lo = float(jnp.mean(entropy(policy_log_probs(q, 0.01))))
+    assert float(learner.dual_step(st_lo, obs)[0].beta) == pytest.approx(
+        0.01 * np.exp(0.1 * (h_lo - spec.learner.target_entropy)), rel=1e-4
+    )
+
+
+def test_warmup_epochs_act_uniformly():
+    import jax
+
+    from esr_cli import spec as specs
+    from esr_cli.core.train import make_trainer
+
+    spec = specs.load("experiments/grid_2.yaml", "smoke", ["train.num_envs=64"])
+    trainer = make_trainer(spec)
+    lstate = trainer.learner.init(jax.random.PRNGKey(0), trainer.obs_example())
+    # A policy sure of one action: Q is huge for action 7 (set through the output bias).
+    params = jax.tree.map(lambda x: x, lstate.params)
+    bias = params["params"]["Dense_1"]["bias"]
+    params["params"]["Dense_1"]["bias"] = bias.at[7].set(1e4)
+    lstate = lstate._replace(params=params, beta=jnp.array(100.0))
+    roll = jax.jit(lambda u: trainer.rollout(lstate, jax.random.PRNGKey(1), 64, "sample", u))
+    policy_actions = np.asarray(roll(False).episodes.robot_action)
+    uniform_actions = np.asarray(roll(True).episodes.robot_action)
+    assert (policy_actions == 7).all()
+    assert len(np.unique(uniform_actions)) > 100  # 3,200 uniform draws over 125 actions

@@ -121,3 +121,34 @@ def test_cli_missing_file_and_bad_set(tmp_path, capsys):
     assert main(["--store", str(store), "train", "experiments/grid_2.yaml", "--set", "train.epochs=0"]) == 2
     assert "train.epochs" in capsys.readouterr().err
     assert not store.exists()
+
+
+def test_extends_merges_sections_and_replaces_a_changed_kind(tmp_path):
+    (tmp_path / "base.yaml").write_text(GOOD + "learner: {gamma: 0.5, lr: 0.01}\n")
+    child = tmp_path / "child.yaml"
+    child.write_text("extends: base.yaml\nname: c\nlearner: {gamma: 0.7}\nmethod: {kind: ave, rollout_length: 3}\n")
+    spec = specs.load(child)
+    assert spec.name == "c"
+    assert (spec.learner.gamma, spec.learner.lr) == (0.7, 0.01)  # merged
+    assert spec.method.kind == "ave" and spec.method.rollout_length == 3  # replaced, no ESR fields left
+    assert spec.env.blocks == 2
+
+
+def test_extends_errors_name_the_key(tmp_path):
+    a, b = tmp_path / "a.yaml", tmp_path / "b.yaml"
+    a.write_text("extends: b.yaml\n" + GOOD)
+    b.write_text("extends: a.yaml\n" + GOOD)
+    with pytest.raises(specs.SpecError, match="extends: circular"):
+        specs.load(a)
+    missing = tmp_path / "m.yaml"
+    missing.write_text("extends: nowhere.yaml\n" + GOOD)
+    with pytest.raises(specs.SpecError, match="extends: file not found: nowhere.yaml"):
+        specs.load(missing)
+
+
+def test_every_method_has_a_spec_per_paper_gridworld():
+    for n in (2, 5, 7, 10):
+        for method in ("esr", "random", "ave", "goal_inference", "iq_learn", "oracle"):
+            path = Path(f"experiments/grid_{n}.yaml" if method == "esr" else f"experiments/grid_{n}_{method}.yaml")
+            spec = specs.load(path)
+            assert (spec.method.kind, spec.env.blocks, spec.train.seeds) == (method, n, tuple(range(20)))

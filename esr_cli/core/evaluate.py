@@ -16,6 +16,8 @@ EVAL_KEY_SALT = 2**20  # evaluation keys never coincide with training keys
 
 
 def policy_modes(trainer: Trainer) -> tuple[str, ...]:
+    if trainer.acts_by_rule:
+        return ("rule",)
     return ("sample", "greedy") if trainer.method.learns_policy else ("random",)
 
 

@@ -3,8 +3,12 @@
 - Critic Q(s, .) over robot actions; target r + gamma (1 - done) max_a' Q_target(s', a');
   mean squared error; Adam; Polyak-averaged target (rate tau).
 - Policy pi(a | s) = softmax(beta (Q(s, a) - logsumexp_a Q(s, a))).
-- beta is tuned by a gradient step on mean_s (target_entropy - H(pi(. | s)))^2, clipped to
-  [1e-3, 100] (the dual step of the original code; plain gradient descent, rate dual_lr).
+- beta is tuned by a dual step, clipped to [1e-3, 100]. `learner.dual`:
+  squared (the original code): a gradient step on mean_s (target_entropy - H(pi(. | s)))^2.
+    Its gradient vanishes once the policy saturates (dH/dbeta -> 0), so a beta that
+    overshoots early stays high and the policy stays deterministic (docs/choices.md).
+  linear (SAC's temperature rule, on log beta): log beta += dual_lr (H - target_entropy),
+    a step of fixed size whatever the saturation.
 """
 
 from __future__ import annotations
@@ -97,5 +101,9 @@ class SoftQLearner(NamedTuple):
     def dual_step(self, state: LearnerState, obs):
         q = jax.lax.stop_gradient(self.q_values(state.params, obs))
         loss, grad = jax.value_and_grad(dual_loss)(state.beta, q, self.spec.target_entropy)
-        beta = jnp.clip(state.beta - self.spec.dual_lr * grad, BETA_MIN, BETA_MAX)
-        return state._replace(beta=beta), {"dual_loss": loss}
+        if self.spec.dual == "linear":
+            gap = jnp.mean(entropy(policy_log_probs(q, state.beta))) - self.spec.target_entropy
+            beta = jnp.exp(jnp.log(state.beta) + self.spec.dual_lr * gap)
+        else:
+            beta = state.beta - self.spec.dual_lr * grad
+        return state._replace(beta=jnp.clip(beta, BETA_MIN, BETA_MAX)), {"dual_loss": loss}

@@ -51,6 +51,7 @@ class Rollout(NamedTuple):
     episodes: replay.Episodes  # [n, T(+1), ...]
     states: Any  # env states, [T+1, n, ...] (for pictures)
     log_probs: jax.Array  # robot policy log-probs at each step [T, n, A] (zeros for random)
+    rule_metrics: dict  # per-environment end-of-episode metrics of a rule-based robot
 
 
 class Trainer(NamedTuple):
@@ -93,43 +94,68 @@ class Trainer(NamedTuple):
         )
 
     # ------------------------------------------------------------ acting
-    def robot_action(self, lstate: LearnerState, obs, key, mode: str):
-        """mode: sample (Boltzmann policy), greedy (argmax Q) or random (uniform)."""
+    def robot_action(self, lstate: LearnerState, obs, key, mode: str, uniform=False):
+        """mode: sample (Boltzmann policy), greedy (argmax Q) or random (uniform).
+
+        `uniform` (a traced bool) overrides a sampled action with a uniform one: the warm-up
+        epochs (learner.warmup_epochs) act uniformly while the policy's log-probs are still
+        reported.
+        """
         n = obs.shape[0]
+        k_policy, k_uniform = jax.random.split(key)
+        uniform_action = jax.random.randint(k_uniform, (n,), 0, self.env.num_robot_actions, dtype=jnp.int32)
         if mode == "random" or not self.method.learns_policy:
-            return jnp.zeros((n, self.env.num_robot_actions)), jax.random.randint(
-                key, (n,), 0, self.env.num_robot_actions, dtype=jnp.int32
-            )
+            return jnp.zeros((n, self.env.num_robot_actions)), uniform_action
         log_probs = self.learner.log_probs(lstate, obs)
         if mode == "greedy":
             return log_probs, jnp.argmax(log_probs, axis=-1).astype(jnp.int32)
-        return log_probs, jax.random.categorical(key, log_probs).astype(jnp.int32)
+        action = jax.random.categorical(k_policy, log_probs).astype(jnp.int32)
+        return log_probs, jnp.where(uniform, uniform_action, action)
 
-    def rollout(self, lstate: LearnerState, key, num_envs: int, mode: str = "sample", hstate=()) -> Rollout:
-        env, human = self.env, self.human
+    @property
+    def acts_by_rule(self) -> bool:
+        return bool(getattr(self.method, "acts_by_rule", False))
+
+    def rollout(self, lstate: LearnerState, key, num_envs: int, mode: str = "sample", uniform=False, hstate=()) -> Rollout:
+        """One episode in each of `num_envs` environments.
+
+        A method that acts by a fixed rule (Goal Inference) keeps a per-environment memory
+        across the steps and decides from the observation and the human's previous action;
+        every other robot acts from its learned (or uniform) policy.
+        """
+        env, human, method = self.env, self.human, self.method
         k_reset, k_steps = jax.random.split(key)
         states = jax.vmap(env.reset)(jax.random.split(k_reset, num_envs))
+        obs0 = jax.vmap(env.observe)(states)
+        memory = jax.vmap(method.memory_init)(obs0) if self.acts_by_rule else ()
+        prev_ah = jnp.zeros((num_envs,), jnp.int32)
 
-        def step(states, key):
+        def step(carry, key):
+            states, memory, prev_ah = carry
             k_robot, k_human = jax.random.split(key)
             obs = jax.vmap(env.observe)(states)
-            log_probs, a_r = self.robot_action(lstate, obs, k_robot, mode)
+            if self.acts_by_rule:
+                a_r, memory = jax.vmap(method.rule_step)(memory, obs, prev_ah)
+                log_probs = jnp.zeros((num_envs, env.num_robot_actions))
+            else:
+                log_probs, a_r = self.robot_action(lstate, obs, k_robot, mode, uniform)
             k_each = jax.random.split(k_human, num_envs)
             if self.human_learns:
                 a_h = jax.vmap(human.act_with, in_axes=(None, 0, 0))(hstate, k_each, states)
             else:
                 a_h = jax.vmap(human.act)(k_each, states)
             next_states, reward = jax.vmap(env.step)(states, a_r, a_h)
-            return next_states, (states, obs, a_r, a_h, reward, log_probs)
+            return (next_states, memory, a_h), (states, obs, a_r, a_h, reward, log_probs)
 
-        final, (traj, obs, a_r, a_h, reward, log_probs) = jax.lax.scan(
-            step, states, jax.random.split(k_steps, env.episode_steps)
+        (final, memory, _), (traj, obs, a_r, a_h, reward, log_probs) = jax.lax.scan(
+            step, (states, memory, prev_ah), jax.random.split(k_steps, env.episode_steps)
         )
         obs = jnp.concatenate([obs, jax.vmap(env.observe)(final)[None]], axis=0)
         all_states = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]], axis=0), traj, final)
         swap = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731 - [T, n] -> [n, T]
         episodes = replay.Episodes(obs=swap(obs), robot_action=swap(a_r), human_action=swap(a_h), reward=swap(reward))
-        return Rollout(episodes=episodes, states=all_states, log_probs=log_probs)
+        rule_metrics = jax.vmap(method.rule_metrics)(memory, final) if self.acts_by_rule else {}
+        return Rollout(episodes=episodes, states=all_states, log_probs=log_probs, rule_metrics=rule_metrics)
 
     # ------------------------------------------------------------ learning
     def _scan_updates(self, step_fn, carry, key, count: int):
@@ -146,7 +172,8 @@ class Trainer(NamedTuple):
     def epoch(self, state: TrainState):
         spec = self.spec
         key, k_roll, k_repr, k_critic, k_dual = jax.random.split(state.key, 5)
-        roll = self.rollout(state.learner, k_roll, spec.train.num_envs, "sample", hstate=state.human)
+        warming_up = state.epoch < spec.learner.warmup_epochs
+        roll = self.rollout(state.learner, k_roll, spec.train.num_envs, "sample", warming_up, state.human)
         buf = replay.add(state.buffer, roll.episodes)
         hstate, h_metrics = state.human, {}
         if self.human_learns:  # the human learns from the episodes it just played
@@ -194,6 +221,7 @@ class Trainer(NamedTuple):
         metrics.update(c_metrics)
         metrics.update(d_metrics)
         metrics.update(m_metrics)
+        metrics.update(jax.tree.map(jnp.mean, roll.rule_metrics))
         metrics.update(h_metrics)
         new_state = TrainState(epoch=state.epoch + 1, key=key, learner=lstate, method=mstate, buffer=buf, human=hstate)
         return new_state, {k: metrics[k].astype(jnp.float32) for k in self.metric_names}
@@ -205,11 +233,12 @@ class Trainer(NamedTuple):
 def make_trainer(spec, store=None) -> Trainer:
     """`store`: where stored dependencies (a BC human) are loaded from."""
     env = make_env(spec.env)
+    human = make_human(spec.human, env, store)
     return Trainer(
         spec=spec,
         env=env,
-        human=make_human(spec.human, env, store),
-        method=make_method(spec, env),
+        human=human,
+        method=make_method(spec, env, human),
         learner=SoftQLearner(num_actions=env.num_robot_actions, network_spec=spec.network, spec=spec.learner),
     )
 

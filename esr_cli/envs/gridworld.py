@@ -36,6 +36,7 @@ class Gridworld(NamedTuple):
     num_blocks: int
     start: str
     episode_steps: int
+    goal_visible: bool = False  # a third observation plane with the goal (the Oracle's view)
 
     # ---------------------------------------------------------------- static facts
     @property
@@ -48,7 +49,7 @@ class Gridworld(NamedTuple):
 
     @property
     def obs_shape(self) -> tuple[int, int, int]:
-        return (self.size, self.size, 2)
+        return (self.size, self.size, 3 if self.goal_visible else 2)
 
     # ---------------------------------------------------------------- predicates
     def block_at(self, blocks: jax.Array, pos: jax.Array) -> jax.Array:
@@ -139,11 +140,46 @@ class Gridworld(NamedTuple):
 
     # ---------------------------------------------------------------- encodings
     def observe(self, state: GridState) -> jax.Array:
-        """The robot's view: uint8[S, S, 2] (human plane, block plane). No goal."""
-        grid = jnp.zeros((self.size, self.size, 2), jnp.uint8)
+        """The robot's view: uint8[S, S, 2] (human plane, block plane); no goal unless
+        `goal_visible` (then a third plane marks it)."""
+        grid = jnp.zeros(self.obs_shape, jnp.uint8)
         grid = grid.at[state.human[0], state.human[1], 0].set(1)
         grid = grid.at[state.blocks[:, 0], state.blocks[:, 1], 1].set(1)
+        if self.goal_visible:
+            grid = grid.at[state.goal[0], state.goal[1], 2].set(1)
         return grid
+
+    def human_position(self, obs: jax.Array) -> jax.Array:
+        """int32[2]: the human's cell, read from an observation."""
+        flat = jnp.argmax(obs[..., 0].reshape(-1))
+        return jnp.stack([flat // self.size, flat % self.size]).astype(jnp.int32)
+
+    def block_coordinates(self, obs: jax.Array) -> jax.Array:
+        """int32[N, 2]: the blocks' cells read from an observation, in row-major order."""
+        flat = jnp.nonzero(obs[..., 1].reshape(-1) > 0, size=self.num_blocks, fill_value=0)[0]
+        return jnp.stack([flat // self.size, flat % self.size], axis=-1).astype(jnp.int32)
+
+    def random_human_futures(self, obs: jax.Array, human_actions: jax.Array) -> jax.Array:
+        """float32[M, 2]: the human's cell after each of M sequences of L human actions
+        (int[M, L]) from the observed state, the robot staying (AvE's rollouts).
+
+        Read from the observation alone, as the robot sees it: blocks stop the human, a human
+        under a block cannot move; the goal is unknown, so reaching it freezes nothing.
+        """
+        start = self.human_position(obs)
+        blocked = obs[..., 1] > 0
+        dead = blocked[start[0], start[1]]
+
+        def walk(actions):
+            def move(pos, a):
+                target = jnp.clip(pos + DIRECTIONS[a], 0, self.size - 1)
+                stays = dead | blocked[target[0], target[1]]
+                return jnp.where(stays, pos, target), None
+
+            end, _ = jax.lax.scan(move, start, actions)
+            return end.astype(jnp.float32)
+
+        return jax.vmap(walk)(human_actions)
 
     def robot_action_planes(self, action: jax.Array) -> jax.Array:
         """float32[S, S, 5]: one-hot at (cell row, cell col, direction)."""
@@ -182,5 +218,9 @@ class Gridworld(NamedTuple):
 
 def make(env_spec) -> Gridworld:
     return Gridworld(
-        size=env_spec.size, num_blocks=env_spec.blocks, start=env_spec.start, episode_steps=env_spec.episode_steps
+        size=env_spec.size,
+        num_blocks=env_spec.blocks,
+        start=env_spec.start,
+        episode_steps=env_spec.episode_steps,
+        goal_visible=env_spec.goal_visible,
     )

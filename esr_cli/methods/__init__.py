@@ -9,12 +9,19 @@ them all with the shared soft-Q learner:
     updates_per_epoch: int                     how many `update` steps per epoch
     learns_policy: bool                        False: the robot acts uniformly at random
     metric_names: tuple[str, ...]              keys of `update`'s metrics
+
+A method with `acts_by_rule = True` (Goal Inference) instead decides every step itself:
+    memory_init(obs) -> memory                 per environment, at an episode's start
+    rule_step(memory, obs, prev_human_action) -> (action, memory)
+    rule_metrics(memory, final_env_state) -> dict   end-of-episode metrics
+
+Catalogue (docs/baselines.md): esr, random, ave, goal_inference, iq_learn, oracle.
 """
 
 from __future__ import annotations
 
 
-def make_method(spec, env):
+def make_method(spec, env, human=None):
     kind = spec.method.kind
     if kind == "esr":
         from esr_cli.methods.esr import ESR
@@ -24,4 +31,20 @@ def make_method(spec, env):
         from esr_cli.methods.random import RandomRobot
 
         return RandomRobot()
+    if kind == "ave":
+        from esr_cli.methods.ave import AvE
+
+        return AvE(env=env, spec=spec.method)
+    if kind == "goal_inference":
+        from esr_cli.methods.goal_inference import GoalInference
+
+        return GoalInference(env=env, human=human)
+    if kind == "iq_learn":
+        from esr_cli.methods.iq_learn import IQLearn
+
+        return IQLearn(env=env, spec=spec.method, network_spec=spec.network)
+    if kind == "oracle":
+        from esr_cli.methods.oracle import Oracle
+
+        return Oracle()
     raise ValueError(f"unknown method kind {kind!r}")

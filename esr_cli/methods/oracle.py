@@ -1,0 +1,22 @@
+"""Oracle: an upper bound the paper lacks. The robot sees the human's goal (the environment's
+`goal_visible` observation) and is trained with the shared soft-Q learner on the human's true
+reward, so the gap between it and ESR is the room left for any goal-agnostic assistant."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+
+class Oracle(NamedTuple):
+    updates_per_epoch: int = 0
+    learns_policy: bool = True
+    metric_names: tuple = ()
+
+    def init(self, key, obs_example):
+        return ()
+
+    def update(self, state, batch, key):
+        return state, {}
+
+    def reward(self, state, batch, key):
+        return batch.reward  # the environment's reward for this transition
