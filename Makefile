@@ -24,8 +24,9 @@ demo: install
 	$(BIN)/esr train experiments/grid_2.yaml $(DEMO_SET)
 	$(BIN)/esr eval experiments/grid_2.yaml $(DEMO_SET)
 
+# Compiling dominates the suite and XLA compiles on one thread: one worker per core (xdist).
 test: install
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n auto
 
 bench: install
 	$(BIN)/python benchmarks/bench.py
