@@ -180,14 +180,18 @@ def exact(
     out.print(str(path), soft_wrap=True, highlight=False)
 
 
+PAPER_FIGURES = ("gridworld", "overcooked", "no-robot-action", "greedy", "mi", "representations", "filmstrip")
+
+
 @app.command()
 def plot(
-    figure: str = typer.Argument(..., help="which figure: estimator | geometry", show_default=False),
+    figure: str = typer.Argument(..., help="estimator | geometry | " + " | ".join(PAPER_FIGURES), show_default=False),
     ref: Optional[str] = typer.Argument(None, help="estimator: an exact artifact made with --robot"),
+    budget: str = BudgetOpt,
     gamma: float = typer.Option(0.2, "--gamma", help="geometry: the future-state horizon"),
     state: int = typer.Option(0, "--state", help="geometry: which of the 3 states"),
 ):
-    """Draw a figure from artifacts (never trains)."""
+    """Draw a figure from artifacts (never trains; a missing run is named with its command)."""
     from esr_cli import exact_runs
 
     if figure == "estimator":
@@ -201,10 +205,66 @@ def plot(
         err.print(f"3-state MDP, state {state}, gamma {gamma}: capacity I = {result['mutual_information']:.4f} nats "
                   f"(uniform policy: {result['uniform_policy_mi']:.4f})")
         png = path / "geometry.png"
+    elif figure in PAPER_FIGURES:
+        from esr_cli import figures as figs, paper
+
+        try:
+            path, cached = paper.ensure_figure(STATE.store, budget, figure)
+        except figs.MissingRuns as e:
+            raise Exit(2, f"{e}\nor all at once: make paper-figures BUDGET={budget}") from None
+        png = path / f"{figs.FIGURES[figure][0]}.png"
     else:
-        raise Exit(2, f"unknown figure {figure!r}; known: estimator, geometry")
+        raise Exit(2, f"unknown figure {figure!r}; known: estimator, geometry, {', '.join(PAPER_FIGURES)}")
     err.print(f"[green]{'cache hit' if cached else 'drawn'}[/]: {png}")
     out.print(str(png), soft_wrap=True, highlight=False)
+
+
+@app.command()
+def ablate(
+    spec_files: Optional[List[Path]] = typer.Argument(None, help="base spec(s); default: the paper's gridworld ESR specs (N = 2, 5, 7, 10)", show_default=False),
+    no_robot_action: bool = typer.Option(False, "--no-robot-action", help="phi and phi' without the robot action"),
+    greedy: bool = typer.Option(False, "--greedy", help="critic discount 0, future-state horizon unchanged"),
+    budget: str = BudgetOpt,
+    set_: Optional[List[str]] = SetOpt,
+):
+    """Train (or reuse) base specs and their ablated variants; write one comparison artifact."""
+    from esr_cli import paper, spec as specs
+
+    names = [n for n, on in (("no_robot_action", no_robot_action), ("greedy", greedy)) if on]
+    if not names and not set_:
+        raise Exit(2, "name an ablation: --no-robot-action, --greedy and/or --set key.path=value")
+    try:
+        path, table = paper.ablate([str(p) for p in spec_files or []], names, list(set_ or []), budget, STATE.store, err)
+    except specs.SpecError as e:
+        raise Exit(2, str(e)) from None
+    rich_table = Table(title=f"final return, mean ± SE across seeds ({budget} budget)")
+    panels = list(table)
+    rich_table.add_column("variant")
+    for p in panels:
+        rich_table.add_column(p)
+    for label in dict.fromkeys(lab for p in panels for lab in table[p]):
+        rich_table.add_row(label, *[f"{table[p][label]['mean']:.2f} ± {table[p][label]['se']:.2f}" for p in panels])
+    err.print(rich_table)
+    err.print(f"[green]comparison[/]: {path / 'ablation.png'}  (table: {path / 'table.md'})")
+    out.print(str(path), soft_wrap=True, highlight=False)
+
+
+@app.command("paper")
+def paper_(
+    budget: str = BudgetOpt,
+    executor: str = typer.Option("local", "--executor", "-e", help="local | slurm | submitit-local (see esr sweep)"),
+):
+    """Train what the paper suite lacks, draw every figure and write the report (make paper-figures)."""
+    from esr_cli import figures as figs, paper, sweep as sw
+
+    try:
+        path = paper.make_paper(STATE.store, budget, executor, err)
+    except sw.SuiteError as e:
+        raise Exit(2, f"bad suite: {e}") from None
+    except (sw.SweepError, figs.MissingRuns) as e:
+        raise Exit(1, str(e)) from None
+    err.print(f"[green]report[/]: {path / 'report.md'}")
+    out.print(str(path / "report.md"), soft_wrap=True, highlight=False)
 
 
 # ---------------------------------------------------------------- ls / show / verify

@@ -67,11 +67,14 @@ def learning_curve(rows: list[dict], out_png: Path, title: str, provenance: dict
     return save_figure(fig, out_png, provenance)
 
 
-def save_figure(fig, out_png: Path, provenance: dict) -> Path:
-    """PNG (provenance in its text metadata) plus a sidecar JSON with the same provenance."""
+def save_figure(fig, out_png: Path, provenance: dict, pdf: bool = False) -> Path:
+    """PNG (provenance in its text metadata) plus a sidecar JSON with the same provenance;
+    with `pdf`, a PDF twin (provenance in its Subject)."""
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out_png, dpi=110, metadata={"Description": json.dumps(provenance, sort_keys=True)})
+    if pdf:
+        fig.savefig(out_png.with_suffix(".pdf"), metadata={"Subject": json.dumps(provenance, sort_keys=True)})
     plt.close(fig)
     out_png.with_suffix(".json").write_text(json.dumps(provenance, indent=2, sort_keys=True))
     return out_png
@@ -106,7 +109,7 @@ def _barycentric(p: np.ndarray) -> np.ndarray:
     return np.asarray(p) @ corners
 
 
-def information_geometry(geo, gamma: float, out_png: Path, provenance: dict) -> Path:
+def information_geometry(geo, gamma: float, out_png: Path, provenance: dict, pdf: bool = False) -> Path:
     """The simplex of future-state distributions of a 3-state MDP: the polytope of achievable
     distributions, its capacity centre, and the KL distances to the vertices."""
     fig, ax = plt.subplots(figsize=(5.2, 4.8))
@@ -130,4 +133,4 @@ def information_geometry(geo, gamma: float, out_png: Path, provenance: dict) -> 
     ax.set_title(f"Empowerment as a distance in the simplex (gamma {gamma})", fontsize=10)
     ax.legend(fontsize=7, loc="upper right", bbox_to_anchor=(1.05, 1.0))
     fig.tight_layout()
-    return save_figure(fig, out_png, provenance)
+    return save_figure(fig, out_png, provenance, pdf)

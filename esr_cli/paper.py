@@ -1,0 +1,206 @@
+"""Figures, the paper report and ablations as artifacts (docs/paper.md).
+
+- `ensure_figure`: one figure of esr_cli.figures as a `figures` artifact, keyed by the figure,
+  the budget, the keys of the runs it reads and the plotting code. Never trains.
+- `ensure_report`: every figure, then a report artifact (report.md with the figures inline).
+- `make_paper`: train what the paper suite lacks (esr sweep's executors), then the report.
+- `ablate`: a base spec (or the gridworld suite) and its ablated variants -> one comparison
+  artifact (figure + table, mean ± SE across seeds); runs already in the store are reused.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+from rich.console import Console
+
+from esr_cli import figures as figs
+from esr_cli import provenance
+from esr_cli.store import Store, atomic_write_text, content_key
+
+FIGURE_KIND = "figures"
+PLOT_SOURCES = ("figures.py", "plots.py", "paper.py", "analysis")
+
+
+def _commit(store: Store, key: str, components: dict, name: str, budget, seeds, make_files) -> Path:
+    """Create a figures artifact: `make_files(dir) -> summary dict`, then commit atomically."""
+
+    def make() -> Path:
+        pending = {"kind": FIGURE_KIND, "name": name, "key": key, "budget": budget, "seeds": seeds}
+        out = store.begin(FIGURE_KIND, key, pending)
+        summary = make_files(out)
+        atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=float))
+        manifest = {**pending, "format": 1, "status": "complete", "key_components": components,
+                    "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "provenance": provenance.provenance(),
+                    "summary": summary}
+        return store.commit(FIGURE_KIND, key, manifest)
+
+    path, _ = store.get_or_make(FIGURE_KIND, key, make)
+    return path
+
+
+def figure_key(inputs: figs.PaperInputs, figure: str) -> tuple[str, dict, list[Path]]:
+    paths = inputs.paths(figure, figs.WANTS[figure]())
+    components = {"kind": "figure", "figure": figure, "budget": inputs.budget,
+                  "inputs": [inputs.store.read_manifest(p)["key"] for p in paths],
+                  "code": provenance.code_digest(PLOT_SOURCES)}
+    return content_key(components), components, paths
+
+
+def ensure_figure(store: Store, budget: str, name: str, inputs: Optional[figs.PaperInputs] = None) -> tuple[Path, bool]:
+    """`esr plot NAME --budget B`: -> (artifact dir, cache hit). Raises figs.MissingRuns."""
+    figure, draw = figs.FIGURES[name]
+    inputs = inputs or figs.PaperInputs(store, budget)
+    key, components, paths = figure_key(inputs, figure)
+    hit = store.lookup(FIGURE_KIND, key) is not None
+    seeds = sorted({s for p in paths for s in store.read_manifest(p).get("seeds", [])})
+
+    def files(out: Path) -> dict:
+        result = draw(inputs, out)
+        return {"figure": figure, "files": [f.name for f in result.files], "provenance": result.provenance, **result.summary}
+
+    return _commit(store, key, components, figure, budget, seeds, files), hit
+
+
+def ensure_report(store: Store, budget: str, console: Console) -> Path:
+    """Every figure (artifacts), then the report artifact with them inline."""
+    inputs = figs.PaperInputs(store, budget)
+    made = {}
+    for name, (figure, _) in figs.FIGURES.items():
+        path, hit = ensure_figure(store, budget, name, inputs)
+        console.print(f"  {figure}: {'cache hit' if hit else 'drawn'} {path}")
+        made[figure] = path
+    components = {"kind": "report", "budget": budget, "figures": {f: p.name for f, p in made.items()},
+                  "code": provenance.code_digest(PLOT_SOURCES)}
+    key = content_key(components)
+
+    def files(out: Path) -> dict:
+        lines = [f"# ESR paper figures ({budget} budget)", "",
+                 f"Made by `make paper-figures BUDGET={budget}` from the runs of `experiments/suites/paper.yaml`. "
+                 "Each figure's sidecar JSON lists the training-run keys it read; `esr show KEY` prints a run's spec.", ""]
+        for figure, path in made.items():
+            summary = json.loads((path / "summary.json").read_text())
+            (out / figure).mkdir()
+            for f in summary["files"]:
+                shutil.copy2(path / f, out / figure / f)
+            doc = _FIGURE_DOCS[figure]
+            lines += [f"## {doc[0]}", "", doc[1], "", f"![{figure}]({figure}/{figure}.png)", "",
+                      f"Artifact: `{path.name}`; runs: {len(summary['provenance']['artifacts'].get('runs', []))}; "
+                      f"seeds: {summary['provenance'].get('seeds')}", ""]
+            if figure == "fig2_overcooked":
+                lines += [(path / "fig2_overcooked.md").read_text(), ""]
+            if "final_return" in summary and figure != "fig2_overcooked":
+                lines += _final_table(summary["final_return"]) + [""]
+        atomic_write_text(out / "report.md", "\n".join(lines))
+        return {"figures": {f: p.name for f, p in made.items()}, "report": "report.md"}
+
+    return _commit(store, key, components, f"paper-report-{budget}", budget, [], files)
+
+
+def _final_table(table: dict) -> list[str]:
+    """Markdown: rows = lines (methods), columns = panels; final return mean ± SE."""
+    panels = list(table)
+    labels = list(dict.fromkeys(label for p in panels for label in table[p]))
+    out = ["Final return (mean over the last 10% of epochs per seed; mean ± SE across seeds):", "",
+           "| | " + " | ".join(panels) + " |", "|---" * (len(panels) + 1) + "|"]
+    for label in labels:
+        cells = [f"{table[p][label]['mean']:.2f} ± {table[p][label]['se']:.2f}" if label in table[p] else "" for p in panels]
+        out.append(f"| {label} | " + " | ".join(cells) + " |")
+    return out
+
+
+_FIGURE_DOCS = {
+    "fig1_gridworld": ("Figure 1: the obstacle gridworld", "Return (steps the human spends on its goal, of 50) during training for every method, N = 2, 5, 7, 10 blocks; ±1 SE shading."),
+    "fig2_overcooked": ("Figure 2: Overcooked", "Final training return per 400-step episode with the BC human, next to the paper's numbers."),
+    "fig3_no_robot_action": ("Figure 3: ablation without the robot action", "ESR against ESR whose phi and phi' do not see the robot's action."),
+    "fig4_greedy": ("Figure 4: greedy ablation", "ESR against ESR with critic discount 0 (the future-state horizon unchanged)."),
+    "fig5_mutual_information": ("Figure 5: the MI estimate during training", "Mean diagonal logit of phi minus that of phi' (nats) and contrastive accuracy against chance, ESR runs of figure 1."),
+    "fig6_representations": ("Figure 6: 3-dimensional representations", "psi(s) of an ESR run with repr_dim 3 on the N = 10 gridworld, coloured by how many cells the human can reach."),
+    "fig7_geometry": ("Figure 7: information geometry", "The state-marginal polytope of a 3-state MDP, its capacity centre and the KL distance to each vertex, computed exactly."),
+    "fig8_filmstrip": ("Figure 8: a coordination-ring rollout", "Frames of one episode with the trained ESR robot (agent 0) and the BC human."),
+}
+
+
+def make_paper(store: Store, budget: str, executor: str, console: Console) -> Path:
+    """Train the paper suite's missing runs with `executor`, then the report. -> report dir."""
+    from esr_cli import sweep
+
+    result = sweep.run_suite(figs.PAPER_SUITE, budget, executor, store, console)
+    if result.failed:
+        raise sweep.SweepError(f"{len(result.failed)} run(s) failed: " + "; ".join(f"{r.label}: {m}" for r, m in result.failed))
+    if not result.complete:
+        raise sweep.SweepError("runs were submitted; when they finish, run the same command again to draw the report "
+                               f"(`esr sweep --status {figs.PAPER_SUITE}` shows them)")
+    return ensure_report(store, budget, console)
+
+
+# ---------------------------------------------------------------- ablations
+NAMED_ABLATIONS = {
+    "no_robot_action": ("no robot action", ("method.condition_on_robot_action=false",)),
+    "greedy": ("greedy critic", ("learner.gamma=0.0",)),
+}
+DEFAULT_ABLATION_SPECS = tuple(f"experiments/grid_{n}.yaml" for n in figs.GRID_NS)
+
+
+@dataclass
+class Variant:
+    name: str
+    sets: tuple[str, ...]
+
+
+def ablation_variants(names: list[str], custom: list[str]) -> list[Variant]:
+    """The base spec first, then each named ablation, then one variant of all --set values."""
+    variants = [Variant("base", ())]
+    for n in names:
+        label, sets = NAMED_ABLATIONS[n]
+        variants.append(Variant(label, sets))
+    if custom:
+        variants.append(Variant(" ".join(custom), tuple(custom)))
+    return variants
+
+
+def ablate(spec_paths: list[str], names: list[str], custom: list[str], budget: str, store: Store,
+           console: Console) -> tuple[Path, dict]:
+    """Train (or reuse) each spec and its variants; -> (comparison artifact, final-return table)."""
+    from esr_cli import runs
+    from esr_cli import spec as specs
+
+    variants = ablation_variants(names, custom)
+    loaded = []  # (spec path, variant, spec)
+    for path in spec_paths or DEFAULT_ABLATION_SPECS:
+        for v in variants:
+            loaded.append((path, v, specs.load(path, budget, list(v.sets))))  # all validated before any work
+    run_paths = []
+    for i, (path, v, spec) in enumerate(loaded, 1):
+        console.print(f"[bold]({i}/{len(loaded)})[/] {spec.name} [{v.name}]")
+        run_path, hit = runs.ensure_run(spec, store, console)
+        if hit:
+            console.print(f"  cache hit: {run_path}")
+        run_paths.append(run_path)
+    keys = [store.read_manifest(p)["key"] for p in run_paths]
+    components = {"kind": "ablation", "budget": budget, "variants": [[v.name, list(v.sets)] for v in variants],
+                  "runs": keys, "code": provenance.code_digest(PLOT_SOURCES)}
+    key = content_key(components)
+    seeds = sorted({s for p in run_paths for s in store.read_manifest(p).get("seeds", [])})
+    colors = ["C0", "C3", "C2", "C1", "C4"]
+
+    def files(out: Path) -> dict:
+        panels, it = [], iter(run_paths)
+        for path in spec_paths or DEFAULT_ABLATION_SPECS:
+            lines = [(v.name, colors[j % len(colors)], figs.read_rows(next(it))) for j, v in enumerate(variants)]
+            panels.append((Path(path).stem, lines))
+        title = f"Ablation: {', '.join(v.name for v in variants[1:])}  [{budget} budget, mean ± 1 SE over seeds]"
+        fig, table = figs.panels_figure(panels, title, "return")
+        prov = {"figure": "ablation", "artifacts": {"runs": keys}, "budget": budget, "seeds": seeds,
+                "variants": {v.name: list(v.sets) for v in variants}}
+        figs.save(fig, out, "ablation", prov)
+        atomic_write_text(out / "table.md", "\n".join(_final_table(table)) + "\n")
+        return {"final_return": table, "provenance": prov}
+
+    path = _commit(store, key, components, "ablation", budget, seeds, files)
+    return path, json.loads((path / "summary.json").read_text())["final_return"]
