@@ -5,7 +5,9 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 DEMO_SET := --budget quick --set train.epochs=40
 
-.PHONY: install demo test bench sweep clean-venv
+.PHONY: install demo test bench sweep paper-figures clean-venv
+BUDGET   ?= paper
+EXECUTOR ?= local
 
 install: $(STAMP)
 
@@ -28,14 +30,19 @@ demo: install
 test: install
 	$(BIN)/python -m pytest -n auto
 
+# Train what the paper suite lacks (experiments/suites/paper.yaml), draw all eight figures and
+# write the report into the store; prints the report's path. Re-running re-trains nothing.
+# At BUDGET=smoke compiling dominates, so XLA skips its optimisation passes (docs/paper.md).
+paper-figures: install
+	$(if $(filter smoke,$(BUDGET)),XLA_FLAGS="$(XLA_FLAGS) --xla_backend_optimization_level=0") \
+	$(BIN)/esr paper --budget $(BUDGET) --executor $(EXECUTOR)
+
 bench: install
 	$(BIN)/python benchmarks/bench.py
 
 # Every run of a suite that the store lacks (docs/cluster.md), e.g.
 #   make sweep SUITE=experiments/suites/gridworld.yaml BUDGET=quick EXECUTOR=slurm
 SUITE    ?= experiments/suites/gridworld.yaml
-BUDGET   ?= paper
-EXECUTOR ?= local
 sweep: install
 	$(BIN)/esr sweep $(SUITE) --budget $(BUDGET) --executor $(EXECUTOR)
 

@@ -1,0 +1,75 @@
+"""Figures, ablations and the report: numbers by hand, missing inputs named, provenance kept.
+(The whole paper pipeline at the smoke budget runs in CI: `make paper-figures BUDGET=smoke`.)"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import esr
+from esr_cli import figures as figs
+
+
+def rows_of(returns_by_epoch):
+    return [{"epoch": i + 1, "return": list(r)} for i, r in enumerate(returns_by_epoch)]
+
+
+def test_final_return_is_the_last_tenth_per_seed_then_mean_and_se():
+    # 20 epochs, 2 seeds: the last 10% = epochs 19 and 20.
+    rows = rows_of([[0.0, 0.0]] * 18 + [[10.0, 2.0], [20.0, 4.0]])
+    per_seed = figs.final_per_seed(rows)
+    assert per_seed.tolist() == [15.0, 3.0]
+    m, se = figs.mean_se(per_seed)
+    assert m == 9.0 and se == pytest.approx(np.std([15.0, 3.0], ddof=1) / np.sqrt(2))
+
+
+def test_panels_figure_tables_every_line(tmp_path):
+    a = rows_of([[1.0, 3.0]] * 10)
+    b = rows_of([[5.0, 5.0]] * 10)
+    fig, table = figs.panels_figure([("p1", [("A", "C0", a), ("B", "C1", b)])], "t", "return")
+    files = figs.save(fig, tmp_path, "f", {"artifacts": {"runs": ["k1", "k2"]}, "budget": "smoke", "seeds": [0, 1]})
+    assert table == {"p1": {"A": {"mean": 2.0, "se": 1.0, "seeds": 2}, "B": {"mean": 5.0, "se": 0.0, "seeds": 2}}}
+    assert [f.suffix for f in files] == [".png", ".pdf", ".json"]
+    assert json.loads(files[2].read_text())["artifacts"]["runs"] == ["k1", "k2"]
+    from PIL import Image
+
+    assert "k1" in Image.open(files[0]).info["Description"]  # provenance inside the PNG too
+
+
+def test_every_figure_reads_runs_of_the_paper_suite():
+    """Each figure's inputs exist in experiments/suites/paper.yaml (at any budget)."""
+    from esr_cli.store import Store
+
+    inputs = figs.PaperInputs(Store("/nonexistent-store"), "smoke")
+    for figure, wants in figs.WANTS.items():
+        for stem, sets in wants():
+            assert inputs.run(stem, sets).spec_path.stem == stem
+    assert {f for f, _ in figs.FIGURES.values()} == set(figs.WANTS)
+
+
+def test_plot_with_missing_runs_names_the_commands(tmp_path):
+    proc = esr("plot", "mi", "--budget", "smoke", store=tmp_path, check=False)
+    assert proc.returncode == 2
+    assert "esr train" in proc.stderr and "grid_2.yaml --budget smoke" in proc.stderr
+    assert "make paper-figures BUDGET=smoke" in proc.stderr
+    assert not (tmp_path / "figures").exists()
+
+
+def test_ablate_needs_an_ablation(tmp_path):
+    proc = esr("ablate", "--budget", "smoke", store=tmp_path, check=False)
+    assert proc.returncode == 2 and "--no-robot-action" in proc.stderr
+
+
+def test_ablate_reuses_trained_runs_and_writes_a_comparison(smoke_run):
+    store, base_path, _ = smoke_run
+    proc = esr("ablate", "experiments/grid_2.yaml", "--greedy", "--budget", "smoke", store=store)
+    out = Path(proc.stdout.strip().splitlines()[-1])
+    assert "cache hit" in proc.stderr  # the base run was not trained again
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["final_return"]["grid_2"]) == {"base", "greedy critic"}
+    prov = json.loads((out / "ablation.json").read_text())
+    assert base_path.name in prov["artifacts"]["runs"] and prov["budget"] == "smoke"
+    assert (out / "ablation.pdf").exists() and "| base |" in (out / "table.md").read_text()
+    again = esr("ablate", "experiments/grid_2.yaml", "--greedy", "--budget", "smoke", store=store)
+    assert again.stdout.strip().splitlines()[-1] == str(out)
