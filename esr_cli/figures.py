@@ -13,7 +13,7 @@ import json
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable
 
 import matplotlib
 
@@ -258,7 +258,7 @@ def overcooked_table(inputs: PaperInputs, out_dir: Path) -> FigureResult:
     body = []
     for layout in OVERCOOKED_LAYOUTS:
         body.append([layout] + [cell(ours[layout][m]) for m in OVERCOOKED_METHODS])
-        body.append([f"  paper"] + [cell(PAPER_OVERCOOKED[layout][m]) for m in OVERCOOKED_METHODS])
+        body.append(["  paper"] + [cell(PAPER_OVERCOOKED[layout][m]) for m in OVERCOOKED_METHODS])
     md = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     md += ["| " + " | ".join(r) + " |" for r in body]
     tex = [r"\begin{tabular}{l" + "c" * len(OVERCOOKED_METHODS) + "}", r"\toprule", " & ".join(header) + r" \\", r"\midrule"]

@@ -20,6 +20,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from esr_cli.methods.base import no_update, stateless_init
+
 VARIANCE_FLOOR = 1e-3
 
 
@@ -44,11 +46,8 @@ class AvE(NamedTuple):
     learns_policy: bool = True
     metric_names: tuple = ()
 
-    def init(self, key, obs_example):
-        return ()
-
-    def update(self, state, batch, key):
-        return state, {}
+    init = stateless_init
+    update = no_update
 
     def rollout_actions(self, key, batch_size: int) -> jax.Array:
         shape = (batch_size, self.spec.num_rollouts, self.spec.rollout_length)

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from esr_cli.envs.gridworld import DIRECTIONS, NUM_HUMAN_ACTIONS, STAY, GridState
+from esr_cli.methods.base import no_update, stateless_init
 
 MOVES = 4  # left, down, right, up: the human's moves toward a goal
 # For a move d (index into DIRECTIONS), the push directions tried in order: the two
@@ -47,11 +48,8 @@ class GoalInference(NamedTuple):
     acts_by_rule: bool = True
     metric_names: tuple = ("goal_belief_true",)
 
-    def init(self, key, obs_example):
-        return ()
-
-    def update(self, state, batch, key):
-        return state, {}
+    init = stateless_init
+    update = no_update
 
     def reward(self, state, batch, key):
         return jnp.zeros(batch.robot_action.shape, jnp.float32)

@@ -6,17 +6,16 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+from esr_cli.methods.base import no_update, stateless_init
+
 
 class Oracle(NamedTuple):
     updates_per_epoch: int = 0
     learns_policy: bool = True
     metric_names: tuple = ()
 
-    def init(self, key, obs_example):
-        return ()
-
-    def update(self, state, batch, key):
-        return state, {}
+    init = stateless_init
+    update = no_update
 
     def reward(self, state, batch, key):
         return batch.reward  # the environment's reward for this transition

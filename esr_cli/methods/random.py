@@ -6,17 +6,16 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
+from esr_cli.methods.base import no_update, stateless_init
+
 
 class RandomRobot(NamedTuple):
     updates_per_epoch: int = 0
     learns_policy: bool = False
     metric_names: tuple = ()
 
-    def init(self, key, obs_example):
-        return ()
-
-    def update(self, state, batch, key):
-        return state, {}
+    init = stateless_init
+    update = no_update
 
     def reward(self, state, batch, key):
         return jnp.zeros(batch.robot_action.shape, jnp.float32)
