@@ -70,8 +70,11 @@ def ensure_figure(store: Store, budget: str, name: str, inputs: Optional[figs.Pa
 def ensure_report(store: Store, budget: str, console: Console) -> Path:
     """Every figure (artifacts), then the report artifact with them inline."""
     inputs = figs.PaperInputs(store, budget)
+    from esr_cli.core.train import release_compiled
+
     made = {}
     for name, (figure, _) in figs.FIGURES.items():
+        release_compiled()
         path, hit = ensure_figure(store, budget, name, inputs)
         console.print(f"  {figure}: {'cache hit' if hit else 'drawn'} {path}")
         made[figure] = path
@@ -175,9 +178,12 @@ def ablate(spec_paths: list[str], names: list[str], custom: list[str], budget: s
     for path in spec_paths or DEFAULT_ABLATION_SPECS:
         for v in variants:
             loaded.append((path, v, specs.load(path, budget, list(v.sets))))  # all validated before any work
+    from esr_cli.core.train import release_compiled
+
     run_paths = []
     for i, (path, v, spec) in enumerate(loaded, 1):
         console.print(f"[bold]({i}/{len(loaded)})[/] {spec.name} [{v.name}]")
+        release_compiled()
         run_path, hit = runs.ensure_run(spec, store, console)
         if hit:
             console.print(f"  cache hit: {run_path}")

@@ -301,8 +301,11 @@ def _run_local(todo: list[RunStatus], store: Store, console: Console, result: Sw
     from esr_cli import runs
     from esr_cli.core.loop import Interrupted
 
+    from esr_cli.core.train import release_compiled
+
     for i, s in enumerate(todo, 1):
         console.print(f"[bold]({i}/{len(todo)})[/] {s.run.label}")
+        release_compiled()  # one spec's programs at a time
         try:
             runs.ensure_run(s.run.spec, store, console)
             result.submitted.append((s.run, "local"))

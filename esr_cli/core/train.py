@@ -255,6 +255,14 @@ def _cached(trainer: Trainer, what: str, n: int, build):
     return _COMPILED[key]
 
 
+def release_compiled() -> None:
+    """Forget every compiled program. A process that trains many specs one after another (a
+    sweep, an ablation, the paper suite) calls this between them: each XLA executable holds
+    memory mappings, and hundreds of them exhaust the process's mapping limit."""
+    _COMPILED.clear()
+    jax.clear_caches()
+
+
 def compiled_init(trainer: Trainer):
     return _cached(trainer, "init", 0, lambda: jax.jit(jax.vmap(trainer.init)))
 
