@@ -54,6 +54,33 @@ class ConvNet(nn.Module):
         return nn.Dense(self.out)(x)
 
 
+def orthogonal(scale: float = 1.0):
+    """Orthogonal initializer (as flax's `nn.initializers.orthogonal` for 2-D kernels) by
+    Gram-Schmidt in plain XLA ops. flax's uses a QR decomposition (a LAPACK call on CPU), and
+    several of those in one program vmapped over seeds deadlock XLA's CPU runtime on 2 cores
+    (jax 0.10.2); this one compiles to matmuls. Q has the distribution of flax's: the Q
+    factor of a Gaussian matrix with R's diagonal made positive, which Gram-Schmidt gives."""
+
+    def init(key, shape, dtype=jnp.float32):
+        if len(shape) != 2:
+            raise ValueError(f"orthogonal init here is for 2-D kernels, got shape {shape}")
+        rows, cols = shape
+        tall = (rows, cols) if rows >= cols else (cols, rows)
+        a = jax.random.normal(key, tall, jnp.float32)
+
+        def column(j, q):
+            v = a[:, j]
+            for _ in range(2):  # orthogonalise twice: numerically orthogonal to float precision
+                v = v - q @ (q.T @ v)  # columns not yet filled are zero and subtract nothing
+            return q.at[:, j].set(v / jnp.linalg.norm(v))
+
+        q = jax.lax.fori_loop(0, tall[1], column, jnp.zeros(tall, jnp.float32))
+        q = q if rows >= cols else q.T
+        return (scale * q).astype(dtype)
+
+    return init
+
+
 class MLP(nn.Module):
     """Flatten the [..., H, W, C] input, then tanh Dense layers with orthogonal init (the
     original Overcooked networks: 64-64)."""
@@ -67,8 +94,8 @@ class MLP(nn.Module):
         x = x.astype(jnp.float32)
         x = x.reshape(x.shape[:-3] + (-1,))
         for h in self.hidden:
-            x = nn.tanh(nn.Dense(h, kernel_init=nn.initializers.orthogonal(2**0.5), bias_init=nn.initializers.zeros_init())(x))
-        return nn.Dense(self.out, kernel_init=nn.initializers.orthogonal(self.out_scale), bias_init=nn.initializers.zeros_init())(x)
+            x = nn.tanh(nn.Dense(h, kernel_init=orthogonal(2**0.5), bias_init=nn.initializers.zeros_init())(x))
+        return nn.Dense(self.out, kernel_init=orthogonal(self.out_scale), bias_init=nn.initializers.zeros_init())(x)
 
 
 def conv_net(network_spec, out: int) -> nn.Module:

@@ -12,7 +12,7 @@ from rich.console import Console
 
 from esr_cli import human_runs, runs, spec as specs
 from esr_cli.humans import overcooked_data as od
-from esr_cli.networks import MLP, conv_net
+from esr_cli.networks import MLP, conv_net, orthogonal
 from esr_cli.store import Store, StoreError
 
 ROWS = 150  # rows per split: enough to exercise every step, small enough to be quick
@@ -176,3 +176,8 @@ def test_mlp_network_flattens_the_grid():
     assert params["params"]["Dense_0"]["kernel"].shape == (4 * 5 * 7, 8)
     w = np.asarray(params["params"]["Dense_1"]["kernel"])
     np.testing.assert_allclose(w.T @ w, 2.0 * np.eye(8), atol=1e-5)  # orthogonal, gain sqrt(2)
+    wide = np.asarray(orthogonal(1.0)(jax.random.PRNGKey(1), (6, 40)))
+    np.testing.assert_allclose(wide @ wide.T, np.eye(6), atol=1e-5)
+    # No QR decomposition (a LAPACK call): several in one seed-vmapped program deadlock XLA on CPU.
+    jaxpr = str(jax.make_jaxpr(lambda k: net.init(k, x))(jax.random.PRNGKey(0)))
+    assert "qr[" not in jaxpr and "householder" not in jaxpr  # flax's orthogonal shows "qr["
