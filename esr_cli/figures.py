@@ -343,7 +343,7 @@ def representations(inputs: PaperInputs, out_dir: Path) -> FigureResult:
     _style()
     (path,) = inputs.paths("fig6_representations", WANTS["fig6_representations"]())
     spec = run_spec(path)
-    trainer = make_trainer(spec)
+    trainer = make_trainer(spec, inputs.store)
     state = loop.final_state(trainer, path)
     first = jax.tree.map(lambda x: x[0], state)  # seed 0
     roll = jax.jit(lambda k: trainer.rollout(first.learner, k, 16, "sample"))(jax.random.PRNGKey(7))
@@ -388,7 +388,7 @@ def overcooked_filmstrip(inputs: PaperInputs, out_dir: Path, frames: int = 8) ->
     _style()
     (path,) = inputs.paths("fig8_filmstrip", WANTS["fig8_filmstrip"]())
     spec = run_spec(path)
-    trainer = make_trainer(spec)
+    trainer = make_trainer(spec, inputs.store)
     state = loop.final_state(trainer, path)
     first = jax.tree.map(lambda x: x[0], state)
     roll = jax.jit(lambda k: trainer.rollout(first.learner, k, 1, "sample"))(jax.random.PRNGKey(11))
