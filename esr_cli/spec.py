@@ -290,6 +290,8 @@ class Spec(_Model):
             raise ValueError("human.kind=noisy_greedy walks to a gridworld goal: it needs env.kind: gridworld")
         if self.human.kind == "bc" and self.human.layout not in (None, self.env.layout):
             raise ValueError(f"human.layout={self.human.layout!r} differs from env.layout={self.env.layout!r}")
+        if self.method.kind == "oracle" and self.env.kind != "gridworld":
+            raise ValueError("method.kind=oracle is gridworld-only: in Overcooked the goal is the shared reward (docs/baselines.md)")
         if self.method.kind == "oracle" and not getattr(self.env, "goal_visible", False):
             raise ValueError("method.kind=oracle needs env.goal_visible: true (the oracle sees the goal)")
         if self.method.kind == "goal_inference" and self.env.kind != "gridworld":

@@ -209,3 +209,10 @@ def test_oracle_needs_the_goal_in_view():
     raw = specs.load_raw("experiments/grid_2_oracle.yaml")
     with pytest.raises(specs.SpecError, match="goal_visible"):
         specs.resolve(raw, "smoke", ["env.goal_visible=false"])
+
+
+def test_gridworld_only_baselines_are_refused_elsewhere():
+    for kind in ("oracle", "goal_inference"):
+        raw = specs.load_raw("experiments/coord_ring_random.yaml")
+        with pytest.raises(specs.SpecError, match="gridworld"):
+            specs.resolve(raw, "smoke", [f"method.kind={kind}"])
