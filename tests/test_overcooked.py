@@ -227,7 +227,7 @@ def test_observation_decodes_back_to_the_state(cramped):
                 (env.observe(d) == env.observe(s2)).all()])
             return s2, (same, (s2.agent_inv != 1).any())
 
-        return jax.lax.scan(step, env.reset(key), jax.random.split(key, 400))[1]
+        return jax.lax.scan(step, env.reset(key), jax.random.split(key, 150))[1]
 
     same, holding = play(jax.random.PRNGKey(4))
     assert np.asarray(same).all(axis=0).tolist() == [True] * 5
