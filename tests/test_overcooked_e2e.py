@@ -159,7 +159,7 @@ def test_overcooked_spec_errors():
 
 def test_all_overcooked_specs_load():
     for layout in ("cramped_room", "coord_ring", "asymm_advantages", "forced_coord", "counter_circuit"):
-        for suffix in ("", "_random"):
+        for suffix in ("", "_random", "_ave"):
             for budget in ("paper", "quick", "smoke"):
                 s = specs.load(f"experiments/{layout}{suffix}.yaml", budget)
                 assert s.env.layout == layout and s.human.kind == "bc" and s.network.kind == "mlp"
