@@ -151,6 +151,8 @@ def ensure_human(human_spec, layout: str, store: Store, console: Console) -> tup
             "selfplay_return": {"mean": round(float(returns.mean()), 3), "se": round(se, 3), "episodes": len(returns),
                                 "episode_steps": 400},
             "final_train_loss": round(losses[-1], 5),
+            # what `esr ls` shows in its return column for this artifact
+            "return": {"mean": round(float(returns.mean()), 3), "of": "BC+BC self-play"},
         }
         manifest = {
             **pending,
