@@ -57,9 +57,11 @@ grid: {{train.seeds: [[0], [1]]}}
     assert [r.spec.name for r in short.runs] == ["grid_2"] and short.runs[0].sets == ()
 
 
-def test_paper_gridworld_suite_lists_the_four_settings():
+def test_paper_gridworld_suite_lists_every_method_on_the_four_settings():
     suite = sweep.load_suite(ROOT / "experiments" / "suites" / "gridworld.yaml", "paper")
-    assert [r.spec.env.blocks for r in suite.runs] == [2, 5, 7, 10]
+    pairs = {(r.spec.method.kind, r.spec.env.blocks) for r in suite.runs}
+    kinds = {"esr", "random", "ave", "goal_inference", "iq_learn", "oracle"}
+    assert len(suite.runs) == 24 and pairs == {(k, n) for k in kinds for n in (2, 5, 7, 10)}
     assert all(len(r.spec.train.seeds) == 20 for r in suite.runs)
     assert suite.slurm.gpus == 1
 
