@@ -107,11 +107,7 @@ def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | Non
             "states_with_zero_mi": int((emp.state_mi < 1e-9).sum()),
         }
         atomic_write_text(out / "summary.json", json.dumps(summary, indent=2))
-        manifest = {
-            **pending, "format": 1, "status": "complete", "key_components": components,
-            "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "wall_time_s": round(time.time() - started, 2),
-            "provenance": provenance.provenance(), "summary": summary,
-        }
+        manifest = provenance.complete_manifest(pending, components, summary, started)
         return store.commit(EXACT_KIND, key, manifest)
 
     path, cached = store.get_or_make(EXACT_KIND, key, make)
@@ -135,9 +131,7 @@ def ensure_estimator_figure(exact_ref: str, store: Store, console: Console) -> t
         with console.status("computing ESR's estimate for every state and robot action"):
             result = estimator_check(exact_path, store, out / "estimator.png")
         atomic_write_text(out / "summary.json", json.dumps(result, indent=2))
-        manifest_out = {**pending, "format": 1, "status": "complete", "key_components": components,
-                        "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "provenance": provenance.provenance(),
-                        "summary": result}
+        manifest_out = provenance.complete_manifest(pending, components, result)
         return store.commit(FIGURE_KIND, key, manifest_out)
 
     path, cached = store.get_or_make(FIGURE_KIND, key, make)
@@ -231,9 +225,7 @@ def ensure_geometry_figure(store: Store, gamma: float, state: int) -> tuple[Path
                   "uniform_policy_mi": geo.uniform_mi, "capacity_policy": geo.policy.round(6).tolist(),
                   "kl_to_centre": geo.kl.round(6).tolist()}
         atomic_write_text(out / "summary.json", json.dumps(result, indent=2))
-        manifest = {**pending, "format": 1, "status": "complete", "key_components": components,
-                    "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "provenance": provenance.provenance(),
-                    "summary": result}
+        manifest = provenance.complete_manifest(pending, components, result)
         return store.commit(FIGURE_KIND, key, manifest)
 
     path, cached = store.get_or_make(FIGURE_KIND, key, make)

@@ -93,20 +93,12 @@ def ensure_data(layout: str, store: Store, console: Console) -> tuple[Path, bool
             )
         np.savez_compressed(out / DATA_FILE, **data)
         counts = np.bincount(data["action"], minlength=6)
-        manifest = {
-            **pending,
-            "format": 1,
-            "status": "complete",
-            "key_components": components,
-            "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "wall_time_s": round(time.time() - started, 2),
-            "provenance": provenance.provenance(),
-            "summary": {
-                "pairs": {"train": int((~data["test"]).sum()), "test": int(data["test"].sum())},
-                "action_fraction": [round(float(c) / len(data["action"]), 4) for c in counts],
-                "replay_check": check,
-            },
+        summary = {
+            "pairs": {"train": int((~data["test"]).sum()), "test": int(data["test"].sum())},
+            "action_fraction": [round(float(c) / len(data["action"]), 4) for c in counts],
+            "replay_check": check,
         }
+        manifest = provenance.complete_manifest(pending, components, summary, started)
         return store.commit(DATA_KIND, key, manifest)
 
     return store.get_or_make(DATA_KIND, key, make)
@@ -154,16 +146,7 @@ def ensure_human(human_spec, layout: str, store: Store, console: Console) -> tup
             # what `esr ls` shows in its return column for this artifact
             "return": {"mean": round(float(returns.mean()), 3), "of": "BC+BC self-play"},
         }
-        manifest = {
-            **pending,
-            "format": 1,
-            "status": "complete",
-            "key_components": components,
-            "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "wall_time_s": round(time.time() - started, 2),
-            "provenance": provenance.provenance(),
-            "summary": summary,
-        }
+        manifest = provenance.complete_manifest(pending, components, summary, started)
         path = store.commit(HUMAN_KIND, key, manifest)
         console.print(
             f"BC human {key[:12]} ({layout}): test accuracy {acc_test['accuracy']:.3f}, non-stay "

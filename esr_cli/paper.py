@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -35,9 +34,7 @@ def _commit(store: Store, key: str, components: dict, name: str, budget, seeds, 
         out = store.begin(FIGURE_KIND, key, pending)
         summary = make_files(out)
         atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=float))
-        manifest = {**pending, "format": 1, "status": "complete", "key_components": components,
-                    "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "provenance": provenance.provenance(),
-                    "summary": summary}
+        manifest = provenance.complete_manifest(pending, components, summary)
         return store.commit(FIGURE_KIND, key, manifest)
 
     path, _ = store.get_or_make(FIGURE_KIND, key, make)

@@ -110,3 +110,16 @@ def provenance() -> dict:
         "host": platform.node(),
         "python": platform.python_version(),
     }
+
+
+def complete_manifest(pending: dict, components: dict, summary: dict, started: float | None = None, **extra) -> dict:
+    """The manifest every artifact commits with: what `begin` recorded, its key components,
+    when it was made (and how long it took, from `started`), the toolchain and its summary."""
+    import time
+
+    manifest = {**pending, "format": 1, "status": "complete", **extra, "key_components": components,
+                "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    if started is not None:
+        manifest["wall_time_s"] = round(time.time() - started, 2)
+    return {**manifest, "provenance": provenance(), "summary": summary}
+

@@ -117,18 +117,8 @@ def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
             f"{spec.name} [{spec.method.kind}]",
             {"artifacts": {RUN_KIND: key}, "budget": spec.budget, "seeds": list(spec.train.seeds)},
         )
-        manifest = {
-            **pending,
-            "format": 1,
-            "status": "complete",
-            "method": spec.method.kind,
-            "env": spec.env.kind,
-            "key_components": components,
-            "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "wall_time_s": round(time.time() - started, 2),
-            "provenance": provenance.provenance(),
-            "summary": summary,
-        }
+        manifest = provenance.complete_manifest(pending, components, summary, started,
+                                                method=spec.method.kind, env=spec.env.kind)
         return store.commit(RUN_KIND, key, manifest)
 
     if spec.human.kind == "bc":  # the stored human this run trains with comes first
@@ -204,16 +194,9 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
         plots.rollout_gif(frames, eval_dir / "rollout.gif")
         prov = {"artifacts": {RUN_KIND: run_manifest["key"], EVAL_KIND: key}, "budget": spec.budget, "seeds": list(spec.train.seeds)}
         plots.learning_curve(loop.read_metrics(run_path), eval_dir / "learning_curve.png", f"{spec.name} [{spec.method.kind}]", prov)
-        manifest = {
-            **pending,
-            "format": 1,
-            "status": "complete",
-            "key_components": components,
-            "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "wall_time_s": round(time.time() - started, 2),
-            "provenance": provenance.provenance(),
-            "summary": {"return": {"mean": summary["results"][mode]["return_mean"]}, **summary},
-        }
+        manifest = provenance.complete_manifest(
+            pending, components, {"return": {"mean": summary["results"][mode]["return_mean"]}, **summary}, started
+        )
         return store.commit(EVAL_KIND, key, manifest)
 
     path, cached = store.get_or_make(EVAL_KIND, key, make)
