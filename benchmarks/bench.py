@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIGS = {"gridworld grid_2 (paper)": "experiments/grid_2.yaml"}
+CONFIGS = {"gridworld grid_2 (paper)": "experiments/grid_2.yaml", "overcooked cramped_room (paper)": "experiments/cramped_room.yaml"}
 
 
 def matmul_peak_gflops(n: int = 2048, reps: int = 10) -> float:
@@ -44,37 +44,59 @@ def matmul_peak_gflops(n: int = 2048, reps: int = 10) -> float:
 
 
 def epoch_flops(trainer) -> float:
-    """XLA's flop count of one epoch, from its parts (scan bodies are counted once by XLA)."""
+    """XLA's flop count of one epoch, phase by phase as `Trainer.epoch` runs them (XLA counts a
+    loop's body once, so each body is counted alone and multiplied by its trip count)."""
     import jax
 
     from esr_cli.core import buffer as replay
 
     spec = trainer.spec
     state = trainer.init(0)
-    batch = replay.sample(state.buffer, jax.random.PRNGKey(0), spec.learner.batch_size, trainer.future_gamma)
+    buf = state.buffer
+    b, fg = spec.learner.batch_size, trainer.future_gamma
+    idx = replay.sample_index(buf, jax.random.PRNGKey(0), b, fg)
+    batch = replay.gather(buf, idx)
+    episodes, steps = buf.robot_action.shape
 
     def flops(fn, *args):
         cost = jax.jit(fn).lower(*args).compile().cost_analysis()
         cost = cost[0] if isinstance(cost, (list, tuple)) else cost
         return float(cost.get("flops", 0.0))
 
-    total = flops(lambda l, k: trainer.rollout(l, k, spec.train.num_envs), state.learner, jax.random.PRNGKey(1))
-    # The rollout's scan body is counted once: scale by the episode length.
-    total *= trainer.env.episode_steps
-    m = trainer.method
-    if m.updates_per_epoch:
-        total += m.updates_per_epoch * flops(lambda s, b: m.update(s, b, None), state.method, batch)
-    if m.learns_policy:
-        def critic(l, s, b):
-            r = m.reward(s, b, None)
-            return trainer.learner.critic_step(l, b.obs, b.robot_action, r, b.next_obs, b.done)
+    def per_episode_table(fn, *arrays):
+        """Flops of a table built a few episodes per call, scaled to the whole buffer."""
+        per_call = max(1, 256 // steps)
+        part = flops(fn, *[a[:per_call] for a in arrays])
+        return part * episodes / per_call
 
-        total += spec.learner.updates_per_epoch * flops(critic, state.learner, state.method, batch)
-        total += spec.learner.dual_updates_per_epoch * flops(lambda l, o: trainer.learner.dual_step(l, o), state.learner, batch.obs)
+    # The rollout's scan body is counted once: scale by the episode length.
+    total = steps * flops(lambda l, k: trainer.rollout(l, k, spec.train.num_envs), state.learner, jax.random.PRNGKey(1))
+    m, learner = trainer.method, trainer.learner
+    if m.updates_per_epoch:
+        total += m.updates_per_epoch * flops(lambda s, bt: m.update(s, bt, None), state.method, batch)
+    if not m.learns_policy:
+        return total
+    stored = episodes * steps
+    step = lambda l, r, bt: learner.critic_step(l, bt.obs, bt.robot_action, r, bt.next_obs, bt.done)  # noqa: E731
+    if hasattr(m, "reward_table") and stored <= spec.learner.updates_per_epoch * b:
+        total += per_episode_table(
+            lambda o, ra, ha, r: m.reward_table(state.method, buf._replace(obs=o, robot_action=ra, human_action=ha, reward=r)),
+            buf.obs, buf.robot_action, buf.human_action, buf.reward,
+        )
+        critic = lambda l, bt: step(l, bt.reward, bt)  # noqa: E731 - the lookup itself is no flops
+    else:
+        critic = lambda l, bt: step(l, m.reward(state.method, bt, None), bt)  # noqa: E731
+    total += spec.learner.updates_per_epoch * flops(critic, state.learner, batch)
+    q = learner.q_values(state.learner.params, batch.obs)
+    if stored <= spec.learner.dual_updates_per_epoch * b:
+        total += per_episode_table(lambda o: learner.q_table(state.learner, o), buf.obs[:, :-1])
+        total += spec.learner.dual_updates_per_epoch * flops(learner.dual_step_q, state.learner, q)
+    else:
+        total += spec.learner.dual_updates_per_epoch * flops(learner.dual_step, state.learner, batch.obs)
     return total
 
 
-def measure(spec_path: str, seeds: int, epochs: int) -> dict:
+def measure(spec_path: str, seeds: int, epochs: int, seed_batch: int | None) -> dict:
     """One configuration in this process: -> figures."""
     import resource
 
@@ -82,12 +104,20 @@ def measure(spec_path: str, seeds: int, epochs: int) -> dict:
     import jax.numpy as jnp
 
     from esr_cli import spec as specs
-    from esr_cli.core.train import compiled_init, make_trainer
+    from esr_cli.core.train import compiled_chunk, compiled_init, make_trainer
+    from esr_cli.store import Store
 
     spec = specs.load(ROOT / spec_path, "paper", [f"train.seeds={seeds}", f"train.chunk_epochs={epochs}"])
-    trainer = make_trainer(spec)
+    store = Store(os.environ.get("ESR_STORE") or ROOT / "artifacts")
+    if spec.human.kind == "bc":  # the BC human of an Overcooked spec: built once, then stored
+        from rich.console import Console
+
+        from esr_cli.human_runs import ensure_human
+
+        ensure_human(spec.human, spec.env.layout, store, Console(stderr=True))
+    trainer = make_trainer(spec, store)
     state = compiled_init(trainer)(jnp.asarray(spec.train.seeds, jnp.int32))
-    chunk = jax.jit(jax.vmap(lambda s: trainer.run_epochs(s, epochs)), donate_argnums=0)
+    chunk = compiled_chunk(trainer, epochs, seed_batch)
     t = time.perf_counter()
     compiled = chunk.lower(state).compile()
     compile_s = time.perf_counter() - t
@@ -106,6 +136,7 @@ def measure(spec_path: str, seeds: int, epochs: int) -> dict:
     return {
         "config": spec_path,
         "seeds": seeds,
+        "seed_batch": "all" if seed_batch is None else seed_batch,
         "num_envs": spec.train.num_envs,
         "compile_s": round(compile_s, 2),
         "s_per_epoch": round(per_epoch, 3),
@@ -118,26 +149,41 @@ def measure(spec_path: str, seeds: int, epochs: int) -> dict:
     }
 
 
+def _seed_batch(text: str):
+    from esr_cli.core.train import default_seed_batch
+
+    if text == "auto":
+        return default_seed_batch()
+    return None if text == "all" else int(text)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 5, 20])
     ap.add_argument("--epochs", type=int, default=3, help="epochs per timed chunk")
+    ap.add_argument("--configs", nargs="+", choices=sorted(CONFIGS), default=sorted(CONFIGS),
+                    help="which configurations (default: all)")
+    ap.add_argument("--seed-batch", default="auto",
+                    help="seeds vmapped side by side, the rest one after another: auto (all on an "
+                         "accelerator, 1 on the CPU), all, or a number")
     ap.add_argument("--out", default="benchmarks/results.json")
-    ap.add_argument("--one", nargs=3, help=argparse.SUPPRESS)  # internal: spec seeds epochs
+    ap.add_argument("--one", nargs=4, help=argparse.SUPPRESS)  # internal: spec seeds epochs seed_batch
     args = ap.parse_args()
     if args.one:
-        print(json.dumps(measure(args.one[0], int(args.one[1]), int(args.one[2]))))
+        path, n, epochs, batch = args.one
+        print(json.dumps(measure(path, int(n), int(epochs), _seed_batch(batch))))
         return
 
     import jax
 
     peak = matmul_peak_gflops()
     rows = []
-    for name, path in CONFIGS.items():
+    for name in args.configs:
+        path = CONFIGS[name]
         for n in args.seeds:
             print(f"measuring {name}, {n} seed(s)...", file=sys.stderr, flush=True)
             proc = subprocess.run(
-                [sys.executable, __file__, "--one", path, str(n), str(args.epochs)],
+                [sys.executable, __file__, "--one", path, str(n), str(args.epochs), args.seed_batch],
                 capture_output=True, text=True, cwd=ROOT,
             )
             if proc.returncode != 0:

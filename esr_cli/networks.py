@@ -39,6 +39,16 @@ class PatchConv(nn.Module):
         return patches3x3(x) @ kernel.reshape(9 * c, self.features) + bias
 
 
+# The original's dense layers (Haiku's `hk.Linear`) draw weights from a normal of standard
+# deviation 1/sqrt(fan_in) truncated at 2 deviations, *without* rescaling for the truncation,
+# so their spread is 0.88/sqrt(fan_in); flax's default (lecun_normal) rescales to 1/sqrt(fan_in).
+# Matching it matters early in training: a wider initial spread of Q and of the reward
+# makes the dual step sharpen the robot's policy sooner. Convolutions already match (Haiku's
+# Conv2D default is the rescaled one, as flax's).
+TRUNCATED_NORMAL_STD = 0.87962566103423978  # std of a standard normal truncated to [-2, 2]
+haiku_linear_init = nn.initializers.variance_scaling(TRUNCATED_NORMAL_STD**2, "fan_in", "truncated_normal")
+
+
 class ConvNet(nn.Module):
     conv_channels: Sequence[int]
     hidden: int
@@ -50,8 +60,8 @@ class ConvNet(nn.Module):
         for c in self.conv_channels:
             x = nn.silu(PatchConv(c)(x))
         x = x.reshape(x.shape[:-3] + (-1,))
-        x = nn.silu(nn.Dense(self.hidden)(x))
-        return nn.Dense(self.out)(x)
+        x = nn.silu(nn.Dense(self.hidden, kernel_init=haiku_linear_init)(x))
+        return nn.Dense(self.out, kernel_init=haiku_linear_init)(x)
 
 
 def orthogonal(scale: float = 1.0):

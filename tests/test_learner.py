@@ -96,3 +96,22 @@ def test_warmup_epochs_act_uniformly():
     uniform_actions = np.asarray(roll(True).episodes.robot_action)
     assert (policy_actions == 7).all()
     assert len(np.unique(uniform_actions)) > 100  # 3,200 uniform draws over 125 actions
+
+
+def test_dual_step_on_a_q_table_equals_the_dual_step_on_states():
+    import jax
+
+    from esr_cli import spec as specs
+    from esr_cli.core.learner import SoftQLearner
+
+    spec = specs.load("experiments/grid_2.yaml", "smoke")
+    learner = SoftQLearner(num_actions=125, network_spec=spec.network, spec=spec.learner)
+    obs = jax.random.bernoulli(jax.random.PRNGKey(3), 0.3, (3, 4, 5, 5, 2)).astype(jnp.uint8)  # [E, T, ...]
+    st = learner.init(jax.random.PRNGKey(0), obs[0, 0])
+    table = learner.q_table(st, obs)
+    assert table.shape == (3, 4, 125)
+    e, t = jnp.array([0, 2, 1]), jnp.array([3, 0, 1])
+    a, _ = learner.dual_step(st, obs[e, t])
+    b, _ = learner.dual_step_q(st, table[e, t])
+    assert float(a.beta) == pytest.approx(float(b.beta), rel=1e-5)
+    assert float(a.beta) != float(st.beta)

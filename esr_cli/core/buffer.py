@@ -82,12 +82,26 @@ def geometric_offsets(key: jax.Array, shape, gamma: float) -> jax.Array:
     return jnp.minimum(k, 2**30).astype(jnp.int32)
 
 
-def sample(buf: Buffer, key: jax.Array, batch_size: int, future_gamma: float) -> Batch:
+class Index(NamedTuple):
+    """Where a batch comes from: episode slot e, step t and future index (t + K, clipped)."""
+
+    episode: jax.Array  # int32[B]
+    t: jax.Array  # int32[B]
+    future: jax.Array  # int32[B]
+
+
+def sample_index(buf: Buffer, key: jax.Array, batch_size: int, future_gamma: float) -> Index:
     k_ep, k_t, k_future = jax.random.split(key, 3)
     steps = buf.robot_action.shape[1]
     episode = jax.random.randint(k_ep, (batch_size,), 0, jnp.maximum(buf.count, 1))
     t = jax.random.randint(k_t, (batch_size,), 0, steps)
     future = jnp.minimum(t + geometric_offsets(k_future, (batch_size,), future_gamma), steps)
+    return Index(episode=episode, t=t, future=future)
+
+
+def gather(buf: Buffer, idx: Index) -> Batch:
+    steps = buf.robot_action.shape[1]
+    episode, t, future = idx
     return Batch(
         obs=buf.obs[episode, t],
         next_obs=buf.obs[episode, t + 1],
@@ -98,3 +112,7 @@ def sample(buf: Buffer, key: jax.Array, batch_size: int, future_gamma: float) ->
         done=(t == steps - 1).astype(jnp.float32),
         offset=future - t,
     )
+
+
+def sample(buf: Buffer, key: jax.Array, batch_size: int, future_gamma: float) -> Batch:
+    return gather(buf, sample_index(buf, key, batch_size, future_gamma))

@@ -99,7 +99,11 @@ class SoftQLearner(NamedTuple):
         return state._replace(params=params, target_params=target, opt_state=opt_state), metrics
 
     def dual_step(self, state: LearnerState, obs):
-        q = jax.lax.stop_gradient(self.q_values(state.params, obs))
+        return self.dual_step_q(state, jax.lax.stop_gradient(self.q_values(state.params, obs)))
+
+    def dual_step_q(self, state: LearnerState, q):
+        """The dual step on Q-values of a batch of states (the dual phase does not change Q,
+        so they may come from a table computed once; core/train.py)."""
         loss, grad = jax.value_and_grad(dual_loss)(state.beta, q, self.spec.target_entropy)
         if self.spec.dual == "linear":
             gap = jnp.mean(entropy(policy_log_probs(q, state.beta))) - self.spec.target_entropy
@@ -107,3 +111,8 @@ class SoftQLearner(NamedTuple):
         else:
             beta = state.beta - self.spec.dual_lr * grad
         return state._replace(beta=jnp.clip(beta, BETA_MIN, BETA_MAX)), {"dual_loss": loss}
+
+    def q_table(self, state: LearnerState, obs):
+        """Q-values of every stored state obs [E, T, ...] -> [E, T, A], a few episodes at a time."""
+        per_call = max(1, 256 // obs.shape[1])
+        return jax.lax.map(lambda o: self.q_values(state.params, o), obs, batch_size=per_call)

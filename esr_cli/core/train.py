@@ -6,7 +6,8 @@
     epoch(state) -> (state, metrics)   one episode in each of num_envs environments, then
                                        U_repr method updates, U_critic critic updates and
                                        U_dual dual updates (REFERENCE section 1)
-    chunk(n)     jit(vmap over seeds(scan of n epochs)), the state donated
+    chunk(n)     jit(over seeds(scan of n epochs)), the state donated; seeds are vmapped
+                 on an accelerator and run one after another on the CPU
 
 The host (core/loop.py) only touches the state between chunks.
 """
@@ -188,24 +189,47 @@ class Trainer(NamedTuple):
 
         mstate, m_metrics = self._scan_updates(repr_step, state.method, k_repr, self.method.updates_per_epoch)
 
+        # Tables: when the buffer holds fewer transitions than a phase samples, computing the
+        # fixed part of every stored transition once (the method's representations for the
+        # critic's reward; Q for the dual step) is cheaper than per batch, with the same
+        # values. The gridworld (15,000 stored, 25,600 sampled) uses them; Overcooked does not.
+        stored = buf.robot_action.shape[0] * buf.robot_action.shape[1]
+        reward_table = None
+        if hasattr(self.method, "reward_table") and stored <= spec.learner.updates_per_epoch * batch_size:
+            reward_table = self.method.reward_table(mstate, buf)
+
         def critic_step(lstate, key):
             k_sample, k_reward = jax.random.split(key)
-            batch = replay.sample(buf, k_sample, batch_size, fg)
-            reward = self.method.reward(mstate, batch, k_reward)
+            idx = replay.sample_index(buf, k_sample, batch_size, fg)
+            batch = replay.gather(buf, idx)
+            if reward_table is None:
+                reward = self.method.reward(mstate, batch, k_reward)
+            else:
+                reward = self.method.reward_from_table(reward_table, idx)
             lstate, metrics = self.learner.critic_step(
                 lstate, batch.obs, batch.robot_action, reward, batch.next_obs, batch.done
             )
             return lstate, {**metrics, "reward_mean": jnp.mean(reward)}
 
-        def dual_step(lstate, key):
-            batch = replay.sample(buf, key, batch_size, fg)
-            return self.learner.dual_step(lstate, batch.obs)
+        def dual_phase(lstate, key):
+            count = spec.learner.dual_updates_per_epoch
+            if stored > count * batch_size:
+                return self._scan_updates(
+                    lambda l, k: self.learner.dual_step(l, replay.sample(buf, k, batch_size, fg).obs), lstate, key, count
+                )
+            q_table = jax.lax.stop_gradient(self.learner.q_table(lstate, buf.obs[:, :-1]))
+
+            def dual_step(l, k):
+                idx = replay.sample_index(buf, k, batch_size, fg)
+                return self.learner.dual_step_q(l, q_table[idx.episode, idx.t])
+
+            return self._scan_updates(dual_step, lstate, key, count)
 
         lstate = state.learner
         c_metrics, d_metrics = {}, {}
         if self.method.learns_policy:
             lstate, c_metrics = self._scan_updates(critic_step, lstate, k_critic, spec.learner.updates_per_epoch)
-            lstate, d_metrics = self._scan_updates(dual_step, lstate, k_dual, spec.learner.dual_updates_per_epoch)
+            lstate, d_metrics = dual_phase(lstate, k_dual)
 
         returns = roll.episodes.reward.sum(axis=1)
         nan = jnp.full((), jnp.nan, jnp.float32)
@@ -267,6 +291,32 @@ def compiled_init(trainer: Trainer):
     return _cached(trainer, "init", 0, lambda: jax.jit(jax.vmap(trainer.init)))
 
 
-def compiled_chunk(trainer: Trainer, n: int):
-    """jit(vmap over seeds(scan of n epochs)); metrics come back as [seeds, n]."""
-    return _cached(trainer, "chunk", n, lambda: jax.jit(jax.vmap(partial(trainer.run_epochs, n=n)), donate_argnums=0))
+def default_seed_batch() -> int | None:
+    """How many seeds one program runs side by side (vmap); the rest follow one another in
+    the same program (lax.map). On an accelerator every seed at once (None) fills the device.
+    On the CPU one at a time: XLA's CPU batched matmuls over per-seed weights, and the larger
+    working set, made 5 vmapped seeds 6.3x slower than one (docs/performance.md), while
+    one after another costs exactly 5x."""
+    return 1 if jax.default_backend() == "cpu" else None
+
+
+def over_seeds(fn, seed_batch: int | None):
+    """fn over the leading (seed) axis: vmapped in groups of `seed_batch` (None: all)."""
+    if seed_batch is None:
+        return jax.vmap(fn)
+    if seed_batch == 1:
+        return lambda xs: jax.lax.map(fn, xs)
+    return lambda xs: jax.lax.map(fn, xs, batch_size=seed_batch)
+
+
+def compiled_chunk(trainer: Trainer, n: int, seed_batch: int | None = -1):
+    """jit(over seeds(scan of n epochs)); metrics come back as [seeds, n]. seed_batch: see
+    `default_seed_batch` (-1: that default)."""
+    if seed_batch == -1:
+        seed_batch = default_seed_batch()
+    return _cached(
+        trainer,
+        f"chunk/{seed_batch}",
+        n,
+        lambda: jax.jit(over_seeds(partial(trainer.run_epochs, n=n), seed_batch), donate_argnums=0),
+    )
