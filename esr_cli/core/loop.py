@@ -1,8 +1,8 @@
 """The host side of training: chunks, progress, metrics, checkpoints, resume.
 
 The Brax pattern: a short Python loop over jitted chunks of `chunk_epochs` epochs (all seeds
-vmapped in one program). Between chunks the host appends the chunk's metrics to
-`metrics.jsonl`, saves an orbax checkpoint of the *whole* training state (parameters,
+in one program: vmapped on an accelerator, one after another on the CPU). Between chunks the
+host appends the chunk's metrics to `metrics.jsonl`, saves an orbax checkpoint of the *whole* training state (parameters,
 optimiser states, replay buffer, RNG keys), and updates the progress bar. A run started again
 in the same directory restores the newest complete checkpoint and continues exactly where it
 stopped; metrics lines past that checkpoint are dropped first.
