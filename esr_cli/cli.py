@@ -180,6 +180,47 @@ def exact(
     out.print(str(path), soft_wrap=True, highlight=False)
 
 
+@app.command()
+def diagnose(
+    run: str = typer.Argument(..., help="a gridworld training run (key, key prefix or path)", show_default=False),
+    seed_index: int = typer.Option(0, "--seed-index", help="which seed of the run"),
+    batches: int = typer.Option(40, "--batches", min=1, help="critic batches of the buffer to score"),
+    as_json: bool = typer.Option(False, "--json", help="print JSON instead of tables"),
+):
+    """Why a gridworld robot helps or not: its reward by the human's situation, and its critic
+    and policy at the trapped corner start."""
+    import jax
+
+    from esr_cli.analysis import diagnose as dg
+    from esr_cli.runs import load_run, seed_slice
+
+    path, manifest, trainer, state = load_run(STATE.store, run)
+    if trainer.spec.env.kind != "gridworld":
+        raise Exit(2, "esr diagnose reads gridworld runs only")
+    if not 0 <= seed_index < len(manifest["seeds"]):
+        raise Exit(2, f"--seed-index: the run has {len(manifest['seeds'])} seed(s)")
+    one = seed_slice(state, seed_index)
+    rewards = dg.reward_by_situation(trainer, one, jax.random.PRNGKey(0), batches)
+    starts = dg.corner_start_policy(trainer, one, jax.random.PRNGKey(1)) if trainer.method.learns_policy else []
+    if as_json:
+        out.print_json(json.dumps({"run": str(path), "seed_index": seed_index, "reward": rewards, "corner_starts": starts}))
+        return
+    table = Table(title=f"{manifest['name']} ({manifest['budget']} budget), seed index {seed_index}: reward by the human's situation")
+    for col in ("situation", "transitions", "mean reward", "sd"):
+        table.add_column(col)
+    for name, r in rewards.items():
+        table.add_row(name, str(r["n"]), f"{r['mean']:.3f}", f"{r['sd']:.3f}")
+    out.print(table)
+    if starts:
+        table = Table(title="corner starts: robot actions by what they do (the human staying)")
+        table.add_column("human at")
+        for name in dg.EFFECTS:
+            table.add_column(f"{name}: actions, max Q, P(policy)")
+        for row in starts:
+            table.add_row(str(row["human"]), *[f"{row[e]['actions']}, {row[e]['q_max']:.2f}, {row[e]['p']:.3f}" for e in dg.EFFECTS])
+        out.print(table)
+
+
 PAPER_FIGURES = ("gridworld", "overcooked", "no-robot-action", "greedy", "mi", "representations", "filmstrip")
 
 

@@ -15,32 +15,11 @@ import numpy as np
 from rich.console import Console
 
 from esr_cli import provenance
+from esr_cli.runs import load_run, seed_slice
 from esr_cli.store import Store, StoreError, atomic_write_text, content_key
 
 EXACT_KIND = "exact"
 FIGURE_KIND = "figures"
-
-
-def _load_run(store: Store, ref: str):
-    """(run path, its spec, its final TrainState) for a committed training run."""
-    from esr_cli.core import loop
-    from esr_cli.core.train import make_trainer
-
-    path = store.resolve(ref)
-    manifest = store.read_manifest(path)
-    if manifest.get("kind") != "runs":
-        raise StoreError(f"{ref} is not a training run")
-    from esr_cli.runs import run_spec
-
-    spec = run_spec(path)
-    trainer = make_trainer(spec)
-    return path, manifest, trainer, loop.final_state(trainer, path)
-
-
-def _seed_slice(tree, i: int):
-    import jax
-
-    return jax.tree.map(lambda x: x[i], tree)
 
 
 def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | None, seed_index: int, console: Console):
@@ -59,7 +38,7 @@ def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | Non
         raise StoreError(f"--gamma must be in [0, 1), got {gamma}")
     robot_manifest = None
     if robot:
-        run_path, robot_manifest, trainer, state = _load_run(store, robot)
+        run_path, robot_manifest, trainer, state = load_run(store, robot)
         if trainer.spec.env != spec.env:
             raise StoreError(f"robot {robot} was trained on another environment than {spec.name}")
         if not 0 <= seed_index < len(trainer.spec.train.seeds):
@@ -87,7 +66,7 @@ def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | Non
         console.print(f"{space.size} reachable states, {env.num_robot_actions} robot actions")
         pi_h = exact.human_policy(space, human)
         if robot:
-            lstate = _seed_slice(state.learner, seed_index)
+            lstate = seed_slice(state.learner, seed_index)
             pi_r = exact.boltzmann_robot(space, lambda obs: trainer.learner.log_probs(lstate, obs))
         else:
             pi_r = exact.uniform_robot(space)
@@ -158,11 +137,11 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
     robot = manifest["key_components"]["robot"]
     if robot == "uniform":
         raise StoreError("this exact artifact is for a uniform robot: run `esr exact SPEC --robot RUN` for an ESR run first")
-    run_path, run_manifest, trainer, state = _load_run(store, robot["run"])
+    run_path, run_manifest, trainer, state = load_run(store, robot["run"])
     if trainer.spec.method.kind != "esr":
         raise StoreError("the estimator check needs an ESR run")
     data = np.load(exact_path / "exact.npz")
-    mstate = _seed_slice(state.method, robot["seed_index"])
+    mstate = seed_slice(state.method, robot["seed_index"])
     goal = jnp.asarray(manifest["key_components"]["goal"], jnp.int32)
     n = len(data["human"])
     states = GridState(jnp.asarray(data["human"]), jnp.asarray(data["blocks"]), jnp.broadcast_to(goal, (n, 2)), jnp.zeros((n,), jnp.int32))

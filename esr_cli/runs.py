@@ -211,6 +211,26 @@ def run_spec(run_path: Path):
     return specs.validate(yaml.safe_load(source.read_text()), str(source))
 
 
+def load_run(store: Store, ref: str):
+    """(run path, its manifest, its trainer, its final TrainState) for a committed training run."""
+    from esr_cli.core import loop
+    from esr_cli.core.train import make_trainer
+
+    path = store.resolve(ref)
+    manifest = store.read_manifest(path)
+    if manifest.get("kind") != RUN_KIND:
+        raise StoreError(f"{ref} is not a training run")
+    trainer = make_trainer(run_spec(path), store)
+    return path, manifest, trainer, loop.final_state(trainer, path)
+
+
+def seed_slice(tree, i: int):
+    """One seed's part of a state whose leaves have a leading seed axis."""
+    import jax
+
+    return jax.tree.map(lambda x: x[i], tree)
+
+
 def _index(tree, t: int):
     import jax
 

@@ -152,3 +152,11 @@ def test_every_method_has_a_spec_per_paper_gridworld():
             path = Path(f"experiments/grid_{n}.yaml" if method == "esr" else f"experiments/grid_{n}_{method}.yaml")
             spec = specs.load(path)
             assert (spec.method.kind, spec.env.blocks, spec.train.seeds) == (method, n, tuple(range(20)))
+
+
+def test_quick_budget_warms_up_and_learns_representations_faster():
+    quick = specs.load("experiments/grid_2.yaml", "quick")
+    assert (quick.train.epochs, quick.learner.warmup_epochs, quick.method.repr_lr) == (150, 20, 1e-3)
+    assert specs.load("experiments/grid_2.yaml", "paper").method.repr_lr == 1e-4  # the paper as written
+    random_quick = specs.load("experiments/grid_2_random.yaml", "quick")  # no representations: skipped
+    assert random_quick.learner.warmup_epochs == 20 and not hasattr(random_quick.method, "repr_lr")

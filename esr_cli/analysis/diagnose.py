@@ -1,0 +1,84 @@
+"""Why a gridworld robot does or does not help: a trained run's reward by the human's situation,
+and what its critic and policy make of the trapped corner start.
+
+Situations of a stored transition (from the state the robot acted in, and its reward):
+    trapped   the human cannot move: every neighbouring cell is a wall or a block
+    free      the human can move and is not on its goal
+    at_goal   the human is on its goal (the environment's reward is 1)
+    dead      a block sits on the human
+For ESR the reward estimates the human's empowerment, which is positive only while the human
+is free; a working estimator ranks `free` far above the other three (docs/results.md).
+
+Robot actions at a corner start are grouped by what they do with the human staying: keep the
+human trapped (the no-ops and wall pushes), free it, or push a block onto it.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+SITUATIONS = ("trapped", "free", "at_goal", "dead")
+EFFECTS = ("trapped", "free", "dead")
+
+
+def situation(obs: np.ndarray, reward: np.ndarray) -> np.ndarray:
+    """obs uint8[..., S, S, 2] (human plane, block plane), reward [...] -> int[...] into SITUATIONS."""
+    obs = np.asarray(obs)
+    human, blocks = obs[..., 0].astype(bool), obs[..., 1].astype(bool)
+    size = human.shape[-1]
+    dead = np.any(human & blocks, axis=(-2, -1))
+    padded = np.pad(blocks, [(0, 0)] * (blocks.ndim - 2) + [(1, 1), (1, 1)], constant_values=True)  # walls
+    free_neighbours = np.zeros(human.shape[:-2], int)
+    for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0)):
+        open_cell = ~padded[..., 1 + dr : 1 + dr + size, 1 + dc : 1 + dc + size]
+        free_neighbours += np.any(human & open_cell, axis=(-2, -1))
+    out = np.where(free_neighbours > 0, SITUATIONS.index("free"), SITUATIONS.index("trapped"))
+    out = np.where(np.asarray(reward) > 0, SITUATIONS.index("at_goal"), out)
+    return np.where(dead, SITUATIONS.index("dead"), out)
+
+
+def reward_by_situation(trainer, state, key, batches: int = 40) -> dict:
+    """The method's reward on `batches` critic batches from the run's buffer, by situation:
+    {situation: {"n", "mean", "sd"}}. `state` is one seed's TrainState."""
+    from esr_cli.core import buffer as replay
+
+    spec = trainer.spec
+    sample = jax.jit(lambda k: replay.sample(state.buffer, k, spec.learner.batch_size, trainer.future_gamma))
+    reward = jax.jit(lambda b, k: trainer.method.reward(state.method, b, k))
+    values = {name: [] for name in SITUATIONS}
+    for i in range(batches):
+        k_batch, k_reward = jax.random.split(jax.random.fold_in(key, i))
+        batch = sample(k_batch)
+        r = np.asarray(reward(batch, k_reward))
+        where = situation(np.asarray(batch.obs), np.asarray(batch.reward))
+        for j, name in enumerate(SITUATIONS):
+            values[name].extend(r[where == j].tolist())
+    return {
+        name: {"n": len(v), "mean": float(np.mean(v)) if v else float("nan"), "sd": float(np.std(v)) if v else float("nan")}
+        for name, v in values.items()
+    }
+
+
+def corner_start_policy(trainer, state, key, starts: int = 4) -> list[dict]:
+    """For `starts` corner starts: per effect of the robot's action (the human staying), how many
+    actions have it, their largest and mean Q, and the policy's probability of choosing one."""
+    env, learner = trainer.env, trainer.learner
+    actions = jnp.arange(env.num_robot_actions, dtype=jnp.int32)
+    rows = []
+    for i in range(starts):
+        s = env.reset(jax.random.fold_in(key, i))
+        nxt = jax.vmap(lambda a: env.step(s, a, jnp.int32(env.num_human_actions - 1))[0])(actions)  # human stays
+        next_obs = np.asarray(jax.vmap(env.observe)(nxt))
+        effect = np.array([SITUATIONS[k] for k in situation(next_obs, np.zeros(len(next_obs)))])
+        obs = env.observe(s)[None]
+        q = np.asarray(learner.q_values(state.learner.params, obs))[0]
+        p = np.exp(np.asarray(learner.log_probs(state.learner, obs))[0])
+        row = {"human": np.asarray(s.human).tolist()}
+        for name in EFFECTS:
+            chosen = effect == name
+            row[name] = {"actions": int(chosen.sum()), "q_max": float(q[chosen].max()) if chosen.any() else float("nan"),
+                         "q_mean": float(q[chosen].mean()) if chosen.any() else float("nan"), "p": float(p[chosen].sum())}
+        rows.append(row)
+    return rows

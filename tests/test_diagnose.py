@@ -1,0 +1,35 @@
+"""esr diagnose: the human's situation read from observations, and the command on a real run."""
+
+import json
+
+import numpy as np
+
+from conftest import esr
+from esr_cli.analysis.diagnose import SITUATIONS, situation
+
+
+def test_situations_of_hand_made_states():
+    obs = np.zeros((5, 5, 5, 2), np.uint8)
+    obs[0, 0, 0, 0] = 1; obs[0, 0, 1, 1] = 1; obs[0, 1, 0, 1] = 1  # noqa: E702 - cornered by two blocks
+    obs[1, 2, 2, 0] = 1; obs[1, 2, 3, 1] = 1  # noqa: E702 - a block beside, three ways open
+    obs[2, 1, 1, 0] = 1; obs[2, 1, 1, 1] = 1  # noqa: E702 - a block on the human
+    obs[3, 4, 4, 0] = 1  # on its goal (the reward says so)
+    obs[4, 0, 2, 0] = 1; obs[4, 0, 1, 1] = 1; obs[4, 0, 3, 1] = 1; obs[4, 1, 2, 1] = 1  # noqa: E702 - wall and 3 blocks
+    got = [SITUATIONS[i] for i in situation(obs, np.array([0, 0, 0, 1, 0]))]
+    assert got == ["trapped", "free", "dead", "at_goal", "trapped"]
+
+
+def test_diagnose_reads_a_trained_run(smoke_run):
+    store, path, _ = smoke_run
+    proc = esr("diagnose", str(path), "--batches", "3", "--json", store=store)
+    report = json.loads(proc.stdout)
+    assert set(report["reward"]) == set(SITUATIONS)
+    counted = sum(r["n"] for r in report["reward"].values())
+    assert counted == 3 * 16  # three smoke batches of 16, every transition in one situation
+    assert len(report["corner_starts"]) == 4
+    for row in report["corner_starts"]:
+        # A cornered human (N = 2): 4 robot actions free it, 2 push a block onto it.
+        assert (row["free"]["actions"], row["dead"]["actions"], row["trapped"]["actions"]) == (4, 2, 119)
+        assert abs(sum(row[e]["p"] for e in ("trapped", "free", "dead")) - 1) < 1e-4
+    bad = esr("diagnose", str(path), "--seed-index", "3", store=store, check=False)
+    assert bad.returncode == 2 and "seed" in bad.stderr
