@@ -76,9 +76,8 @@ def epoch_flops(trainer) -> float:
         total += m.updates_per_epoch * flops(lambda s, bt: m.update(s, bt, None), state.method, batch)
     if not m.learns_policy:
         return total
-    stored = episodes * steps
     step = lambda l, r, bt: learner.critic_step(l, bt.obs, bt.robot_action, r, bt.next_obs, bt.done)  # noqa: E731
-    if hasattr(m, "reward_table") and stored <= spec.learner.updates_per_epoch * b:
+    if trainer.reward_table_pays:
         total += per_episode_table(
             lambda o, ra, ha, r: m.reward_table(state.method, buf._replace(obs=o, robot_action=ra, human_action=ha, reward=r)),
             buf.obs, buf.robot_action, buf.human_action, buf.reward,
@@ -88,7 +87,7 @@ def epoch_flops(trainer) -> float:
         critic = lambda l, bt: step(l, m.reward(state.method, bt, None), bt)  # noqa: E731
     total += spec.learner.updates_per_epoch * flops(critic, state.learner, batch)
     q = learner.q_values(state.learner.params, batch.obs)
-    if stored <= spec.learner.dual_updates_per_epoch * b:
+    if trainer.q_table_pays:
         total += per_episode_table(lambda o: learner.q_table(state.learner, o), buf.obs[:, :-1])
         total += spec.learner.dual_updates_per_epoch * flops(learner.dual_step_q, state.learner, q)
     else:

@@ -192,3 +192,14 @@ def test_dense_layers_start_as_the_original_truncated_normals():
     w = np.asarray(params["params"]["Dense_0"]["kernel"])  # fan_in 800
     assert np.abs(w).max() <= 2 / np.sqrt(800)
     assert w.std() * np.sqrt(800) == pytest.approx(0.8796, abs=0.01)
+
+
+def test_tables_are_used_only_when_the_buffer_is_smaller_than_a_phase_samples():
+    from esr_cli.core.train import make_trainer
+
+    paper = make_trainer(specs.load("experiments/grid_2.yaml", "paper"))  # 15,000 stored, 25,600 sampled
+    assert paper.stored_transitions == 15000 and paper.reward_table_pays and paper.q_table_pays
+    big = make_trainer(specs.load("experiments/grid_2.yaml", "paper", ["learner.buffer_size=30000"]))
+    assert not big.reward_table_pays and not big.q_table_pays
+    ave = make_trainer(specs.load("experiments/grid_2_ave.yaml", "paper"))  # no representations to table
+    assert not ave.reward_table_pays and ave.q_table_pays

@@ -159,6 +159,26 @@ class Trainer(NamedTuple):
         return Rollout(episodes=episodes, states=all_states, log_probs=log_probs, rule_metrics=rule_metrics)
 
     # ------------------------------------------------------------ learning
+    @property
+    def stored_transitions(self) -> int:
+        """The replay buffer's capacity in transitions (whole episodes)."""
+        steps = self.env.episode_steps
+        return (self.spec.learner.buffer_size // steps) * steps
+
+    @property
+    def reward_table_pays(self) -> bool:
+        """Representing every stored transition once costs less than representing each critic
+        batch: the buffer holds fewer transitions than the critic phase samples (the gridworld:
+        15,000 against 100 x 256; not Overcooked's 200,000)."""
+        learner = self.spec.learner
+        return hasattr(self.method, "reward_table") and self.stored_transitions <= learner.updates_per_epoch * learner.batch_size
+
+    @property
+    def q_table_pays(self) -> bool:
+        """Likewise for Q of every stored state in the dual phase."""
+        learner = self.spec.learner
+        return self.stored_transitions <= learner.dual_updates_per_epoch * learner.batch_size
+
     def _scan_updates(self, step_fn, carry, key, count: int):
         """Run `count` update steps, each on a fresh batch; -> (carry, mean metrics)."""
         if count == 0:
@@ -189,14 +209,10 @@ class Trainer(NamedTuple):
 
         mstate, m_metrics = self._scan_updates(repr_step, state.method, k_repr, self.method.updates_per_epoch)
 
-        # Tables: when the buffer holds fewer transitions than a phase samples, computing the
-        # fixed part of every stored transition once (the method's representations for the
-        # critic's reward; Q for the dual step) is cheaper than per batch, with the same
-        # values. The gridworld (15,000 stored, 25,600 sampled) uses them; Overcooked does not.
-        stored = buf.robot_action.shape[0] * buf.robot_action.shape[1]
-        reward_table = None
-        if hasattr(self.method, "reward_table") and stored <= spec.learner.updates_per_epoch * batch_size:
-            reward_table = self.method.reward_table(mstate, buf)
+        # Within a phase the representations (critic phase) or the critic (dual phase) are
+        # fixed, so when it pays (see `reward_table_pays`) their values on every stored
+        # transition are computed once and the batches looked up: the same numbers, less work.
+        reward_table = self.method.reward_table(mstate, buf) if self.reward_table_pays else None
 
         def critic_step(lstate, key):
             k_sample, k_reward = jax.random.split(key)
@@ -211,25 +227,20 @@ class Trainer(NamedTuple):
             )
             return lstate, {**metrics, "reward_mean": jnp.mean(reward)}
 
-        def dual_phase(lstate, key):
-            count = spec.learner.dual_updates_per_epoch
-            if stored > count * batch_size:
-                return self._scan_updates(
-                    lambda l, k: self.learner.dual_step(l, replay.sample(buf, k, batch_size, fg).obs), lstate, key, count
-                )
-            q_table = jax.lax.stop_gradient(self.learner.q_table(lstate, buf.obs[:, :-1]))
-
-            def dual_step(l, k):
-                idx = replay.sample_index(buf, k, batch_size, fg)
-                return self.learner.dual_step_q(l, q_table[idx.episode, idx.t])
-
-            return self._scan_updates(dual_step, lstate, key, count)
+        def dual_step(lstate, key, q_table):
+            idx = replay.sample_index(buf, key, batch_size, fg)
+            if q_table is None:
+                return self.learner.dual_step(lstate, buf.obs[idx.episode, idx.t])
+            return self.learner.dual_step_q(lstate, q_table[idx.episode, idx.t])
 
         lstate = state.learner
         c_metrics, d_metrics = {}, {}
         if self.method.learns_policy:
             lstate, c_metrics = self._scan_updates(critic_step, lstate, k_critic, spec.learner.updates_per_epoch)
-            lstate, d_metrics = dual_phase(lstate, k_dual)
+            q_table = self.learner.q_table(lstate, buf.obs[:, :-1]) if self.q_table_pays else None
+            lstate, d_metrics = self._scan_updates(
+                partial(dual_step, q_table=q_table), lstate, k_dual, spec.learner.dual_updates_per_epoch
+            )
 
         returns = roll.episodes.reward.sum(axis=1)
         nan = jnp.full((), jnp.nan, jnp.float32)
