@@ -20,8 +20,9 @@ $(STAMP): pyproject.toml Makefile
 	$(BIN)/python -m pip install -q --no-deps overcooked-ai==1.1.0
 	@touch $(STAMP)
 
-# A small ESR run on the N = 2 gridworld (a few minutes on 2 CPU cores), then its evaluation:
-# prints the training artifact, the evaluation artifact, its GIF and its learning curve.
+# A small ESR run on the N = 2 gridworld (about 2 minutes on 2 CPU cores: the quick budget's 20
+# warm-up epochs with a uniform robot, then 20 of ESR's policy), then its evaluation: prints
+# the training artifact, the evaluation artifact, its GIF and its learning curve.
 demo: install
 	$(BIN)/esr train experiments/grid_2.yaml $(DEMO_SET)
 	$(BIN)/esr eval experiments/grid_2.yaml $(DEMO_SET)
