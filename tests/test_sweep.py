@@ -66,6 +66,13 @@ def test_paper_gridworld_suite_lists_every_method_on_the_four_settings():
     assert suite.slurm.gpus == 1
 
 
+def test_baselines_quick_suite_is_every_method_on_grid_2_and_grid_5_with_five_seeds():
+    suite = sweep.load_suite(ROOT / "experiments" / "suites" / "baselines_quick.yaml", "quick")
+    kinds = {"esr", "random", "ave", "goal_inference", "iq_learn", "oracle"}
+    assert {(r.spec.method.kind, r.spec.env.blocks) for r in suite.runs} == {(k, n) for k in kinds for n in (2, 5)}
+    assert all(len(r.spec.train.seeds) == 5 and r.spec.train.epochs == 150 for r in suite.runs)
+
+
 @pytest.mark.parametrize("text, where, problem", [
     ("specs: []\n", "specs", "at least 1"),
     (f"specs: [{GRID_2}]\nexecutor: slurm\n", "executor", "unknown key"),
