@@ -65,7 +65,7 @@ def epoch_flops(trainer) -> float:
 
     def per_episode_table(fn, *arrays):
         """Flops of a table built a few episodes per call, scaled to the whole buffer."""
-        per_call = max(1, 256 // steps)
+        per_call = replay.episodes_per_call(steps)
         part = flops(fn, *[a[:per_call] for a in arrays])
         return part * episodes / per_call
 

@@ -73,6 +73,17 @@ def add(buf: Buffer, episodes: Episodes) -> Buffer:
     )
 
 
+def episodes_per_call(steps: int) -> int:
+    """How many stored episodes `map_episodes` takes at once: about 256 transitions, the size
+    of a training batch, so that intermediates stay in cache."""
+    return max(1, 256 // steps)
+
+
+def map_episodes(fn, episodes, steps: int):
+    """fn over the stored episodes (leading axis of every leaf), a few at a time."""
+    return jax.lax.map(fn, episodes, batch_size=episodes_per_call(steps))
+
+
 def geometric_offsets(key: jax.Array, shape, gamma: float) -> jax.Array:
     """K ~ Geometric(1 - gamma) on {1, 2, ...}: P(K = k) = (1 - gamma) gamma^(k - 1)."""
     if gamma <= 0.0:

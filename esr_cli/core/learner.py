@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from esr_cli.core.buffer import map_episodes
 from esr_cli.networks import conv_net
 
 BETA_MIN, BETA_MAX = 1e-3, 100.0
@@ -113,6 +114,5 @@ class SoftQLearner(NamedTuple):
         return state._replace(beta=jnp.clip(beta, BETA_MIN, BETA_MAX)), {"dual_loss": loss}
 
     def q_table(self, state: LearnerState, obs):
-        """Q-values of every stored state obs [E, T, ...] -> [E, T, A], a few episodes at a time."""
-        per_call = max(1, 256 // obs.shape[1])
-        return jax.lax.map(lambda o: self.q_values(state.params, o), obs, batch_size=per_call)
+        """Q-values of every stored state obs [E, T, ...] -> [E, T, A]."""
+        return map_episodes(lambda o: self.q_values(state.params, o), obs, obs.shape[1])

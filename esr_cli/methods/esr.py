@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from esr_cli.core.buffer import map_episodes
 from esr_cli.networks import conv_net
 
 
@@ -182,11 +183,8 @@ class ESR(NamedTuple):
         )
         return jax.lax.stop_gradient(empowerment_reward(phi_s, phi_sa, psi))
 
-    # The critic's updates all use the same representation parameters (the epoch's
-    # representation updates come first). When the buffer holds fewer transitions than the
-    # critic phase samples (the gridworld: 15,000 against 100 x 256), representing every stored
-    # transition and state once and looking the batches up is cheaper than representing each
-    # batch, and gives the same rewards (core/train.py decides).
+    # The critic phase uses one set of representation parameters, so the runner may represent
+    # every stored transition once and look its batches up (Trainer.reward_table_pays).
     def reward_table(self, state: ESRState, buf) -> RewardTable:
         steps = buf.robot_action.shape[1]
 
@@ -195,9 +193,7 @@ class ESR(NamedTuple):
             phi_s, phi_sa = self.represent_phi(state.params, obs[:steps], robot_action, human_action)
             return phi_s, phi_sa, self.psi_net.apply(state.params["psi"], obs)
 
-        # A few episodes at a time: batches the size of a training batch stay in cache.
-        per_call = max(1, 256 // steps)
-        phi_s, phi_sa, psi = jax.lax.map(episode, (buf.obs, buf.robot_action, buf.human_action), batch_size=per_call)
+        phi_s, phi_sa, psi = map_episodes(episode, (buf.obs, buf.robot_action, buf.human_action), steps)
         return jax.lax.stop_gradient(RewardTable(phi_s=phi_s, phi_sa=phi_sa, psi=psi))
 
     def reward_from_table(self, table: RewardTable, idx) -> jax.Array:
