@@ -37,8 +37,9 @@ def smooth(y: np.ndarray, window: int) -> np.ndarray:
     return out
 
 
-def learning_curve(rows: list[dict], out_png: Path, title: str, provenance: dict) -> Path:
-    """Return, success, MI estimate and contrastive accuracy vs epoch; mean +- 1 SE over seeds."""
+def learning_curve(rows: list[dict], out_png: Path, title: str, provenance: dict, warmup_epochs: int = 0) -> Path:
+    """Return, success, MI estimate and contrastive accuracy vs epoch; mean +- 1 SE over seeds.
+    Warm-up epochs (the robot acting uniformly, learner.warmup_epochs) are shaded."""
     panels = [(k, label) for k, label in CURVE_PANELS if rows and k in rows[0]]
     fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 3.2), squeeze=False)
     window = max(1, len(rows) // 50)
@@ -57,6 +58,10 @@ def learning_curve(rows: list[dict], out_png: Path, title: str, provenance: dict
             if name == "contrastive_accuracy" and "contrastive_chance" in rows[0]:
                 _, chance = _series(rows, "contrastive_chance")
                 ax.plot(epochs, np.nanmean(smooth(chance, window), axis=1), "k--", lw=1, label="chance")
+                ax.legend(fontsize=8, loc="lower right")
+        if warmup_epochs:
+            ax.axvspan(0.5, warmup_epochs + 0.5, color="0.5", alpha=0.15, lw=0, label="uniform robot (warm-up)")
+            if ax is axes[0][0]:
                 ax.legend(fontsize=8, loc="lower right")
         ax.set_xlabel("epoch")
         ax.set_title(label, fontsize=10)

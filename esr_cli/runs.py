@@ -116,6 +116,7 @@ def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
             run_dir / "figures" / "learning_curve.png",
             f"{spec.name} [{spec.method.kind}]",
             {"artifacts": {RUN_KIND: key}, "budget": spec.budget, "seeds": list(spec.train.seeds)},
+            warmup_epochs=spec.learner.warmup_epochs,
         )
         manifest = provenance.complete_manifest(pending, components, summary, started,
                                                 method=spec.method.kind, env=spec.env.kind)
@@ -193,7 +194,10 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
         frames = [np.asarray(trainer.env.render(_index(traj, t))) for t in range(trainer.env.episode_steps + 1)]
         plots.rollout_gif(frames, eval_dir / "rollout.gif")
         prov = {"artifacts": {RUN_KIND: run_manifest["key"], EVAL_KIND: key}, "budget": spec.budget, "seeds": list(spec.train.seeds)}
-        plots.learning_curve(loop.read_metrics(run_path), eval_dir / "learning_curve.png", f"{spec.name} [{spec.method.kind}]", prov)
+        plots.learning_curve(
+            loop.read_metrics(run_path), eval_dir / "learning_curve.png", f"{spec.name} [{spec.method.kind}]", prov,
+            warmup_epochs=spec.learner.warmup_epochs,
+        )
         manifest = provenance.complete_manifest(
             pending, components, {"return": {"mean": summary["results"][mode]["return_mean"]}, **summary}, started
         )
