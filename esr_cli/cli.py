@@ -80,7 +80,9 @@ def sweep(
     budget: str = BudgetOpt,
     executor: str = typer.Option("local", "--executor", "-e", help="local (here, one after another) | slurm | submitit-local"),
     show_status: bool = typer.Option(False, "--status", help="only show each run's state: done / running / queued / failed / missing"),
-    as_json: bool = typer.Option(False, "--json", help="--status: print JSON instead of a table"),
+    show_results: bool = typer.Option(False, "--results", help="only show each finished run's final return and success (mean ± SE across seeds); trains nothing"),
+    as_json: bool = typer.Option(False, "--json", help="--status / --results: print JSON instead of a table"),
+    markdown: bool = typer.Option(False, "--markdown", help="--results: print a markdown table"),
     wait: Optional[bool] = typer.Option(None, "--wait/--no-wait", help="wait for submitted jobs (default: wait, except for slurm)"),
     partition: Optional[str] = typer.Option(None, "--partition", help="slurm: partition (default: the suite's slurm.partition)"),
     time_min: Optional[int] = typer.Option(None, "--time-min", help="slurm: wall-clock limit per job, minutes"),
@@ -95,6 +97,15 @@ def sweep(
         raise Exit(2, f"--executor: unknown executor {executor!r}; known: {', '.join(sw.EXECUTORS)}")
     try:
         suite = sw.load_suite(suite_file, budget)
+        if show_results:
+            rows = sw.results(suite, STATE.store)
+            if as_json:
+                out.print_json(json.dumps(rows))
+            elif markdown:
+                out.print(sw.results_markdown(suite, rows), soft_wrap=True, highlight=False, markup=False)
+            else:
+                out.print(sw.results_table(suite, rows))
+            return
         if show_status:
             rows = sw.status(suite, STATE.store)
             if as_json:

@@ -22,6 +22,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from esr_cli import suite as suites  # noqa: E402
+from esr_cli.finals import final_per_seed, mean_se, read_rows, series  # noqa: E402,F401 - used by paper.py and tests
 from esr_cli.store import Store  # noqa: E402
 
 PAPER_SUITE = Path(__file__).resolve().parents[1] / "experiments" / "suites" / "paper.yaml"
@@ -49,7 +50,6 @@ ABLATION_SETS = {
     "greedy": ("learner.gamma=0.0",),
 }
 REPRESENTATION_SETS = ("method.repr_dim=3",)
-FINAL_FRACTION = 0.1  # "final return": mean over the last 10% of epochs (at least one) per seed
 
 
 class MissingRuns(Exception):
@@ -95,30 +95,6 @@ class PaperInputs:
         seeds = sorted({s for m in manifests for s in m.get("seeds", [])})
         return {"figure": figure, "artifacts": {"runs": [m["key"] for m in manifests]}, "budget": self.budget,
                 "seeds": seeds, "suite": str(self.suite.path.name), **extra}
-
-
-# ---------------------------------------------------------------- reading runs
-def read_rows(run_path: Path) -> list[dict]:
-    return [json.loads(line) for line in (run_path / "metrics.jsonl").read_text().splitlines() if line.strip()]
-
-
-def series(rows: list[dict], name: str) -> tuple[np.ndarray, np.ndarray]:
-    """(epochs [E], values [E, seeds]) with NaN where a metric is undefined."""
-    epochs = np.array([r["epoch"] for r in rows])
-    vals = np.array([[np.nan if v is None else v for v in r.get(name, [None])] for r in rows], dtype=float)
-    return epochs, vals
-
-
-def final_per_seed(rows: list[dict], name: str = "return") -> np.ndarray:
-    _, vals = series(rows, name)
-    k = max(1, int(round(len(rows) * FINAL_FRACTION)))
-    return np.nanmean(vals[-k:], axis=0)
-
-
-def mean_se(per_seed: np.ndarray) -> tuple[float, float]:
-    per_seed = np.asarray(per_seed, dtype=float)
-    se = float(per_seed.std(ddof=1) / np.sqrt(len(per_seed))) if len(per_seed) > 1 else 0.0
-    return float(per_seed.mean()), se
 
 
 def _smooth(y: np.ndarray, window: int) -> np.ndarray:

@@ -206,6 +206,53 @@ def status_json(rows: list[RunStatus]) -> list[dict]:
              "state": r.state, "detail": r.note, "path": str(r.path) if r.path else None} for r in rows]
 
 
+def results(suite: Suite, store: Store) -> list[dict]:
+    """Each run's final return and success (mean +- SE across seeds, esr_cli.finals) and wall
+    time, read from the committed artifacts; runs not done carry their state and the command."""
+    from esr_cli.finals import run_finals
+
+    out = []
+    for r in status(suite, store):
+        row = {"run": r.run.label, "method": r.run.spec.method.kind, "key": r.run.key, "state": r.state}
+        if r.state == "done":
+            row.update(run_finals(r.path), wall_s=store.read_manifest(r.path).get("wall_time_s"), path=str(r.path))
+        else:
+            row["command"] = r.run.command(suite.budget)
+        out.append(row)
+    return out
+
+
+def _pm(stat: dict, digits: int) -> str:
+    return f"{stat['mean']:.{digits}f} ± {stat['se']:.{digits}f}"
+
+
+def results_table(suite: Suite, rows: list[dict]) -> Table:
+    table = Table(title=f"suite {suite.name} ({suite.budget}): final return and success, mean ± SE across seeds "
+                        "(last 10% of epochs)")
+    for col in ("run", "method", "seeds", "return", "success", "wall"):
+        table.add_column(col, overflow="fold")
+    for r in rows:
+        if r["state"] == "done":
+            wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
+            table.add_row(r["run"], r["method"], str(r["seeds"]), _pm(r["return"], 2), _pm(r["success"], 3), wall)
+        else:
+            table.add_row(r["run"], r["method"], "", f"[{_STYLE[r['state']]}]{r['state']}[/]", "", "")
+    return table
+
+
+def results_markdown(suite: Suite, rows: list[dict]) -> str:
+    lines = [f"Suite `{suite.name}`, budget `{suite.budget}`: final return and success, mean ± SE across seeds "
+             "(each seed's last 10% of epochs).", "",
+             "| run | method | seeds | return | success | wall |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        if r["state"] == "done":
+            wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
+            lines.append(f"| {r['run']} | {r['method']} | {r['seeds']} | {_pm(r['return'], 2)} | {_pm(r['success'], 3)} | {wall} |")
+        else:
+            lines.append(f"| {r['run']} | {r['method']} | | {r['state']}: `{r['command']}` | | |")
+    return "\n".join(lines)
+
+
 # ---------------------------------------------------------------- running
 @dataclass
 class SweepResult:

@@ -153,6 +153,18 @@ def test_sweep_through_submitit_local(smoke_run, tmp_path):
     assert [run.spec.train.seeds for run, _ in result.submitted] == [(4,)] and result.failed == []
     assert json.loads((result.paths[4] / "manifest.json").read_text())["seeds"] == [4]
 
+    # --results: each run's final return and success, read from its metrics. A smoke run has 2
+    # epochs, so "the last 10% of epochs" is the last one; one seed has no spread.
+    rows = json.loads(esr("sweep", str(five), "--budget", "smoke", "--results", "--json", store=store).stdout)
+    assert [r["state"] for r in rows] == ["done"] * 5 and [r["seeds"] for r in rows] == [1] * 5
+    for r, p in zip(rows, result.paths):
+        last = json.loads((p / "metrics.jsonl").read_text().splitlines()[-1])
+        assert r["return"] == {"mean": pytest.approx(last["return"][0]), "se": 0.0}
+        assert r["success"]["mean"] == pytest.approx(last["success"][0]) and r["path"] == str(p)
+    md = esr("sweep", str(five), "--budget", "smoke", "--results", "--markdown", store=store).stdout
+    assert "| run | method | seeds | return | success | wall |" in md
+    assert sum(line.startswith("| grid_2 train.seeds=") for line in md.splitlines()) == 5
+
 
 def test_status_tells_running_failed_queued_missing(tmp_path):
     store = Store(tmp_path / "store")
@@ -177,6 +189,10 @@ def test_status_tells_running_failed_queued_missing(tmp_path):
     assert sweep.status(suite, store)[1].state == "missing"
     table = sweep.status_table(suite, rows)
     assert table.row_count == 5 and "2 failed" in str(table.title) and "1 missing" in str(table.title)
+    # --results names what is not done, with the command that makes it, and reads nothing else.
+    res = sweep.results(suite, store)
+    assert [row["state"] for row in res] == ["failed", "missing", "failed", "running", "missing"]
+    assert res[4]["command"] == f"esr train {GRID_2} --budget smoke --set 'train.seeds=[4]'" and "return" not in res[4]
 
 
 FAKE_SBATCH = """#!/bin/sh

@@ -1,0 +1,48 @@
+"""A training run's final performance, read from its `metrics.jsonl` (figures, tables, sweeps).
+
+"Final" means each seed's mean over the last 10% of its epochs (at least one), then the mean
+and standard error across seeds: training episodes with the robot's sampled policy, as the
+paper's learning curves end. Reading only; nothing here trains.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+FINAL_FRACTION = 0.1
+
+
+def read_rows(run_path: Path) -> list[dict]:
+    return [json.loads(line) for line in (run_path / "metrics.jsonl").read_text().splitlines() if line.strip()]
+
+
+def series(rows: list[dict], name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(epochs [E], values [E, seeds]) with NaN where a metric is undefined."""
+    epochs = np.array([r["epoch"] for r in rows])
+    vals = np.array([[np.nan if v is None else v for v in r.get(name, [None])] for r in rows], dtype=float)
+    return epochs, vals
+
+
+def final_per_seed(rows: list[dict], name: str = "return") -> np.ndarray:
+    _, vals = series(rows, name)
+    k = max(1, int(round(len(rows) * FINAL_FRACTION)))
+    return np.nanmean(vals[-k:], axis=0)
+
+
+def mean_se(per_seed: np.ndarray) -> tuple[float, float]:
+    per_seed = np.asarray(per_seed, dtype=float)
+    se = float(per_seed.std(ddof=1) / np.sqrt(len(per_seed))) if len(per_seed) > 1 else 0.0
+    return float(per_seed.mean()), se
+
+
+def run_finals(run_path: Path, names: tuple[str, ...] = ("return", "success")) -> dict:
+    """{name: {mean, se}} for each metric, plus the run's seed and epoch counts."""
+    rows = read_rows(run_path)
+    out: dict = {"seeds": len(rows[-1]["return"]) if rows else 0, "epochs": rows[-1]["epoch"] if rows else 0}
+    for name in names:
+        m, se = mean_se(final_per_seed(rows, name)) if rows else (float("nan"), 0.0)
+        out[name] = {"mean": m, "se": se}
+    return out
