@@ -83,6 +83,7 @@ def sweep(
     show_results: bool = typer.Option(False, "--results", help="only show each finished run's final return and success (mean ± SE across seeds); trains nothing"),
     as_json: bool = typer.Option(False, "--json", help="--status / --results: print JSON instead of a table"),
     markdown: bool = typer.Option(False, "--markdown", help="--results: print a markdown table"),
+    plot: bool = typer.Option(False, "--plot", help="--results: also draw the runs' learning curves (a figures artifact; every run must be done)"),
     wait: Optional[bool] = typer.Option(None, "--wait/--no-wait", help="wait for submitted jobs (default: wait, except for slurm)"),
     partition: Optional[str] = typer.Option(None, "--partition", help="slurm: partition (default: the suite's slurm.partition)"),
     time_min: Optional[int] = typer.Option(None, "--time-min", help="slurm: wall-clock limit per job, minutes"),
@@ -105,6 +106,14 @@ def sweep(
                 out.print(sw.results_markdown(suite, rows), soft_wrap=True, highlight=False, markup=False)
             else:
                 out.print(sw.results_table(suite, rows))
+            if plot:
+                from esr_cli import figures as figs, paper
+
+                try:
+                    path, hit = paper.suite_figure(suite, STATE.store)
+                except figs.MissingRuns as e:
+                    raise Exit(2, f"{e}\nor all at once: esr sweep {suite_file} --budget {budget}") from None
+                err.print(f"[green]{'cache hit' if hit else 'drawn'}[/]: {path / 'suite.png'}  (table: {path / 'table.md'})")
             return
         if show_status:
             rows = sw.status(suite, STATE.store)

@@ -10,6 +10,7 @@ the artifacts it used, the budget and the seeds.
 from __future__ import annotations
 
 import json
+import textwrap
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -132,14 +133,19 @@ def save(fig, out_dir: Path, name: str, provenance: dict) -> list[Path]:
 
 
 # ---------------------------------------------------------------- figures 1, 3, 4
-def panels_figure(panels: list[tuple[str, list[tuple[str, str, list[dict]]]]], title: str, ylabel: str):
+def panels_figure(panels: list[tuple[str, list[tuple[str, str, list[dict]]]]], title: str, ylabel: str,
+                  warmup_epochs: int = 0):
     """One panel per entry (title, [(label, colour, metric rows)]): return vs epoch, mean ± 1 SE
-    over seeds. -> (figure, {panel: {label: {mean, se}}}) with each line's final return."""
+    over seeds; epochs 1..warmup_epochs (a uniform robot) shaded.
+    -> (figure, {panel: {label: {mean, se}}}) with each line's final return."""
     _style()
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.25 * len(panels) + 0.5, 3.2), sharey=True, squeeze=False)
+    width = 3.25 * len(panels) + 0.5 + (1.7 if len(panels) < 3 else 0.0)  # room for the legend beside few panels
+    fig, axes = plt.subplots(1, len(panels), figsize=(width, 3.2), sharey=True, squeeze=False)
     table: dict = {}
     for ax, (panel, lines) in zip(axes[0], panels):
         table[panel] = {}
+        if warmup_epochs:
+            ax.axvspan(0.5, warmup_epochs + 0.5, color="0.5", alpha=0.15, lw=0, label="warm-up (learners act uniformly)")
         for label, color, rows in lines:
             _band(ax, rows, "return", color, label, "--" if label == "Random" else "-")
             m, se = mean_se(final_per_seed(rows))
@@ -149,7 +155,7 @@ def panels_figure(panels: list[tuple[str, list[tuple[str, str, list[dict]]]]], t
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel(ylabel)
     axes[0][-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle(textwrap.fill(title, int(width * 12)), fontsize=10)
     fig.tight_layout()
     return fig, table
 
@@ -157,13 +163,44 @@ def panels_figure(panels: list[tuple[str, list[tuple[str, str, list[dict]]]]], t
 def _grid_panels(inputs: PaperInputs, figure: str, title: str, lines: list[tuple[str, str, tuple[str, ...], str, str]],
                  out_dir: Path) -> FigureResult:
     """4 panels (N = 2, 5, 7, 10); `lines`: (key, spec stem pattern with {n}, sets, label, colour)."""
-    paths = inputs.paths(figure, WANTS[figure]())
+    wanted = WANTS[figure]()
+    paths = inputs.paths(figure, wanted)
     it = iter(paths)
     panels = [(f"N = {n} blocks", [(label, color, read_rows(next(it))) for _, _, _, label, color in lines]) for n in GRID_NS]
+    warmups = {inputs.run(stem, sets).spec.learner.warmup_epochs for stem, sets in wanted}
     fig, table = panels_figure(panels, f"{title}  [{inputs.budget} budget, mean ± 1 SE over seeds]",
-                               "return (steps on goal, of 50)")
+                               "return (steps on goal, of 50)", max(warmups) if len(warmups) == 1 else 0)
     prov = inputs.provenance(figure, paths)
     return FigureResult(figure, save(fig, out_dir, figure, prov), prov, {"final_return": table})
+
+
+def env_title(spec) -> str:
+    """A panel title naming a spec's environment."""
+    env = spec.env
+    if env.kind == "gridworld":
+        size = "" if env.size == 5 else f", {env.size}x{env.size}"
+        return f"gridworld N = {env.blocks}{size}" + ("" if env.start == "corner" else f", {env.start} start")
+    return getattr(env, "layout", env.kind)
+
+
+def suite_panels(runs: list[tuple[object, Path]]) -> list[tuple[str, list[tuple[str, str, list[dict]]]]]:
+    """A suite's (run, artifact) pairs as panels: one per environment, one line per run, named
+    and coloured by method (by the run's label where a panel has a method twice)."""
+    groups: dict[str, list] = {}
+    for run, path in runs:
+        groups.setdefault(env_title(run.spec), []).append((run, path))
+    panels = []
+    for title, members in groups.items():
+        kinds = [run.spec.method.kind for run, _ in members]
+        lines = []
+        for j, (run, path) in enumerate(members):
+            kind = run.spec.method.kind
+            unique = kinds.count(kind) == 1
+            label = METHOD_LABELS.get(kind, kind) if unique else run.label
+            color = METHOD_COLORS.get(kind, f"C{j % 10}") if unique else f"C{j % 10}"
+            lines.append((label, color, read_rows(path)))
+        panels.append((title, lines))
+    return panels
 
 
 GRID_LINES = [(m, "grid_{n}" if m == "esr" else "grid_{n}_" + m, (), METHOD_LABELS[m], METHOD_COLORS[m]) for m in GRID_METHODS]

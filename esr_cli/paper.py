@@ -102,6 +102,38 @@ def ensure_report(store: Store, budget: str, console: Console) -> Path:
     return _commit(store, key, components, f"paper-report-{budget}", budget, [], files)
 
 
+def suite_figure(suite, store: Store) -> tuple[Path, bool]:
+    """`esr sweep SUITE --results --plot`: learning curves of every run of a suite (one panel
+    per environment) and their final-return table, as a figures artifact keyed by the runs and
+    the plotting code. -> (artifact dir, cache hit). Raises figs.MissingRuns; never trains."""
+    from esr_cli.runs import RUN_KIND
+
+    found = [store.lookup(RUN_KIND, run.key) for run in suite.runs]
+    missing = [run.command(suite.budget) for run, p in zip(suite.runs, found) if p is None]
+    if missing:
+        raise figs.MissingRuns(f"suite {suite.name}", missing)
+    manifests = [store.read_manifest(p) for p in found]
+    keys = [m["key"] for m in manifests]
+    components = {"kind": "suite_figure", "suite": suite.name, "budget": suite.budget, "runs": keys,
+                  "code": provenance.code_digest(PLOT_SOURCES)}
+    key = content_key(components)
+    hit = store.lookup(FIGURE_KIND, key) is not None
+    seeds = sorted({s for m in manifests for s in m.get("seeds", [])})
+    warmups = {getattr(run.spec.learner, "warmup_epochs", 0) for run in suite.runs}
+
+    def files(out: Path) -> dict:
+        title = f"suite {suite.name}  [{suite.budget} budget, mean ± 1 SE over seeds]"
+        fig, table = figs.panels_figure(figs.suite_panels(list(zip(suite.runs, found))), title, "return",
+                                        warmups.pop() if len(warmups) == 1 else 0)
+        prov = {"figure": "suite", "suite": suite.name, "artifacts": {"runs": keys}, "budget": suite.budget,
+                "seeds": seeds, "runs": {run.label: k for run, k in zip(suite.runs, keys)}}
+        figs.save(fig, out, "suite", prov)
+        atomic_write_text(out / "table.md", "\n".join(_final_table(table)) + "\n")
+        return {"final_return": table, "provenance": prov}
+
+    return _commit(store, key, components, f"suite {suite.name}", suite.budget, seeds, files), hit
+
+
 def _final_table(table: dict) -> list[str]:
     """Markdown: rows = lines (methods), columns = panels; final return mean ± SE."""
     panels = list(table)

@@ -165,6 +165,16 @@ def test_sweep_through_submitit_local(smoke_run, tmp_path):
     assert "| run | method | seeds | return | success | wall |" in md
     assert sum(line.startswith("| grid_2 train.seeds=") for line in md.splitlines()) == 5
 
+    # --plot: their learning curves and table as a figures artifact naming every run it read.
+    proc = esr("sweep", str(five), "--budget", "smoke", "--results", "--plot", store=store, **WIDE)
+    fig_dir = Path(proc.stderr.split("drawn: ")[1].split()[0]).parent
+    side = json.loads((fig_dir / "suite.json").read_text())
+    assert side["artifacts"]["runs"] == [p.name for p in result.paths] and side["budget"] == "smoke"
+    assert (fig_dir / "suite.png").stat().st_size > 0 and (fig_dir / "suite.pdf").exists()
+    assert sum(line.startswith("| grid_2 train.seeds=") for line in (fig_dir / "table.md").read_text().splitlines()) == 5
+    again = esr("sweep", str(five), "--budget", "smoke", "--results", "--plot", store=store, **WIDE)
+    assert f"cache hit: {fig_dir / 'suite.png'}" in again.stderr
+
 
 def test_status_tells_running_failed_queued_missing(tmp_path):
     store = Store(tmp_path / "store")
