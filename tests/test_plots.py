@@ -1,4 +1,4 @@
-"""Per-run pictures: the learning curve marks the warm-up epochs."""
+"""Pictures: the learning curve marks the warm-up epochs; a suite's runs become panels by environment."""
 
 import numpy as np
 from PIL import Image
@@ -17,3 +17,25 @@ def test_learning_curve_shades_the_warm_up_epochs(tmp_path):
     assert changed.mean() > 0.01  # a grey band over a third of each panel, and its legend
     cols = np.nonzero(changed.any(axis=0))[0]
     assert cols.min() < a.shape[1] // 3  # the band starts at the left of the first panel
+
+
+def test_suite_panels_group_runs_by_environment_and_name_lines_by_method(tmp_path):
+    from types import SimpleNamespace
+
+    from esr_cli import figures, spec as specs
+
+    root = figures.PAPER_SUITE.parents[2]
+    runs = []
+    for i, (stem, sets) in enumerate([("grid_2", ()), ("grid_2_random", ()), ("grid_5", ()), ("grid_5", ("learner.gamma=0.0",)),
+                                      ("cramped_room", ())]):
+        run_dir = tmp_path / str(i)
+        run_dir.mkdir()
+        (run_dir / "metrics.jsonl").write_text('{"epoch": 1, "return": [1.0]}\n')
+        spec = specs.load(root / "experiments" / f"{stem}.yaml", "smoke", list(sets))
+        runs.append((SimpleNamespace(spec=spec, label=" ".join((spec.name, *sets))), run_dir))
+    panels = figures.suite_panels(runs)
+    assert [title for title, _ in panels] == ["gridworld N = 2", "gridworld N = 5", "cramped_room"]
+    assert [label for label, _, _ in panels[0][1]] == ["ESR (ours)", "Random"]
+    # Two ESR runs in one panel are told apart by their labels.
+    assert [label for label, _, _ in panels[1][1]] == ["grid_5", "grid_5 learner.gamma=0.0"]
+    assert [label for label, _, _ in panels[2][1]] == ["ESR (ours)"]
