@@ -222,8 +222,10 @@ def diagnose(
     one = seed_slice(state, seed_index)
     rewards = dg.reward_by_situation(trainer, one, jax.random.PRNGKey(0), batches)
     starts = dg.corner_start_policy(trainer, one, jax.random.PRNGKey(1)) if trainer.method.learns_policy else []
+    reprs = dg.representation_check(trainer, one, jax.random.PRNGKey(2), batches) if trainer.spec.method.kind == "esr" else None
     if as_json:
-        out.print_json(json.dumps({"run": str(path), "seed_index": seed_index, "reward": rewards, "corner_starts": starts}))
+        out.print_json(json.dumps({"run": str(path), "seed_index": seed_index, "reward": rewards, "corner_starts": starts,
+                                   "representations": reprs}))
         return
     table = Table(title=f"{manifest['name']} ({manifest['budget']} budget), seed index {seed_index}: reward by the human's situation")
     for col in ("situation", "transitions", "mean reward", "sd"):
@@ -239,6 +241,16 @@ def diagnose(
         for row in starts:
             table.add_row(str(row["human"]), *[f"{row[e]['actions']}, {row[e]['q_max']:.2f}, {row[e]['p']:.3f}" for e in dg.EFFECTS])
         out.print(table)
+    if reprs:
+        table = Table(title="representations: how often each picks a transition's future in a batch")
+        for col in ("candidates", "phi(s, aR, aH)", "phi'(s, aR)", "block layout alone", "uniform"):
+            table.add_column(col)
+        table.add_row("the whole batch", f"{reprs['accuracy_phi']:.3f}", f"{reprs['accuracy_phi_prime']:.3f}",
+                      f"{reprs['layout_only']:.3f}", f"{reprs['chance']:.3f}")
+        table.add_row("futures with the true block layout", f"{reprs['within_layout_phi']:.3f}",
+                      f"{reprs['within_layout_phi_prime']:.3f}", "", "")
+        out.print(table)
+        out.print(f"MI estimate (phi minus phi' diagonal logit): {reprs['mi_estimate']:+.3f} nats")
 
 
 PAPER_FIGURES = ("gridworld", "overcooked", "no-robot-action", "greedy", "mi", "representations", "filmstrip")

@@ -31,5 +31,31 @@ def test_diagnose_reads_a_trained_run(smoke_run):
         # A cornered human (N = 2): 4 robot actions free it, 2 push a block onto it.
         assert (row["free"]["actions"], row["dead"]["actions"], row["trapped"]["actions"]) == (4, 2, 119)
         assert abs(sum(row[e]["p"] for e in ("trapped", "free", "dead")) - 1) < 1e-4
+    reprs = report["representations"]  # an ESR run: what its representations pick futures by
+    assert set(reprs) == {"accuracy_phi", "accuracy_phi_prime", "chance", "layout_only", "within_layout_phi",
+                          "within_layout_phi_prime", "mi_estimate"}
+    assert all(0 <= reprs[k] <= 1 for k in reprs if k != "mi_estimate")
+    assert reprs["layout_only"] >= reprs["chance"] - 1e-6  # knowing the layout never hurts
     bad = esr("diagnose", str(path), "--seed-index", "3", store=store, check=False)
     assert bad.returncode == 2 and "seed" in bad.stderr
+
+
+def test_representation_scores_of_hand_made_representations():
+    import jax.numpy as jnp
+
+    from esr_cli.analysis.diagnose import representation_scores
+
+    # Four distinct futures in two block layouts (0, 1 share one, 2, 3 the other).
+    future = np.zeros((4, 5, 5, 2), np.uint8)
+    for i, (human, block) in enumerate([((0, 0), (2, 2)), ((0, 1), (2, 2)), ((0, 0), (3, 3)), ((4, 4), (3, 3))]):
+        future[i, human[0], human[1], 0] = 1
+        future[i, block[0], block[1], 1] = 1
+    psi = jnp.eye(4)
+    phi_sa = jnp.eye(4)  # names its own future
+    phi_s = 0.5 * jnp.array([[1, 1, 0, 0], [1, 1, 0, 0], [0, 0, 1, 1], [0, 0, 1, 1]], jnp.float32)  # the layout only
+    got = {k: float(v) for k, v in representation_scores(phi_s, phi_sa, psi, jnp.asarray(future)).items()}
+    assert got["accuracy_phi"] == 1.0 and got["within_layout_phi"] == 1.0
+    assert got["accuracy_phi_prime"] == 0.5 and got["within_layout_phi_prime"] == 0.5  # ties go to the first
+    assert got["chance"] == 0.25 and got["layout_only"] == 0.5
+    assert abs(got["mi_estimate"] - (1 - 0.5) / 4) < 1e-6  # diagonal logits / d
+

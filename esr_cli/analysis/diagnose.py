@@ -82,3 +82,57 @@ def corner_start_policy(trainer, state, key, starts: int = 4) -> list[dict]:
                          "q_mean": float(q[chosen].mean()) if chosen.any() else float("nan"), "p": float(p[chosen].sum())}
         rows.append(row)
     return rows
+
+
+def representation_check(trainer, state, key, batches: int = 40) -> dict:
+    """What ESR's contrastive representations use to pick a transition's future in a batch.
+
+    Returns, averaged over `batches` representation batches of the run's buffer:
+      accuracy_phi / accuracy_phi_prime   phi(s, aR, aH) / phi'(s, aR) pick the true future
+                                          (an identical copy counts as right, as in training)
+      chance                              guessing uniformly among the batch
+      layout_only                         the best accuracy of a guesser that knows only the
+                                          true future's block layout (uniform among the batch's
+                                          futures with that layout)
+      within_layout_phi / _phi_prime      accuracy when the candidates are only the futures with
+                                          the true future's block layout: what the human's
+                                          position adds beyond the layout
+      mi_estimate                         mean diagonal logit of phi minus that of phi' (nats)
+    When layout_only is near 1 the block layout alone names the episode, phi' solves the batch
+    without the human's action, and the MI estimate has no reason to grow (docs/results.md)."""
+    from esr_cli.core import buffer as replay
+
+    spec, method = trainer.spec, trainer.method
+    params = state.method.params
+
+    def one(k):
+        b = replay.sample(state.buffer, k, spec.learner.batch_size, trainer.future_gamma)
+        phi_s, phi_sa, psi = method.represent(params, b.obs, b.robot_action, b.human_action, b.future_obs)
+        return representation_scores(phi_s, phi_sa, psi, b.future_obs)
+
+    out = jax.jit(jax.vmap(one))(jax.random.split(key, batches))
+    return {name: float(np.mean(v)) for name, v in out.items()}
+
+
+def representation_scores(phi_s, phi_sa, psi, future_obs) -> dict:
+    """The scores of `representation_check` on one batch; future_obs [B, S, S, 2] (human plane,
+    block plane)."""
+    from esr_cli.methods.esr import contrastive_accuracy, mutual_information_estimate, same_future
+
+    same = same_future(future_obs)
+    layout = same_future(future_obs[..., 1])
+    rows = jnp.arange(psi.shape[0])
+
+    def within(phi):
+        logits = jnp.where(layout, phi @ psi.T, -jnp.inf)
+        return jnp.mean(same[rows, jnp.argmax(logits, axis=1)])
+
+    return {
+        "accuracy_phi": contrastive_accuracy(phi_sa, psi, same),
+        "accuracy_phi_prime": contrastive_accuracy(phi_s, psi, same),
+        "chance": jnp.mean(same),
+        "layout_only": jnp.mean(jnp.sum(same, axis=1) / jnp.sum(layout, axis=1)),
+        "within_layout_phi": within(phi_sa),
+        "within_layout_phi_prime": within(phi_s),
+        "mi_estimate": mutual_information_estimate(phi_s, phi_sa, psi),
+    }
