@@ -133,11 +133,21 @@ def save(fig, out_dir: Path, name: str, provenance: dict) -> list[Path]:
 
 
 # ---------------------------------------------------------------- figures 1, 3, 4
+def seeds_phrase(counts) -> str:
+    """How a figure's lines aggregate seeds: one seed has no standard error to shade."""
+    counts = sorted(set(counts))
+    if counts == [1]:
+        return "1 seed, no SE"
+    span = str(counts[0]) if len(counts) == 1 else f"{counts[0]} to {counts[-1]}"
+    return f"mean ± 1 SE over {span} seeds"
+
+
 def panels_figure(panels: list[tuple[str, list[tuple[str, str, list[dict]]]]], title: str, ylabel: str,
-                  warmup_epochs: int = 0):
+                  warmup_epochs: int = 0, budget: str | None = None):
     """One panel per entry (title, [(label, colour, metric rows)]): return vs epoch, mean ± 1 SE
-    over seeds; epochs 1..warmup_epochs (a uniform robot) shaded.
-    -> (figure, {panel: {label: {mean, se}}}) with each line's final return."""
+    over seeds; epochs 1..warmup_epochs (a uniform robot) shaded. The title gains
+    "[budget, how seeds aggregate]".
+    -> (figure, {panel: {label: {mean, se, seeds}}}) with each line's final return."""
     _style()
     width = 3.25 * len(panels) + 0.5 + (1.7 if len(panels) < 3 else 0.0)  # room for the legend beside few panels
     fig, axes = plt.subplots(1, len(panels), figsize=(width, 3.2), sharey=True, squeeze=False)
@@ -155,6 +165,8 @@ def panels_figure(panels: list[tuple[str, list[tuple[str, str, list[dict]]]]], t
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel(ylabel)
     axes[0][-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    counts = [row["seeds"] for lines in table.values() for row in lines.values()]
+    title = f"{title}  [{budget + ' budget, ' if budget else ''}{seeds_phrase(counts)}]"
     fig.suptitle(textwrap.fill(title, int(width * 12)), fontsize=10)
     fig.tight_layout()
     return fig, table
@@ -168,8 +180,8 @@ def _grid_panels(inputs: PaperInputs, figure: str, title: str, lines: list[tuple
     it = iter(paths)
     panels = [(f"N = {n} blocks", [(label, color, read_rows(next(it))) for _, _, _, label, color in lines]) for n in GRID_NS]
     warmups = {inputs.run(stem, sets).spec.learner.warmup_epochs for stem, sets in wanted}
-    fig, table = panels_figure(panels, f"{title}  [{inputs.budget} budget, mean ± 1 SE over seeds]",
-                               "return (steps on goal, of 50)", max(warmups) if len(warmups) == 1 else 0)
+    fig, table = panels_figure(panels, title, "return (steps on goal, of 50)", max(warmups) if len(warmups) == 1 else 0,
+                               inputs.budget)
     prov = inputs.provenance(figure, paths)
     return FigureResult(figure, save(fig, out_dir, figure, prov), prov, {"final_return": table})
 

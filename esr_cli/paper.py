@@ -122,9 +122,8 @@ def suite_figure(suite, store: Store) -> tuple[Path, bool]:
     warmups = {getattr(run.spec.learner, "warmup_epochs", 0) for run in suite.runs}
 
     def files(out: Path) -> dict:
-        title = f"suite {suite.name}  [{suite.budget} budget, mean ± 1 SE over seeds]"
-        fig, table = figs.panels_figure(figs.suite_panels(list(zip(suite.runs, found))), title, "return",
-                                        warmups.pop() if len(warmups) == 1 else 0)
+        fig, table = figs.panels_figure(figs.suite_panels(list(zip(suite.runs, found))), f"suite {suite.name}", "return",
+                                        warmups.pop() if len(warmups) == 1 else 0, suite.budget)
         prov = {"figure": "suite", "suite": suite.name, "artifacts": {"runs": keys}, "budget": suite.budget,
                 "seeds": seeds, "runs": {run.label: k for run, k in zip(suite.runs, keys)}}
         figs.save(fig, out, "suite", prov)
@@ -138,10 +137,15 @@ def _final_table(table: dict) -> list[str]:
     """Markdown: rows = lines (methods), columns = panels; final return mean ± SE."""
     panels = list(table)
     labels = list(dict.fromkeys(label for p in panels for label in table[p]))
-    out = ["Final return (mean over the last 10% of epochs per seed; mean ± SE across seeds):", "",
+    out = ["Final return (mean over the last 10% of epochs per seed; mean ± SE across seeds, "
+           "no SE where a run has one seed):", "",
            "| | " + " | ".join(panels) + " |", "|---" * (len(panels) + 1) + "|"]
+
+    def cell(row: dict) -> str:
+        return f"{row['mean']:.2f}" + (f" ± {row['se']:.2f}" if row.get("seeds", 2) > 1 else " (1 seed)")
+
     for label in labels:
-        cells = [f"{table[p][label]['mean']:.2f} ± {table[p][label]['se']:.2f}" if label in table[p] else "" for p in panels]
+        cells = [cell(table[p][label]) if label in table[p] else "" for p in panels]
         out.append(f"| {label} | " + " | ".join(cells) + " |")
     return out
 
@@ -229,8 +233,8 @@ def ablate(spec_paths: list[str], names: list[str], custom: list[str], budget: s
         for path in spec_paths or DEFAULT_ABLATION_SPECS:
             lines = [(v.name, colors[j % len(colors)], figs.read_rows(next(it))) for j, v in enumerate(variants)]
             panels.append((Path(path).stem, lines))
-        title = f"Ablation: {', '.join(v.name for v in variants[1:])}  [{budget} budget, mean ± 1 SE over seeds]"
-        fig, table = figs.panels_figure(panels, title, "return")
+        title = f"Ablation: {', '.join(v.name for v in variants[1:])}"
+        fig, table = figs.panels_figure(panels, title, "return", budget=budget)
         prov = {"figure": "ablation", "artifacts": {"runs": keys}, "budget": budget, "seeds": seeds,
                 "variants": {v.name: list(v.sets) for v in variants}}
         figs.save(fig, out, "ablation", prov)

@@ -37,6 +37,18 @@ def test_panels_figure_tables_every_line(tmp_path):
     assert "k1" in Image.open(files[0]).info["Description"]  # provenance inside the PNG too
 
 
+def test_one_seed_figures_say_so_instead_of_showing_a_zero_standard_error():
+    from esr_cli.paper import _final_table
+
+    assert figs.seeds_phrase([1, 1]) == "1 seed, no SE"
+    assert figs.seeds_phrase([5, 5]) == "mean ± 1 SE over 5 seeds"
+    assert figs.seeds_phrase([3, 1]) == "mean ± 1 SE over 1 to 3 seeds"
+    fig, table = figs.panels_figure([("p1", [("A", "C0", rows_of([[2.0]] * 10))])], "t", "return", budget="quick")
+    assert fig._suptitle.get_text() == "t  [quick budget, 1 seed, no SE]"
+    table["p1"]["B"] = {"mean": 4.0, "se": 0.5, "seeds": 3}
+    assert _final_table(table)[-2:] == ["| A | 2.00 (1 seed) |", "| B | 4.00 ± 0.50 |"]
+
+
 def test_every_figure_reads_runs_of_the_paper_suite():
     """Each figure's inputs exist in experiments/suites/paper.yaml (at any budget)."""
     from esr_cli.store import Store
