@@ -38,6 +38,13 @@ def mean_se(per_seed: np.ndarray) -> tuple[float, float]:
     return float(per_seed.mean()), se
 
 
+def format_mean_se(mean: float, se: float, seeds: int, digits: int = 2) -> str:
+    """"m ± se", or "m (1 seed)" where one seed leaves no standard error to show."""
+    if seeds == 1:
+        return f"{mean:.{digits}f} (1 seed)"
+    return f"{mean:.{digits}f} ± {se:.{digits}f}"
+
+
 def run_finals(run_path: Path, names: tuple[str, ...] = ("return", "success")) -> dict:
     """{name: {mean, se}} for each metric, plus the run's seed and epoch counts."""
     rows = read_rows(run_path)

@@ -20,6 +20,7 @@ from rich.console import Console
 
 from esr_cli import figures as figs
 from esr_cli import provenance
+from esr_cli.finals import format_mean_se
 from esr_cli.store import Store, atomic_write_text, content_key
 
 FIGURE_KIND = "figures"
@@ -141,11 +142,8 @@ def _final_table(table: dict) -> list[str]:
            "no SE where a run has one seed):", "",
            "| | " + " | ".join(panels) + " |", "|---" * (len(panels) + 1) + "|"]
 
-    def cell(row: dict) -> str:
-        return f"{row['mean']:.2f}" + (f" ± {row['se']:.2f}" if row.get("seeds", 2) > 1 else " (1 seed)")
-
     for label in labels:
-        cells = [cell(table[p][label]) if label in table[p] else "" for p in panels]
+        cells = [format_mean_se(table[p][label]["mean"], table[p][label]["se"], table[p][label].get("seeds", 0)) if label in table[p] else "" for p in panels]
         out.append(f"| {label} | " + " | ".join(cells) + " |")
     return out
 

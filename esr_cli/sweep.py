@@ -222,8 +222,10 @@ def results(suite: Suite, store: Store) -> list[dict]:
     return out
 
 
-def _pm(stat: dict, digits: int) -> str:
-    return f"{stat['mean']:.{digits}f} ± {stat['se']:.{digits}f}"
+def _pm(row: dict, name: str, digits: int) -> str:
+    from esr_cli.finals import format_mean_se
+
+    return format_mean_se(row[name]["mean"], row[name]["se"], row["seeds"], digits)
 
 
 def results_table(suite: Suite, rows: list[dict]) -> Table:
@@ -234,7 +236,7 @@ def results_table(suite: Suite, rows: list[dict]) -> Table:
     for r in rows:
         if r["state"] == "done":
             wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
-            table.add_row(r["run"], r["method"], str(r["seeds"]), _pm(r["return"], 2), _pm(r["success"], 3), wall)
+            table.add_row(r["run"], r["method"], str(r["seeds"]), _pm(r, "return", 2), _pm(r, "success", 3), wall)
         else:
             table.add_row(r["run"], r["method"], "", f"[{_STYLE[r['state']]}]{r['state']}[/]", "", "")
     return table
@@ -247,7 +249,7 @@ def results_markdown(suite: Suite, rows: list[dict]) -> str:
     for r in rows:
         if r["state"] == "done":
             wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
-            lines.append(f"| {r['run']} | {r['method']} | {r['seeds']} | {_pm(r['return'], 2)} | {_pm(r['success'], 3)} | {wall} |")
+            lines.append(f"| {r['run']} | {r['method']} | {r['seeds']} | {_pm(r, 'return', 2)} | {_pm(r, 'success', 3)} | {wall} |")
         else:
             lines.append(f"| {r['run']} | {r['method']} | | {r['state']}: `{r['command']}` | | |")
     return "\n".join(lines)

@@ -164,6 +164,7 @@ def test_sweep_through_submitit_local(smoke_run, tmp_path):
     md = esr("sweep", str(five), "--budget", "smoke", "--results", "--markdown", store=store).stdout
     assert "| run | method | seeds | return | success | wall |" in md
     assert sum(line.startswith("| grid_2 train.seeds=") for line in md.splitlines()) == 5
+    assert "(1 seed)" in md and "±" not in md.split("|---|")[-1]  # one seed: no standard error shown
 
     # --plot: their learning curves and table as a figures artifact naming every run it read.
     proc = esr("sweep", str(five), "--budget", "smoke", "--results", "--plot", store=store, **WIDE)
