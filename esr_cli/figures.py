@@ -270,10 +270,14 @@ def overcooked_table(inputs: PaperInputs, out_dir: Path) -> FigureResult:
     paths = inputs.paths("fig2_overcooked", WANTS["fig2_overcooked"]())
     it = iter(paths)
     ours: dict = {}
+    seed_counts = []
     for layout in OVERCOOKED_LAYOUTS:
         ours[layout] = {}
         for m in OVERCOOKED_METHODS:
-            ours[layout][m] = mean_se(final_per_seed(read_rows(next(it))))
+            per_seed = final_per_seed(read_rows(next(it)))
+            mean, se = mean_se(per_seed)
+            ours[layout][m] = (mean, se if len(per_seed) > 1 else None)  # one seed: no SE to print
+            seed_counts.append(len(per_seed))
 
     def cell(v):
         m, se = v
@@ -297,13 +301,16 @@ def overcooked_table(inputs: PaperInputs, out_dir: Path) -> FigureResult:
     t = ax.table(cellText=body, colLabels=header, loc="center", cellLoc="center")
     t.auto_set_font_size(False)
     t.set_fontsize(8)
+    t.scale(1, 1.6)  # rows tall enough to fill the figure under its title
     for (r, _), c in t.get_celld().items():
         if r > 0 and body[r - 1][0].strip() == "paper":
             c.set_text_props(color="0.4", style="italic")
-    ax.set_title(f"Overcooked with the BC human: return per 400 steps (ours: {inputs.budget} budget; paper in grey)", fontsize=9)
+    ax.set_title(f"Overcooked with the BC human: return per 400 steps (ours: {inputs.budget} budget, "
+                 f"{seeds_phrase(seed_counts).replace('1 SE', 'SE')}; paper in grey)", fontsize=9)
     prov = inputs.provenance("fig2_overcooked", paths, paper_numbers="REFERENCE section 5")
     files = save(fig, out_dir, "fig2_overcooked", prov) + [out_dir / "fig2_overcooked.md", out_dir / "fig2_overcooked.tex"]
-    summary = {layout: {m: {"mean": round(v[0], 3), "se": round(v[1], 3)} for m, v in row.items()} for layout, row in ours.items()}
+    summary = {layout: {m: {"mean": round(v[0], 3), "se": round(v[1] or 0.0, 3)} for m, v in row.items()}
+               for layout, row in ours.items()}
     return FigureResult("fig2_overcooked", files, prov, {"final_return": summary})
 
 
