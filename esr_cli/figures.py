@@ -320,9 +320,10 @@ def mutual_information(inputs: PaperInputs, out_dir: Path) -> FigureResult:
     _style()
     paths = inputs.paths("fig5_mutual_information", WANTS["fig5_mutual_information"]())
     fig, (ax_mi, ax_acc) = plt.subplots(1, 2, figsize=(10, 3.4))
-    summary = {}
+    summary, seed_counts = {}, []
     for n, path, color in zip(GRID_NS, paths, ("C0", "C1", "C2", "C3")):
         rows = read_rows(path)
+        seed_counts.append(len(rows[0]["mi_estimate"]))
         _band(ax_mi, rows, "mi_estimate", color, f"N = {n}")
         _band(ax_acc, rows, "contrastive_accuracy", color, f"N = {n}")
         _, chance = series(rows, "contrastive_chance")
@@ -338,7 +339,7 @@ def mutual_information(inputs: PaperInputs, out_dir: Path) -> FigureResult:
         ax.set_xlabel("epoch")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle(f"ESR's representation learning  [{inputs.budget} budget, mean ± 1 SE]", fontsize=10)
+    fig.suptitle(f"ESR's representation learning  [{inputs.budget} budget, {seeds_phrase(seed_counts)}]", fontsize=10)
     fig.tight_layout()
     prov = inputs.provenance("fig5_mutual_information", paths)
     return FigureResult("fig5_mutual_information", save(fig, out_dir, "fig5_mutual_information", prov), prov, summary)
