@@ -302,6 +302,7 @@ def ablate(
 ):
     """Train (or reuse) base specs and their ablated variants; write one comparison artifact."""
     from esr_cli import paper, spec as specs
+    from esr_cli.stats import format_summary
 
     names = [n for n, on in (("no_robot_action", no_robot_action), ("greedy", greedy)) if on]
     if not names and not set_:
@@ -310,13 +311,13 @@ def ablate(
         path, table = paper.ablate([str(p) for p in spec_files or []], names, list(set_ or []), budget, STATE.store, err)
     except specs.SpecError as e:
         raise Exit(2, str(e)) from None
-    rich_table = Table(title=f"final return, mean ± SE across seeds ({budget} budget)")
+    rich_table = Table(title=f"final return, mean ± SE and IQM [95% bootstrap CI] across seeds ({budget} budget)")
     panels = list(table)
     rich_table.add_column("variant")
     for p in panels:
         rich_table.add_column(p)
     for label in dict.fromkeys(lab for p in panels for lab in table[p]):
-        rich_table.add_row(label, *[f"{table[p][label]['mean']:.2f} ± {table[p][label]['se']:.2f}" for p in panels])
+        rich_table.add_row(label, *[format_summary(table[p][label]) if label in table[p] else "" for p in panels])
     err.print(rich_table)
     err.print(f"[green]comparison[/]: {path / 'ablation.png'}  (table: {path / 'table.md'})")
     out.print(str(path), soft_wrap=True, highlight=False)
@@ -326,10 +327,32 @@ def ablate(
 def paper_(
     budget: str = BudgetOpt,
     executor: str = typer.Option("local", "--executor", "-e", help="local | slurm | submitit-local (see esr sweep)"),
+    report: bool = typer.Option(False, "--report", help="train nothing: write the reproduction report (every claim of "
+                                "the paper against the store's runs, with a verdict) to --out"),
+    report_out: Path = typer.Option(Path("docs/reproduction.md"), "--out", help="where --report writes (markdown; "
+                                    "its curves go to img/ beside it)"),
+    exact: bool = typer.Option(True, "--exact/--no-exact", help="with --report: compute the estimator check's exact "
+                               "artifacts (a few minutes the first time)"),
+    as_json: bool = typer.Option(False, "--json", help="with --report: also print every verdict as JSON on stdout"),
 ):
-    """Train what the paper suite lacks, draw every figure and write the report (make paper-figures)."""
+    """Train what the paper suite lacks, draw every figure and write the report (make paper-figures);
+    with --report, the reproduction report instead (docs/reproduction.md)."""
     from esr_cli import figures as figs, paper, sweep as sw
 
+    if report:
+        from esr_cli import reproduction
+
+        findings = reproduction.report(STATE.store, report_out, err, exact=exact)
+        counts: dict[str, int] = {}
+        for f in findings:
+            counts[f.verdict] = counts.get(f.verdict, 0) + 1
+        err.print(", ".join(f"{n} {v}" for v, n in counts.items()))
+        err.print(f"[green]reproduction report[/]: {report_out}")
+        if as_json:
+            out.print(json.dumps(reproduction.findings_json(findings), indent=2), soft_wrap=True, highlight=False)
+        else:
+            out.print(str(report_out), soft_wrap=True, highlight=False)
+        return
     try:
         path = paper.make_paper(STATE.store, budget, executor, err)
     except sw.SuiteError as e:

@@ -100,7 +100,7 @@ def ensure_estimator_figure(exact_ref: str, store: Store, console: Console) -> t
     if manifest.get("kind") != EXACT_KIND:
         raise StoreError(f"{exact_ref} is not an exact-empowerment artifact (make one with `esr exact SPEC --robot RUN`)")
     components = {"kind": "figure", "figure": "estimator", "exact": manifest["key"],
-                  "code": provenance.code_digest(provenance.EVAL_SOURCES + ("analysis",))}
+                  "code": provenance.code_digest(provenance.EVAL_SOURCES + ("analysis", "exact_runs.py"))}
     key = content_key(components)
 
     def make() -> Path:
@@ -173,12 +173,37 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
             est[sl] += data["pi_human"][sl, h][:, None] * np.einsum("brd,brd->br", diff, psibar[nxt])
     mi = data["mi"]
     rho, _ = spearmanr(est.reshape(-1), mi.reshape(-1))
-    result = {"spearman": float(rho), "pairs": int(mi.size), "run": run_manifest["key"], "exact": manifest["key"]}
+    visited = visited_pairs(space, data["pi_robot"], data["pi_human"], gamma)
+    rho_visited, _ = spearmanr(est[visited], mi[visited])
+    result = {"spearman": float(rho), "pairs": int(mi.size), "spearman_visited": float(rho_visited),
+              "visited_pairs": int(visited.sum()), "visited_mass": VISITED_MASS,
+              "run": run_manifest["key"], "exact": manifest["key"]}
     if out_png is not None:
         plots.estimator_scatter(mi.reshape(-1), est.reshape(-1), float(rho), out_png,
                                 {"artifacts": {"runs": run_manifest["key"], "exact": manifest["key"]},
                                  "budget": run_manifest.get("budget"), "seeds": run_manifest.get("seeds")})
     return result
+
+
+# "Visited" (state, robot action) pairs: the most likely pairs under the robot's own discounted
+# occupancy from the start states that together hold this share of it.
+VISITED_MASS = 0.99
+
+
+def visited_pairs(space, pi_robot: np.ndarray, pi_human: np.ndarray, gamma: float) -> np.ndarray:
+    """bool[S, A_R]: the smallest set of pairs holding VISITED_MASS of the discounted occupancy
+    d(s) pi_R(aR | s), d the discounted state distribution from the start (exact.empowerment's)."""
+    from esr_cli.analysis import exact
+
+    p = exact.transition_matrix(space, pi_robot, pi_human)
+    d = (1.0 - gamma) * np.linalg.solve((np.eye(len(p)) - gamma * p).T, space.start)
+    weight = (d[:, None] * pi_robot).reshape(-1)
+    order = np.argsort(-weight)
+    keep = np.cumsum(weight[order]) <= VISITED_MASS * weight.sum()
+    keep[np.argmin(keep)] = True  # the pair that crosses the threshold belongs to the set
+    mask = np.zeros(weight.shape, bool)
+    mask[order[keep]] = True
+    return mask.reshape(pi_robot.shape)
 
 
 def ensure_geometry_figure(store: Store, gamma: float, state: int) -> tuple[Path, dict, bool]:

@@ -24,6 +24,7 @@ import numpy as np  # noqa: E402
 
 from esr_cli import suite as suites  # noqa: E402
 from esr_cli.finals import final_per_seed, mean_se, read_rows, series  # noqa: E402,F401 - used by paper.py and tests
+from esr_cli.stats import describe, format_summary  # noqa: E402
 from esr_cli.store import Store  # noqa: E402
 
 PAPER_SUITE = Path(__file__).resolve().parents[1] / "experiments" / "suites" / "paper.yaml"
@@ -158,8 +159,7 @@ def panels_figure(panels: list[tuple[str, list[tuple[str, str, list[dict]]]]], t
             ax.axvspan(0.5, warmup_epochs + 0.5, color="0.5", alpha=0.15, lw=0, label="warm-up (learners act uniformly)")
         for label, color, rows in lines:
             _band(ax, rows, "return", color, label, "--" if label == "Random" else "-")
-            m, se = mean_se(final_per_seed(rows))
-            table[panel][label] = {"mean": round(m, 3), "se": round(se, 3), "seeds": len(rows[0]["return"]) if rows else 0}
+            table[panel][label] = describe(final_per_seed(rows)) if rows else {"mean": float("nan"), "se": 0.0, "seeds": 0}
         ax.set_title(panel)
         ax.set_xlabel("epoch")
         ax.grid(alpha=0.3)
@@ -274,12 +274,12 @@ def overcooked_table(inputs: PaperInputs, out_dir: Path) -> FigureResult:
     for layout in OVERCOOKED_LAYOUTS:
         ours[layout] = {}
         for m in OVERCOOKED_METHODS:
-            per_seed = final_per_seed(read_rows(next(it)))
-            mean, se = mean_se(per_seed)
-            ours[layout][m] = (mean, se if len(per_seed) > 1 else None)  # one seed: no SE to print
-            seed_counts.append(len(per_seed))
+            ours[layout][m] = describe(final_per_seed(read_rows(next(it))))
+            seed_counts.append(ours[layout][m]["seeds"])
 
     def cell(v):
+        if isinstance(v, dict):  # ours: mean ± SE and IQM [CI], or one seed's value
+            return format_summary(v)
         m, se = v
         return f"{m:.2f}" if se is None else f"{m:.2f} ± {se:.2f}"
 
@@ -309,9 +309,7 @@ def overcooked_table(inputs: PaperInputs, out_dir: Path) -> FigureResult:
                  f"{seeds_phrase(seed_counts).replace('1 SE', 'SE')}; paper in grey)", fontsize=9)
     prov = inputs.provenance("fig2_overcooked", paths, paper_numbers="REFERENCE section 5")
     files = save(fig, out_dir, "fig2_overcooked", prov) + [out_dir / "fig2_overcooked.md", out_dir / "fig2_overcooked.tex"]
-    summary = {layout: {m: {"mean": round(v[0], 3), "se": round(v[1] or 0.0, 3)} for m, v in row.items()}
-               for layout, row in ours.items()}
-    return FigureResult("fig2_overcooked", files, prov, {"final_return": summary})
+    return FigureResult("fig2_overcooked", files, prov, {"final_return": ours})
 
 
 # ---------------------------------------------------------------- figure 5

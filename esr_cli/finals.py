@@ -1,7 +1,7 @@
 """A training run's final performance, read from its `metrics.jsonl` (figures, tables, sweeps).
 
-"Final" means each seed's mean over the last 10% of its epochs (at least one), then the mean
-and standard error across seeds: training episodes with the robot's sampled policy, as the
+"Final" means each seed's mean over the last 10% of its epochs (at least one), then the mean,
+standard error and interquartile mean with its bootstrap interval across seeds (esr_cli.stats): training episodes with the robot's sampled policy, as the
 paper's learning curves end. Reading only; nothing here trains.
 """
 
@@ -11,6 +11,8 @@ import json
 from pathlib import Path
 
 import numpy as np
+
+from esr_cli.stats import describe
 
 FINAL_FRACTION = 0.1
 
@@ -38,18 +40,11 @@ def mean_se(per_seed: np.ndarray) -> tuple[float, float]:
     return float(per_seed.mean()), se
 
 
-def format_mean_se(mean: float, se: float, seeds: int, digits: int = 2) -> str:
-    """"m ± se", or "m (1 seed)" where one seed leaves no standard error to show."""
-    if seeds == 1:
-        return f"{mean:.{digits}f} (1 seed)"
-    return f"{mean:.{digits}f} ± {se:.{digits}f}"
-
-
 def run_finals(run_path: Path, names: tuple[str, ...] = ("return", "success")) -> dict:
-    """{name: {mean, se}} for each metric, plus the run's seed and epoch counts."""
+    """{name: stats.describe(per-seed finals)} for each metric (mean, SE, IQM and its interval,
+    the per-seed values), plus the run's seed and epoch counts."""
     rows = read_rows(run_path)
     out: dict = {"seeds": len(rows[-1]["return"]) if rows else 0, "epochs": rows[-1]["epoch"] if rows else 0}
     for name in names:
-        m, se = mean_se(final_per_seed(rows, name)) if rows else (float("nan"), 0.0)
-        out[name] = {"mean": m, "se": se}
+        out[name] = describe(final_per_seed(rows, name)) if rows else {"mean": float("nan"), "se": 0.0, "seeds": 0}
     return out

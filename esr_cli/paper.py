@@ -20,7 +20,7 @@ from rich.console import Console
 
 from esr_cli import figures as figs
 from esr_cli import provenance
-from esr_cli.finals import format_mean_se
+from esr_cli.stats import format_summary
 from esr_cli.store import Store, atomic_write_text, content_key
 
 FIGURE_KIND = "figures"
@@ -138,12 +138,12 @@ def _final_table(table: dict) -> list[str]:
     """Markdown: rows = lines (methods), columns = panels; final return mean ± SE."""
     panels = list(table)
     labels = list(dict.fromkeys(label for p in panels for label in table[p]))
-    out = ["Final return (mean over the last 10% of epochs per seed; mean ± SE across seeds, "
-           "no SE where a run has one seed):", "",
+    out = ["Final return (mean over the last 10% of epochs per seed; mean ± SE across seeds and the "
+           "interquartile mean with its 95% stratified bootstrap interval; no SE where a run has one seed):", "",
            "| | " + " | ".join(panels) + " |", "|---" * (len(panels) + 1) + "|"]
 
     for label in labels:
-        cells = [format_mean_se(table[p][label]["mean"], table[p][label]["se"], table[p][label].get("seeds", 0)) if label in table[p] else "" for p in panels]
+        cells = [format_summary(table[p][label]) if label in table[p] else "" for p in panels]
         out.append(f"| {label} | " + " | ".join(cells) + " |")
     return out
 

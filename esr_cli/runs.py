@@ -46,6 +46,56 @@ def run_key(spec) -> tuple[str, dict]:
     return content_key(components), components
 
 
+def lineage_key(components: dict) -> str:
+    """The key a run has at every length: its key components without `train.epochs`. Runs of
+    one lineage compute the same epochs (training is a pure function of the state, epoch by
+    epoch), so a longer run can start where a shorter one ended (docs/store.md)."""
+    spec = components["spec"]
+    train = {k: v for k, v in spec["train"].items() if k != "epochs"}
+    return content_key({**components, "spec": {**spec, "train": train}})
+
+
+def _adopt_shorter_run(store: Store, key: str, components: dict, run_dir: Path, epochs: int, console: Console) -> None:
+    """Start an empty run directory from the longest run of its lineage that got no further than
+    `epochs`: a committed run, or an unfinished one that no process is writing."""
+    from esr_cli.core import loop
+
+    if loop.verified_steps(run_dir):
+        return  # this run has started already: it resumes from its own checkpoint
+    lineage = lineage_key(components)
+    donors = []
+    for entry in store.entries():
+        info = entry.manifest or {}
+        theirs = info.get("key_components")
+        if entry.kind != RUN_KIND or entry.key == key or not theirs or lineage_key(theirs) != lineage:
+            continue
+        done = int(info.get("summary", {}).get("epochs", 0)) if entry.status == "complete" else \
+            next((s for s in loop.verified_steps(entry.path) if s <= epochs), 0)
+        if 0 < done <= epochs:
+            donors.append((done, entry))
+    for done, entry in sorted(donors, key=lambda d: (-d[0], d[1].status != "complete")):
+        if entry.status == "complete":
+            adopted = loop.adopt_checkpoint(entry.path, run_dir, epochs)
+        else:
+            try:  # an unfinished run is only read while its lock shows no process is writing it
+                with store.lock(RUN_KIND, entry.key, on_wait=_busy):
+                    adopted = loop.adopt_checkpoint(entry.path, run_dir, epochs)
+            except _Busy:
+                continue
+        if adopted:
+            console.print(f"starting from run {entry.key[:12]} ({entry.status}) at epoch {adopted}: "
+                          f"the same spec, {done} epochs long")
+            return
+
+
+class _Busy(Exception):
+    pass
+
+
+def _busy(holder: str):
+    raise _Busy(holder)
+
+
 def _check_disk(store: Store, spec) -> None:
     need = MIN_FREE_BYTES_PER_SEED * len(spec.train.seeds)
     free = shutil.disk_usage(store.root).free
@@ -92,8 +142,12 @@ def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
         from esr_cli.core.train import make_trainer
 
         pending = {"kind": RUN_KIND, "name": spec.name, "key": key, "budget": spec.budget, "seeds": list(spec.train.seeds)}
-        run_dir = store.begin(RUN_KIND, key, pending)
+        # The components are recorded from the start so that a longer run of the same spec can
+        # find this one while it is unfinished (_adopt_shorter_run); the manifest repeats them.
+        run_dir = store.begin(RUN_KIND, key, {**pending, "key_components": components,
+                                              "commit": provenance.git_state()["commit"]})
         atomic_write_text(run_dir / "spec.yaml", specs.to_yaml(spec))
+        _adopt_shorter_run(store, key, components, run_dir, spec.train.epochs, console)
         trainer = make_trainer(spec, store)
         started = time.time()
         with _progress(console) as bar:

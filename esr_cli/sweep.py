@@ -223,14 +223,14 @@ def results(suite: Suite, store: Store) -> list[dict]:
 
 
 def _pm(row: dict, name: str, digits: int) -> str:
-    from esr_cli.finals import format_mean_se
+    from esr_cli.stats import format_summary
 
-    return format_mean_se(row[name]["mean"], row[name]["se"], row["seeds"], digits)
+    return format_summary(row[name], digits)
 
 
 def results_table(suite: Suite, rows: list[dict]) -> Table:
-    table = Table(title=f"suite {suite.name} ({suite.budget}): final return and success, mean ± SE across seeds "
-                        "(last 10% of epochs)")
+    table = Table(title=f"suite {suite.name} ({suite.budget}): final return and success, mean ± SE and IQM "
+                        "[95% bootstrap CI] across seeds (last 10% of epochs)")
     for col in ("run", "method", "seeds", "return", "success", "wall"):
         table.add_column(col, overflow="fold")
     for r in rows:
@@ -243,8 +243,8 @@ def results_table(suite: Suite, rows: list[dict]) -> Table:
 
 
 def results_markdown(suite: Suite, rows: list[dict]) -> str:
-    lines = [f"Suite `{suite.name}`, budget `{suite.budget}`: final return and success, mean ± SE across seeds "
-             "(each seed's last 10% of epochs).", "",
+    lines = [f"Suite `{suite.name}`, budget `{suite.budget}`: final return and success, mean ± SE and "
+             "the interquartile mean [95% stratified bootstrap interval] across seeds (each seed's last 10% of epochs).", "",
              "| run | method | seeds | return | success | wall |", "|---|---|---|---|---|---|"]
     for r in rows:
         if r["state"] == "done":

@@ -175,3 +175,33 @@ def test_bad_store_and_bad_keys_are_one_line_errors(tmp_path):
     assert proc.returncode == 2 and "no artifact" in proc.stderr and "Traceback" not in proc.stderr
     proc = esr("--debug", "show", "0123abcd", store=tmp_path / "empty", check=False)
     assert proc.returncode != 0 and "Traceback" in proc.stderr
+
+
+def test_a_longer_run_continues_a_shorter_one_bit_for_bit(tmp_path, reference):
+    """train.epochs grows: the longer run starts from the shorter run's last checkpoint and
+    ends exactly where an uninterrupted run of the longer length ends."""
+    store = tmp_path / "store"
+    short = Path(esr(*SMOKE, "--set", "train.epochs=1", store=store).stdout.strip())
+    longer = esr(*SMOKE, store=store)
+    assert f"starting from run {short.name[:12]} (complete) at epoch 1" in longer.stderr
+    path = Path(longer.stdout.strip())
+    want_metrics, want_state = reference
+    assert (path / "metrics.jsonl").read_text() == want_metrics
+    for a, b in zip(final_arrays(path), want_state):
+        np.testing.assert_array_equal(a, b)
+    assert (short / "manifest.json").is_file()  # the shorter artifact is untouched
+    assert esr("verify", store=store).returncode == 0
+
+
+def test_an_unfinished_longer_run_gives_a_shorter_one_its_checkpoint(tmp_path, reference):
+    store = tmp_path / "store"
+    killed = esr(*SMOKE, "--set", "train.epochs=3", store=store, check=False, ESR_FAULT="after_checkpoint@2")
+    assert killed.returncode == -signal.SIGKILL
+    shorter = esr(*SMOKE, store=store)
+    assert "(partial) at epoch 2" in shorter.stderr
+    path = Path(shorter.stdout.strip())
+    want_metrics, want_state = reference
+    assert (path / "metrics.jsonl").read_text() == want_metrics
+    for a, b in zip(final_arrays(path), want_state):
+        np.testing.assert_array_equal(a, b)
+    assert len(partials(store)) == 1  # the 3-epoch run is still there to be resumed

@@ -122,6 +122,34 @@ def restore_latest(trainer: Trainer, run_dir: Path, seeds, repair: bool = True) 
     return state, int(step)
 
 
+def verified_steps(run_dir: Path) -> list[int]:
+    """The checkpoint steps of `run_dir` whose files match their recorded digests, newest first."""
+    root = Path(run_dir) / CHECKPOINT_DIR
+    if not root.is_dir():
+        return []
+    digests = _read_digests(run_dir)
+    steps = sorted((int(d.name) for d in root.iterdir() if d.is_dir() and d.name.isdigit()), reverse=True)
+    return [s for s in steps if digests.get(str(s)) and _step_digests(run_dir, s) == digests[str(s)]]
+
+
+def adopt_checkpoint(source_dir: Path, run_dir: Path, at_most: int) -> int:
+    """Start `run_dir` (empty) from the newest verified checkpoint of `source_dir` at epoch <=
+    `at_most`: its checkpoint, its digests and its metrics up to that epoch are copied, so
+    `train` then resumes there. -> the adopted epoch (0: nothing suitable, nothing copied).
+
+    Training is a pure function of the state, epoch by epoch, so a run of the same spec that
+    is longer continues from a shorter one's checkpoint exactly as if it had never stopped."""
+    step = next((s for s in verified_steps(source_dir) if s <= at_most), 0)
+    if not step:
+        return 0
+    target = Path(run_dir) / CHECKPOINT_DIR / str(step)
+    shutil.copytree(Path(source_dir) / CHECKPOINT_DIR / str(step), target)
+    rows = [r for r in read_metrics(source_dir) if r["epoch"] <= step]
+    atomic_write_text(Path(run_dir) / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in rows))
+    _record_digests(run_dir, [step], step)
+    return step
+
+
 def read_metrics(run_dir: Path) -> list[dict]:
     path = Path(run_dir) / METRICS_FILE
     if not path.exists():

@@ -1,0 +1,389 @@
+"""The reproduction report (`esr paper --report`, docs/reproduction.md): every claim of the paper
+next to what the store holds, with a verdict.
+
+Evidence is found by *spec*, not by key: a stored run (finished or not) supports a claim when
+its validated spec equals the claim's spec in every field outside `train` (length, seeds,
+environments in parallel and chunking may differ). Runs made by another checkout are therefore
+found too; the report names each run's key, its commit where known, its length and its seeds.
+Among the runs that match, the one with the most epochs done (then the most seeds) is used.
+Nothing here trains; the estimator check computes exact artifacts for a stored run.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import yaml
+
+from esr_cli import spec as specs
+from esr_cli.finals import FINAL_FRACTION, final_per_seed, series
+from esr_cli.stats import describe, format_summary, probability_of_improvement
+from esr_cli.store import Store, atomic_write_text
+
+EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+PAPER_EPOCHS = 10_000
+# A run is at a length comparable with the paper's once it has this many epochs behind it: the
+# gridworld at 30% of the paper's 10,000 epochs (beyond which ESR's return in the paper's
+# figure changes little), Overcooked at its full length (cheap enough to run whole).
+COMPARABLE_EPOCHS = {"gridworld": 3000, "overcooked": 10_000}
+SIMILAR_WITHIN = 0.15  # "similar" returns: within 15% of the larger one
+REPRODUCED, NOT_REPRODUCED, INCONCLUSIVE, NOT_YET = (
+    "reproduced", "not reproduced", "inconclusive", "not yet run at a comparable budget")
+
+
+# ---------------------------------------------------------------- evidence in the store
+@dataclass
+class Evidence:
+    """One stored run: what it is, how far it got, its per-seed metric rows."""
+
+    key: str
+    path: Path
+    status: str  # complete | partial
+    budget: str
+    spec: specs.Spec
+    rows: list[dict]
+    commit: Optional[str]
+
+    @property
+    def epochs_done(self) -> int:
+        return self.rows[-1]["epoch"] if self.rows else 0
+
+    @property
+    def seeds(self) -> int:
+        return len(self.rows[-1]["return"]) if self.rows else len(self.spec.train.seeds)
+
+    def finals(self, name: str = "return") -> dict:
+        return describe(final_per_seed(self.rows, name))
+
+    def comparable(self) -> bool:
+        return self.epochs_done >= COMPARABLE_EPOCHS.get(self.spec.env.kind, PAPER_EPOCHS)
+
+    def describe_length(self) -> str:
+        state = "" if self.status == "complete" else f" of {self.spec.train.epochs:,} (unfinished)"
+        return f"{self.epochs_done:,} epochs{state}, {self.seeds} seed{'s' if self.seeds != 1 else ''}"
+
+
+def _without_train(spec: specs.Spec) -> str:
+    part = spec.training_part()
+    part.pop("train")
+    return json.dumps(part, sort_keys=True)
+
+
+def _read_metrics(path: Path) -> list[dict]:
+    rows = []
+    text = (path / "metrics.jsonl").read_text() if (path / "metrics.jsonl").exists() else ""
+    for line in text.splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            break  # a line cut short by a kill
+    return rows
+
+
+def index_store(store: Store) -> dict[str, list[Evidence]]:
+    """Every training run of the store whose spec still validates, by spec outside `train`."""
+    from esr_cli.runs import RUN_KIND
+
+    out: dict[str, list[Evidence]] = {}
+    for entry in store.entries():
+        if entry.kind != RUN_KIND or not (entry.path / "spec.yaml").is_file():
+            continue
+        try:
+            spec = specs.validate(yaml.safe_load((entry.path / "spec.yaml").read_text()), str(entry.path))
+        except (specs.SpecError, yaml.YAMLError):
+            continue  # made by code whose spec fields this version no longer reads
+        info = entry.manifest or {}
+        commit = info.get("provenance", {}).get("git", {}).get("commit") or info.get("commit")
+        ev = Evidence(entry.key, entry.path, entry.status, info.get("budget", spec.budget), spec,
+                      _read_metrics(entry.path), commit)
+        if ev.rows:
+            out.setdefault(_without_train(spec), []).append(ev)
+    return out
+
+
+def best(index: dict[str, list[Evidence]], spec: specs.Spec) -> Optional[Evidence]:
+    found = index.get(_without_train(spec), [])
+    return max(found, key=lambda e: (e.epochs_done, e.seeds, e.status == "complete"), default=None)
+
+
+# ---------------------------------------------------------------- claims
+@dataclass
+class Claim:
+    """One statement of the paper, checked on runs of the specs it names."""
+
+    figure: str
+    text: str
+    paper: str  # what the paper reports
+    kind: str  # above | similar | mi_positive
+    a: tuple[str, tuple[str, ...]]  # (spec stem in experiments/, --set values)
+    b: Optional[tuple[str, tuple[str, ...]]] = None
+    variants: list[tuple[str, tuple[str, ...]]] = field(default_factory=list)  # esr's variants of `a`, shown too
+
+
+QUICK_CHANGES = ("learner.warmup_epochs=20", "method.repr_lr=0.001")
+PUBLISHED_AVE = ("method.variant=original",)
+NO_ROBOT_ACTION = ("method.condition_on_robot_action=false",)
+GREEDY = ("learner.gamma=0.0",)
+# The paper's Overcooked table: final return, mean ± SE over seeds (Random: mean only).
+PAPER_OVERCOOKED = {
+    "cramped_room": {"esr": "91.33 ± 4.08", "iq_learn": "39.24 ± 0.35", "ave": "5.13 ± 1.31", "random": "69.26"},
+    "coord_ring": {"esr": "8.40 ± 0.69", "iq_learn": "5.96 ± 0.20", "ave": "5.69 ± 0.93", "random": "6.02"},
+    "asymm_advantages": {"esr": "72.00 ± 5.37", "iq_learn": "60.33 ± 0.26", "ave": "36.71 ± 1.71", "random": "59.36"},
+}
+
+
+def paper_claims() -> list[Claim]:
+    claims = []
+    for n in (2, 5, 7, 10):
+        esr = (f"grid_{n}", ())
+        var = [(f"grid_{n}", QUICK_CHANGES)]
+        claims.append(Claim("Figure 1", f"N = {n}: ESR ends above Random", "ESR's final return is above Random's at every N",
+                            "above", esr, (f"grid_{n}_random", ()), var))
+        if n == 2:
+            claims.append(Claim("Figure 1", "N = 2: ESR and AvE end level",
+                                "at N = 2 ESR and AvE reach a similar final return (AvE sooner)",
+                                "similar", esr, (f"grid_{n}_ave", PUBLISHED_AVE), var))
+        else:
+            claims.append(Claim("Figure 1", f"N = {n}: ESR ends above AvE", "from N = 5 on ESR is clearly the best method",
+                                "above", esr, (f"grid_{n}_ave", PUBLISHED_AVE), var))
+            claims.append(Claim("Figure 1", f"N = {n}: AvE ends below Random", "from N = 5 on AvE falls below Random",
+                                "above", (f"grid_{n}_random", ()), (f"grid_{n}_ave", PUBLISHED_AVE)))
+            for base, label in (("goal_inference", "Goal Inference"), ("iq_learn", "Reward Inference")):
+                claims.append(Claim("Figure 1", f"N = {n}: ESR ends above {label}",
+                                    f"{label} fails except at N = 2", "above", esr, (f"grid_{n}_{base}", ()), var))
+    for layout, paper in PAPER_OVERCOOKED.items():
+        for base, label in (("random", "Random"), ("iq_learn", "Reward Inference"), ("ave", "AvE")):
+            claims.append(Claim("Figure 2", f"{layout}: ESR ends above {label}",
+                                f"ESR {paper['esr']} against {label} {paper[base]}", "above", (layout, ()), (f"{layout}_{base}", ())))
+    for n in (2, 5, 7, 10):
+        claims.append(Claim("Figure 3", f"N = {n}: ESR ends above ESR without the robot action",
+                            "without aR in phi and phi' learning is worse, most at high N", "above",
+                            (f"grid_{n}", ()), (f"grid_{n}", NO_ROBOT_ACTION)))
+    for n in (2, 5, 7, 10):
+        claims.append(Claim("Figure 4", f"N = {n}: ESR ends above the greedy ESR (critic gamma 0)",
+                            "a greedy critic does far worse than gamma = 0.9", "above",
+                            (f"grid_{n}", ()), (f"grid_{n}", GREEDY)))
+    for n in (2, 5, 7, 10):
+        claims.append(Claim("Figure 5", f"N = {n}: the MI estimate turns positive and stays positive",
+                            "the estimate turns positive early in training and stays positive", "mi_positive",
+                            (f"grid_{n}", ()), None, [(f"grid_{n}", QUICK_CHANGES)]))
+    return claims
+
+
+def claim_spec(ref: tuple[str, tuple[str, ...]]) -> specs.Spec:
+    stem, sets = ref
+    return specs.load(EXPERIMENTS / f"{stem}.yaml", "paper", list(sets))
+
+
+# ---------------------------------------------------------------- verdicts
+@dataclass
+class Finding:
+    claim: Claim
+    a: Optional[Evidence]
+    b: Optional[Evidence]
+    verdict: str
+    measured: str
+    variants: list[tuple[str, Optional[Evidence], str]] = field(default_factory=list)
+
+
+def _mi_summary(ev: Evidence) -> tuple[bool, str]:
+    epochs, vals = series(ev.rows, "mi_estimate")
+    mi = np.nanmean(vals, axis=1)
+    second = mi[len(mi) // 2:]
+    k = max(1, int(round(len(mi) * FINAL_FRACTION)))
+    final = float(np.nanmean(mi[-k:]))
+    share = float(np.mean(second > 0)) if len(second) else float("nan")
+    holds = final > 0 and share >= 0.9
+    return holds, f"final MI {final:+.3f} nats; positive in {share:.0%} of the second half's epochs"
+
+
+def _compare(kind: str, a: Evidence, b: Evidence) -> tuple[bool | None, str]:
+    """(holds, text): True / False, or None where several seeds leave it open."""
+    fa, fb = a.finals(), b.finals()
+    text = f"{format_summary(fa)} against {format_summary(fb)}"
+    if fa["seeds"] >= 2 or fb["seeds"] >= 2:
+        p, low, high = probability_of_improvement(fa["per_seed"], fb["per_seed"])
+        text += f"; P(improvement) {p:.2f} [{low:.2f}, {high:.2f}]"
+        if kind == "above":
+            return (True if low > 0.5 else False if high < 0.5 else None), text
+        return (low <= 0.5 <= high), text
+    if kind == "above":
+        return fa["mean"] > fb["mean"], text
+    larger = max(abs(fa["mean"]), abs(fb["mean"]), 1e-9)
+    return abs(fa["mean"] - fb["mean"]) <= SIMILAR_WITHIN * larger, text
+
+
+def judge(claim: Claim, index: dict[str, list[Evidence]]) -> Finding:
+    a = best(index, claim_spec(claim.a))
+    b = best(index, claim_spec(claim.b)) if claim.b else None
+    variants = []
+    for ref in claim.variants:
+        ev = best(index, claim_spec(ref))
+        label = " ".join(ref[1])
+        if ev is None:
+            variants.append((label, None, "not run"))
+        elif claim.kind == "mi_positive":
+            variants.append((label, ev, _mi_summary(ev)[1]))
+        else:
+            other = b and _compare(claim.kind, ev, b)[1]
+            variants.append((label, ev, other or format_summary(ev.finals())))
+    needed = [a] + ([b] if claim.b else [])
+    if any(e is None for e in needed):
+        return Finding(claim, a, b, NOT_YET, "not run", variants)
+    if claim.kind == "mi_positive":
+        holds, measured = _mi_summary(a)
+    else:
+        holds, measured = _compare(claim.kind, a, b)
+    if not all(e.comparable() for e in needed):
+        return Finding(claim, a, b, NOT_YET, measured, variants)
+    verdict = INCONCLUSIVE if holds is None else REPRODUCED if holds else NOT_REPRODUCED
+    if any(e.seeds == 1 for e in needed):
+        verdict += " (1 seed)"
+    return Finding(claim, a, b, verdict, measured, variants)
+
+
+# ---------------------------------------------------------------- the report
+def _run_cell(ev: Optional[Evidence]) -> str:
+    if ev is None:
+        return "—"
+    commit = f", commit {ev.commit[:7]}" if ev.commit else ""
+    return f"`{ev.key[:8]}` ({ev.budget}; {ev.describe_length()}{commit})"
+
+
+def continue_command(ev: Evidence, store: Store) -> str:
+    return f"esr --store {store.root} train {ev.path / 'spec.yaml'} --budget {ev.budget}"
+
+
+def learning_curves(findings: list[Finding], out_png: Path, title: str) -> Optional[Path]:
+    """Return curves of every run behind a gridworld or Overcooked claim with at least 1,000
+    epochs: one panel per environment, a line per run."""
+    from esr_cli import figures as figs
+
+    runs: dict[str, Evidence] = {}
+    for f in findings:
+        for ev in [f.a, f.b] + [v[1] for v in f.variants]:
+            if ev is not None and ev.epochs_done >= 1000:
+                runs[ev.key] = ev
+    if not runs:
+        return None
+    groups: dict[str, list] = {}
+    for ev in sorted(runs.values(), key=lambda e: (figs.env_title(e.spec), e.spec.method.kind, e.key)):
+        variant = []
+        if ev.spec.learner.warmup_epochs:
+            variant.append(f"warm-up {ev.spec.learner.warmup_epochs}")
+        if getattr(ev.spec.method, "variant", None) == "original":
+            variant.append("published")
+        label = figs.METHOD_LABELS.get(ev.spec.method.kind, ev.spec.method.kind) + (f" ({', '.join(variant)})" if variant else "")
+        label += f" [{ev.epochs_done:,}]"
+        groups.setdefault(figs.env_title(ev.spec), []).append((label, f"C{len(groups.get(figs.env_title(ev.spec), []))}", ev.rows))
+    fig, _ = figs.panels_figure(list(groups.items()), title, "return")
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=110)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return out_png
+
+
+def estimator_section(index: dict[str, list[Evidence]], store: Store, console, compute: bool) -> list[str]:
+    """The estimator check on the longest ESR gridworld run that learned (above Random at its N),
+    among the gridworlds small enough for exact empowerment (N <= 2 blocks)."""
+    lines = ["## The estimator against exact empowerment", ""]
+    learned = []
+    for runs in index.values():
+        for ev in runs:
+            if ev.spec.method.kind != "esr" or ev.spec.env.kind != "gridworld" or ev.spec.env.blocks > 2 or ev.status != "complete":
+                continue
+            rnd = best(index, claim_spec((f"grid_{ev.spec.env.blocks}_random", ())))
+            if rnd is not None and ev.finals()["mean"] > rnd.finals()["mean"]:
+                learned.append(ev)
+    if not learned:
+        return lines + ["No finished ESR run on a gridworld small enough for exact empowerment (N = 2) has "
+                        "learned yet (above Random at its N); this section fills in once one has.", ""]
+    ev = max(learned, key=lambda e: (e.epochs_done, e.seeds))
+    head = (f"On ESR run `{ev.key[:8]}` (N = {ev.spec.env.blocks}, {ev.describe_length()}), goal at the centre, "
+            "seed 0's robot:")
+    if not compute:
+        return lines + [head, "", "not computed (run `esr paper --report` without `--no-exact`).", ""]
+    from esr_cli import exact_runs
+
+    trained, _, _ = exact_runs.ensure_exact(ev.spec, store, None, None, ev.key, 0, console)
+    uniform, uniform_summary, _ = exact_runs.ensure_exact(ev.spec, store, None, None, None, 0, console)
+    _, check, _ = exact_runs.ensure_estimator_figure(trained.name, store, console)
+    trained_summary = json.loads((trained / "summary.json").read_text())
+    return lines + [head, "",
+                    "| quantity | value |", "|---|---|",
+                    f"| Spearman (ESR's reward, exact MI), all {check['pairs']:,} (state, robot action) pairs | {check['spearman']:.3f} |",
+                    f"| the same over the {check['visited_pairs']:,} pairs holding 99% of the trained robot's discounted occupancy | {check['spearman_visited']:.3f} |",
+                    f"| the human's exact effective empowerment under the trained robot | {trained_summary['effective_empowerment']:.3f} nats |",
+                    f"| the same under a uniform robot | {uniform_summary['effective_empowerment']:.3f} nats |",
+                    "", f"Artifacts: exact `{trained.name[:8]}` (trained), `{uniform.name[:8]}` (uniform); "
+                    "`esr plot estimator` draws the scatter.", ""]
+
+
+def report(store: Store, out: Path, console, exact: bool = True, now: Optional[str] = None) -> list[Finding]:
+    """Write the reproduction report to `out` (markdown, with its curves beside it in img/)."""
+    import time
+
+    index = index_store(store)
+    findings = [judge(c, index) for c in paper_claims()]
+    counts = {v: sum(f.verdict.startswith(v) for f in findings) for v in (REPRODUCED, NOT_REPRODUCED, INCONCLUSIVE, NOT_YET)}
+    lines = [
+        "# Reproduction report", "",
+        f"Generated by `esr --store {store.root} paper --report --out {out}` on "
+        f"{now or time.strftime('%Y-%m-%d %H:%M %Z')} from the runs in that store; nothing is copied by hand. "
+        "Run the same command again to bring it up to date.", "",
+        "How to read it:",
+        "- Each row is one statement of the paper, checked on the stored run with the most epochs whose spec matches "
+        "(in every field outside `train`, so runs of any length, seed count or checkout count).",
+        f"- Final return: each seed's mean over its last {FINAL_FRACTION:.0%} of epochs. Several seeds: mean ± SE, "
+        "the interquartile mean (IQM) with its 95% stratified bootstrap interval, and the probability that the first run "
+        "improves on the second with its interval. One seed: its value, marked as one seed.",
+        f"- Verdict: *{REPRODUCED}* or *{NOT_REPRODUCED}* once every run behind the row has "
+        f"{COMPARABLE_EPOCHS['gridworld']:,} epochs (gridworld) or {COMPARABLE_EPOCHS['overcooked']:,} (Overcooked); "
+        "with several seeds the statement holds when the lower end of the probability-of-improvement interval is above 0.5, "
+        f"and is *{INCONCLUSIVE}* when the interval contains 0.5. Before that: *{NOT_YET}*, with the numbers so far. "
+        f"'Similar' means within {SIMILAR_WITHIN:.0%} of the larger return (one seed) or an interval containing 0.5.",
+        "- The paper ran 20 seeds (gridworld) and 5 to 15 (Overcooked) for 10,000 epochs.", "",
+        f"**Summary:** {len(findings)} statements; " + ", ".join(f"{n} {v}" for v, n in counts.items()) + ".", "",
+    ]
+    for figure in dict.fromkeys(f.claim.figure for f in findings):
+        lines += [f"## {figure}", "", "| statement | the paper | measured | runs | verdict |", "|---|---|---|---|---|"]
+        for f in (x for x in findings if x.claim.figure == figure):
+            runs = _run_cell(f.a) + ("<br>vs " + _run_cell(f.b) if f.claim.b else "")
+            lines.append(f"| {f.claim.text} | {f.claim.paper} | {f.measured} | {runs} | **{f.verdict}** |")
+            for label, ev, measured in f.variants:
+                if ev is not None:
+                    lines.append(f"| ↳ esr's variant `{label}` | | {measured} | {_run_cell(ev)} | |")
+        lines.append("")
+    unfinished = {ev.key: ev for f in findings for ev in [f.a, f.b] + [v[1] for v in f.variants]
+                  if ev is not None and ev.status == "partial"}
+    if unfinished:
+        lines += ["## Runs still going", "", "Each continues from its last checkpoint with the command beside it, run from "
+                  "a checkout whose training code is the one that started it (the long runs' checkout, docs/reproduction.md "
+                  "names it):", ""]
+        for ev in unfinished.values():
+            lines.append(f"- `{ev.key[:8]}` {ev.spec.name}: {ev.describe_length()}; `{continue_command(ev, store)}`")
+        lines.append("")
+    img = out.parent / "img" / "reproduction_curves.png"
+    if learning_curves(findings, img, "Runs of at least 1,000 epochs behind the report (epochs done in brackets)"):
+        lines += ["## Learning curves", "", f"![learning curves](img/{img.name})", ""]
+    lines += estimator_section(index, store, console, exact)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, "\n".join(lines))
+    return findings
+
+
+def findings_json(findings: list[Finding]) -> list[dict]:
+    """Per-claim verdicts with the per-seed finals behind them (for scripts)."""
+    def ev(e: Optional[Evidence]):
+        return None if e is None else {"key": e.key, "status": e.status, "epochs": e.epochs_done, "seeds": e.seeds,
+                                       "commit": e.commit, "final_return": e.finals()}
+
+    return [{"figure": f.claim.figure, "statement": f.claim.text, "paper": f.claim.paper, "verdict": f.verdict,
+             "measured": f.measured, "a": ev(f.a), "b": ev(f.b)} for f in findings]
+

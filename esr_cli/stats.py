@@ -1,0 +1,90 @@
+"""Statistics over seeds that reviewers accept (after Agarwal et al. 2021, "Deep RL at the edge
+of the statistical precipice"): the interquartile mean (IQM) with a stratified bootstrap
+confidence interval, and the probability that one method improves on another.
+
+The resampling is scipy's (`scipy.stats.bootstrap`, percentile intervals). Passing one sample
+per task with `paired=False` resamples seeds within each task independently, which is the
+stratified bootstrap: every resample keeps each task's number of seeds. All functions are
+deterministic for a given `seed`.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+from scipy import stats as sps
+
+CONFIDENCE = 0.95
+RESAMPLES = 2000
+TRIM = 0.25  # the IQM drops the bottom and top quarter of all runs
+
+
+def iqm(values, axis: int = -1) -> np.ndarray | float:
+    """Interquartile mean: the mean of the middle 50% (scipy's 25% trimmed mean)."""
+    return sps.trim_mean(np.asarray(values, dtype=float), TRIM, axis=axis)
+
+
+def _pooled_iqm(*samples, axis=-1):
+    return iqm(np.concatenate(samples, axis=axis), axis=axis)
+
+
+def iqm_ci(samples: Sequence[Sequence[float]], confidence: float = CONFIDENCE, resamples: int = RESAMPLES,
+           seed: int = 0) -> tuple[float, float, float] | None:
+    """(IQM over all runs, low, high): a stratified bootstrap interval with one sample (the
+    per-seed scores) per task. None when no task has two seeds (nothing to resample)."""
+    samples = [np.asarray(s, dtype=float) for s in samples if len(s)]
+    if not samples or max(len(s) for s in samples) < 2:
+        return None
+    point = float(_pooled_iqm(*samples))
+    res = sps.bootstrap(tuple(samples), _pooled_iqm, paired=False, vectorized=True, confidence_level=confidence,
+                        n_resamples=resamples, method="percentile", rng=np.random.default_rng(seed))
+    return point, float(res.confidence_interval.low), float(res.confidence_interval.high)
+
+
+def _improvement(x, y, axis=-1):
+    """P(X > Y) + P(X = Y) / 2 over all pairs of a run of X and a run of Y (the Mann-Whitney
+    U statistic of X divided by the number of pairs)."""
+    x, y = np.moveaxis(np.asarray(x), axis, -1), np.moveaxis(np.asarray(y), axis, -1)
+    diff = x[..., :, None] - y[..., None, :]
+    return ((diff > 0) + 0.5 * (diff == 0)).mean(axis=(-2, -1))
+
+
+def probability_of_improvement(x: Sequence[float], y: Sequence[float], confidence: float = CONFIDENCE,
+                               resamples: int = RESAMPLES, seed: int = 0) -> tuple[float, float | None, float | None]:
+    """(P(X > Y), low, high): the probability that a run of X scores above a run of Y (ties
+    count half), with a bootstrap interval that resamples each method's seeds separately
+    (None, None when both have a single seed)."""
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    point = float(_improvement(x, y))
+    if max(len(x), len(y)) < 2:
+        return point, None, None
+    res = sps.bootstrap((x, y), _improvement, paired=False, vectorized=True, confidence_level=confidence,
+                        n_resamples=resamples, method="percentile", rng=np.random.default_rng(seed))
+    return point, float(res.confidence_interval.low), float(res.confidence_interval.high)
+
+
+def describe(per_seed: Sequence[float]) -> dict:
+    """Everything a table prints about one run's per-seed final scores: mean, standard error,
+    IQM with its bootstrap interval (from two seeds), and the per-seed values themselves so that
+    any other statistic can be computed later without retraining."""
+    values = np.asarray(per_seed, dtype=float)
+    n = len(values)
+    out = {"seeds": n, "per_seed": [round(float(v), 6) for v in values],
+           "mean": round(float(values.mean()), 6) if n else float("nan"),
+           "se": round(float(values.std(ddof=1) / np.sqrt(n)), 6) if n > 1 else 0.0}
+    ci = iqm_ci([values])
+    if ci is not None:
+        out["iqm"], out["iqm_low"], out["iqm_high"] = (round(v, 6) for v in ci)
+    return out
+
+
+def format_summary(d: dict, digits: int = 2) -> str:
+    """"m ± se; IQM i [lo, hi]" for several seeds, "m (1 seed)" for one: a single seed has no
+    spread to show, and an SE of 0 would claim one."""
+    if d.get("seeds", 0) <= 1:
+        return f"{d['mean']:.{digits}f} (1 seed)"
+    text = f"{d['mean']:.{digits}f} ± {d['se']:.{digits}f}"
+    if "iqm" in d:
+        text += f"; IQM {d['iqm']:.{digits}f} [{d['iqm_low']:.{digits}f}, {d['iqm_high']:.{digits}f}]"
+    return text

@@ -1,0 +1,96 @@
+"""The reproduction report: evidence found by spec, verdicts by the documented rules, and the
+real CLI writing docs-style markdown from a store."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from conftest import esr
+from esr_cli import reproduction as rep
+from esr_cli.store import Store
+
+
+def _evidence(stem, sets=(), finals=(10.0,), epochs=3000, status="complete", mi=None):
+    """A stored run whose every seed returns `finals` over its whole length."""
+    spec = rep.claim_spec((stem, tuple(sets)))
+    rows = [{"epoch": e, "return": list(finals), **({"mi_estimate": [mi(e)] * len(finals)} if mi else {})}
+            for e in range(1, epochs + 1)]
+    return rep.Evidence(f"{stem}{len(finals)}{epochs}".ljust(32, "0"), Path("/nowhere"), status, "paper", spec, rows, None)
+
+
+def _index(*evidence):
+    out = {}
+    for ev in evidence:
+        out.setdefault(rep._without_train(ev.spec), []).append(ev)
+    return out
+
+
+def _claim(text):
+    return next(c for c in rep.paper_claims() if c.text == text)
+
+
+def test_one_seed_verdicts_and_the_comparable_length():
+    above = _claim("N = 5: ESR ends above Random")
+    index = _index(_evidence("grid_5", finals=(20.0,)), _evidence("grid_5_random", finals=(9.0,)))
+    assert rep.judge(above, index).verdict == "reproduced (1 seed)"
+    index = _index(_evidence("grid_5", finals=(2.0,)), _evidence("grid_5_random", finals=(9.0,)))
+    assert rep.judge(above, index).verdict == "not reproduced (1 seed)"
+    short = _index(_evidence("grid_5", finals=(20.0,), epochs=2999, status="partial"), _evidence("grid_5_random", finals=(9.0,)))
+    finding = rep.judge(above, short)
+    assert finding.verdict == rep.NOT_YET and finding.measured.startswith("20.00 (1 seed) against 9.00 (1 seed)")
+
+
+def test_the_longest_matching_run_is_used_whatever_its_length_or_seeds():
+    above = _claim("N = 5: ESR ends above Random")
+    index = _index(_evidence("grid_5", finals=(1.0,), epochs=600), _evidence("grid_5", finals=(20.0,), epochs=3000),
+                   _evidence("grid_5_random", finals=(9.0,)))
+    assert rep.judge(above, index).a.epochs_done == 3000
+    # esr's quick-budget changes make another spec: they are a variant, never the paper's ESR
+    variant = _index(_evidence("grid_5", rep.QUICK_CHANGES, finals=(20.0,)), _evidence("grid_5_random", finals=(9.0,)))
+    finding = rep.judge(above, variant)
+    assert finding.a is None and finding.variants[0][1] is not None
+
+
+def test_several_seeds_use_the_probability_of_improvement_interval():
+    above = _claim("N = 7: ESR ends above AvE")
+    clear = _index(_evidence("grid_7", finals=(20, 21, 22, 23, 24)),
+                   _evidence("grid_7_ave", rep.PUBLISHED_AVE, finals=(1, 2, 3, 4, 5)))
+    finding = rep.judge(above, clear)
+    assert finding.verdict == "reproduced" and "P(improvement) 1.00 [1.00, 1.00]" in finding.measured
+    mixed = _index(_evidence("grid_7", finals=(1, 3, 5, 7, 9)),
+                   _evidence("grid_7_ave", rep.PUBLISHED_AVE, finals=(2, 4, 6, 8, 10)))
+    assert rep.judge(above, mixed).verdict == "inconclusive"
+    reversed_ = _index(_evidence("grid_7", finals=(1, 2, 3, 4, 5)),
+                       _evidence("grid_7_ave", rep.PUBLISHED_AVE, finals=(20, 21, 22, 23, 24)))
+    assert rep.judge(above, reversed_).verdict == "not reproduced"
+
+
+def test_mi_claim_needs_a_positive_end_and_a_positive_second_half():
+    claim = _claim("N = 2: the MI estimate turns positive and stays positive")
+    good = _index(_evidence("grid_2", mi=lambda e: 0.2))
+    assert rep.judge(claim, good).verdict == "reproduced (1 seed)"
+    fading = _index(_evidence("grid_2", mi=lambda e: 0.2 if e < 1000 else -0.001))
+    assert rep.judge(claim, fading).verdict == "not reproduced (1 seed)"
+
+
+def test_cli_writes_the_report_from_a_store(tmp_path):
+    """One-epoch runs of the paper's own grid_2 specs (only `train` shortened) are evidence for
+    the N = 2 statements; smoke-budget runs change the learner and are not."""
+    store = tmp_path / "store"
+    short = ["--set", "train.epochs=1", "--set", "train.num_envs=4", "--set", "train.seeds=1", "--set", "train.chunk_epochs=1"]
+    run_path = Path(esr("train", "experiments/grid_2.yaml", *short, store=store).stdout.strip())
+    esr("train", "experiments/grid_2_random.yaml", *short, store=store)
+    esr("train", "experiments/grid_2.yaml", "--budget", "smoke", store=store)
+    out = tmp_path / "docs" / "reproduction.md"
+    proc = esr("paper", "--report", "--out", str(out), "--no-exact", "--json", store=store)
+    verdicts = json.loads(proc.stdout)
+    row = next(v for v in verdicts if v["statement"] == "N = 2: ESR ends above Random")
+    assert row["a"]["key"] == run_path.name and row["a"]["epochs"] == 1 and row["b"]["epochs"] == 1
+    assert row["verdict"] == rep.NOT_YET
+    assert len(row["a"]["final_return"]["per_seed"]) == 1  # per-seed finals travel with every verdict
+    assert np.isfinite(row["a"]["final_return"]["mean"])
+    text = out.read_text()
+    assert "| N = 2: ESR ends above Random |" in text and f"`{run_path.name[:8]}`" in text
+    assert "**Summary:** 38 statements" in text
+    assert len(list(Path(store).glob("runs/*/*/manifest.json"))) == 3  # the report trained nothing
