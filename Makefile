@@ -2,7 +2,11 @@
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
-STAMP  := $(VENV)/.installed
+# CUDA=1: also the `cuda` extra (jax's CUDA wheels) for NVIDIA GPUs (docs/performance.md).
+CUDA   ?= 0
+EXTRAS := test$(if $(filter 1,$(CUDA)),$(comma)cuda)
+comma  := ,
+STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 DEMO_SET := --budget quick --set train.epochs=40
 
 .PHONY: install demo test bench sweep paper-figures clean-venv
@@ -14,7 +18,7 @@ install: $(STAMP)
 $(STAMP): pyproject.toml Makefile
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[test]'
+	$(BIN)/python -m pip install -q -e '.[$(EXTRAS)]'
 	# The 2019 Overcooked human trials ship inside overcooked-ai 1.1.0; only its data files are
 	# used (their sha256 is checked on use), so its own requirements are skipped.
 	$(BIN)/python -m pip install -q --no-deps overcooked-ai==1.1.0

@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+PAPER_EPOCHS = 10_000  # the paper's run length: the "10k ep h" column is one run's hours
 CONFIGS = {"gridworld grid_2 (paper)": "experiments/grid_2.yaml", "overcooked cramped_room (paper)": "experiments/cramped_room.yaml"}
 
 
@@ -104,8 +105,10 @@ def measure(spec_path: str, seeds: int, epochs: int, seed_batch: int | None) -> 
 
     from esr_cli import spec as specs
     from esr_cli.core.train import compiled_chunk, compiled_init, make_trainer
+    from esr_cli.provenance import apply_matmul_precision
     from esr_cli.store import Store
 
+    apply_matmul_precision()  # as training does (ESR_MATMUL_PRECISION)
     spec = specs.load(ROOT / spec_path, "paper", [f"train.seeds={seeds}", f"train.chunk_epochs={epochs}"])
     store = Store(os.environ.get("ESR_STORE") or ROOT / "artifacts")
     if spec.human.kind == "bc":  # the BC human of an Overcooked spec: built once, then stored
@@ -144,8 +147,26 @@ def measure(spec_path: str, seeds: int, epochs: int, seed_batch: int | None) -> 
         "gflop_per_epoch": round(flops / 1e9, 1),
         "gflops": round(flops / per_epoch / 1e9, 1),
         "peak_rss_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
-        "device": str(jax.devices()[0]),
+        "device_peak_mib": _device_peak_mib(),
+        "device": device_name(),
+        "paper_run_hours": round(per_epoch * PAPER_EPOCHS / 3600, 2),
     }
+
+
+def device_name() -> str:
+    """The device the programs ran on, by kind (e.g. 'gpu:NVIDIA H100 80GB HBM3', 'cpu:cpu')."""
+    from esr_cli.provenance import device
+
+    return device()
+
+
+def _device_peak_mib():
+    """Peak memory the accelerator allocator held (None on the CPU, which reports none)."""
+    import jax
+
+    stats = jax.devices()[0].memory_stats() or {}
+    peak = stats.get("peak_bytes_in_use")
+    return None if peak is None else round(peak / 2**20)
 
 
 def _seed_batch(text: str):
@@ -192,18 +213,23 @@ def main() -> None:
     machine = {
         "cpu": platform.processor() or platform.machine(),
         "cores": os.cpu_count(),
-        "device": str(jax.devices()[0]),
+        "device": device_name(),
+        "matmul_precision": os.environ.get("ESR_MATMUL_PRECISION", "") or "highest",
         "jax": jax.__version__,
         "matmul_peak_gflops": round(peak, 1),
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
     }
-    header = f"{'configuration':28} {'seeds':>5} {'compile s':>9} {'s/epoch':>8} {'steps/s':>9} {'updates/s':>9} {'GFLOP/ep':>8} {'GFLOP/s':>8} {'% peak':>6} {'peak MiB':>8}"
+    header = (f"{'configuration':28} {'seeds':>5} {'compile s':>9} {'s/epoch':>8} {'10k ep h':>8} {'steps/s':>9} {'updates/s':>9} "
+              f"{'GFLOP/ep':>8} {'GFLOP/s':>8} {'% peak':>6} {'host MiB':>8} {'dev MiB':>8}")
+    print(f"device: {machine['device']}")
     print(f"machine: {machine}")
     print(header)
     for r in rows:
+        dev = "" if r.get("device_peak_mib") is None else f"{r['device_peak_mib']:,}"
         print(
-            f"{r['name']:28} {r['seeds']:>5} {r['compile_s']:>9.1f} {r['s_per_epoch']:>8.3f} {r['env_steps_per_s']:>9,} "
-            f"{r['updates_per_s']:>9.1f} {r['gflop_per_epoch']:>8.1f} {r['gflops']:>8.1f} {100 * r['gflops'] / peak:>6.1f} {r['peak_rss_mib']:>8}"
+            f"{r['name']:28} {r['seeds']:>5} {r['compile_s']:>9.1f} {r['s_per_epoch']:>8.3f} {r['paper_run_hours']:>8.2f} "
+            f"{r['env_steps_per_s']:>9,} {r['updates_per_s']:>9.1f} {r['gflop_per_epoch']:>8.1f} {r['gflops']:>8.1f} "
+            f"{100 * r['gflops'] / peak:>6.1f} {r['peak_rss_mib']:>8} {dev:>8}"
         )
     one = next((r for r in rows if r["seeds"] == 1), rows[0])
     for r in rows:
@@ -212,7 +238,8 @@ def main() -> None:
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps({"machine": machine, "results": rows}, indent=2))
     print(f"wrote {args.out}")
-    print(f"headline: gridworld paper config, {one['seeds']} seed: {one['s_per_epoch']:.2f} s per epoch ({one['gflops']:.0f} GFLOP/s, matmul peak {peak:.0f})")
+    print(f"headline on {machine['device']}: gridworld paper config, {one['seeds']} seed: {one['s_per_epoch']:.2f} s per epoch "
+          f"({one['gflops']:.0f} GFLOP/s, matmul peak {peak:.0f})")
 
 
 if __name__ == "__main__":

@@ -49,8 +49,14 @@ def main_options(
     store: Optional[Path] = StoreOpt,
     debug: bool = typer.Option(False, "--debug", help="show tracebacks"),
 ):
+    from esr_cli.provenance import matmul_precision
+
     STATE.store = Store(store or os.environ.get("ESR_STORE") or "artifacts")
     STATE.debug = debug
+    try:
+        matmul_precision()  # a bad setting stops every command before any work
+    except ValueError as e:
+        raise Exit(2, str(e)) from None
 
 
 def _load_spec(path: Path, budget: str, sets: Optional[List[str]]):

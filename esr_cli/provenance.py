@@ -13,6 +13,7 @@ versions, device, host, wall time.
 from __future__ import annotations
 
 import hashlib
+import os
 import platform
 import subprocess
 from functools import cache
@@ -50,11 +51,38 @@ def code_digest(sources: tuple[str, ...] = TRAINING_SOURCES) -> str:
     return h.hexdigest()
 
 
+# float32 matrix products and convolutions: "highest" is exact float32 on every backend (on the
+# CPU it is what XLA does anyway, bit for bit). On NVIDIA GPUs JAX's own default lets cuBLAS
+# use TF32 (10-bit mantissa); ESR_MATMUL_PRECISION=tensorfloat32 or bfloat16 opts into that
+# speed, and the choice then becomes part of every run's key (docs/performance.md).
+PRECISION_ENV = "ESR_MATMUL_PRECISION"
+PRECISIONS = ("highest", "tensorfloat32", "bfloat16")
+
+
+def matmul_precision() -> str:
+    value = os.environ.get(PRECISION_ENV, "").strip().lower() or "highest"
+    if value not in PRECISIONS:
+        raise ValueError(f"{PRECISION_ENV}={value!r}: choose one of {', '.join(PRECISIONS)}")
+    return value
+
+
+def apply_matmul_precision() -> str:
+    """Set JAX's default matmul precision for this process (before anything compiles)."""
+    import jax
+
+    value = matmul_precision()
+    jax.config.update("jax_default_matmul_precision", value)
+    return value
+
+
 def toolchain() -> dict:
     import jax
     import jaxlib
 
-    return {"jax": jax.__version__, "jaxlib": jaxlib.__version__, "backend": jax.default_backend()}
+    tools = {"jax": jax.__version__, "jaxlib": jaxlib.__version__, "backend": jax.default_backend()}
+    if matmul_precision() != "highest":  # the default adds nothing, so keys made before it stay valid
+        tools["matmul_precision"] = matmul_precision()
+    return tools
 
 
 def key_components(kind: str, spec_part: dict, budget: str, dependencies: dict | None = None) -> dict:

@@ -364,8 +364,8 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
                   if ev is not None and ev.status == "partial"}
     if unfinished:
         lines += ["## Runs still going", "", "Each continues from its last checkpoint with the command beside it, run from "
-                  "a checkout whose training code is the one that started it (the long runs' checkout, docs/reproduction.md "
-                  "names it):", ""]
+                  "a checkout whose training code is the one that started it (docs/paper.md: the long runs are pinned to one "
+                  "commit), or with the sweep that started it:", ""]
         for ev in unfinished.values():
             lines.append(f"- `{ev.key[:8]}` {ev.spec.name}: {ev.describe_length()}; `{continue_command(ev, store)}`")
         lines.append("")

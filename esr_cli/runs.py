@@ -26,11 +26,13 @@ MIN_FREE_BYTES_PER_SEED = 32 << 20
 
 def enable_compile_cache() -> None:
     """Keep compiled XLA programs on disk ($ESR_COMPILE_CACHE, default ~/.cache/esr/jax;
-    `off` disables): resuming, evaluating or re-running a spec then skips most compile time."""
+    `off` disables): resuming, evaluating or re-running a spec then skips most compile time.
+    Also fixes the matmul precision (provenance.matmul_precision) before anything compiles."""
     import os
 
     import jax
 
+    provenance.apply_matmul_precision()
     where = os.environ.get("ESR_COMPILE_CACHE", str(Path.home() / ".cache" / "esr" / "jax"))
     if where.lower() in ("", "0", "off", "none"):
         return
