@@ -12,13 +12,22 @@ from pathlib import Path
 
 import numpy as np
 
-from esr_cli.stats import describe
-
 FINAL_FRACTION = 0.1
 
 
 def read_rows(run_path: Path) -> list[dict]:
-    return [json.loads(line) for line in (run_path / "metrics.jsonl").read_text().splitlines() if line.strip()]
+    """A run's metrics.jsonl, one dict per epoch; [] where there is none yet. A line cut short
+    by a kill ends the reading: everything after it is untrusted."""
+    path = Path(run_path) / "metrics.jsonl"
+    if not path.exists():
+        return []
+    rows = []
+    for line in path.read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            break
+    return rows
 
 
 def series(rows: list[dict], name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -43,6 +52,8 @@ def mean_se(per_seed: np.ndarray) -> tuple[float, float]:
 def run_finals(run_path: Path, names: tuple[str, ...] = ("return", "success")) -> dict:
     """{name: stats.describe(per-seed finals)} for each metric (mean, SE, IQM and its interval,
     the per-seed values), plus the run's seed and epoch counts."""
+    from esr_cli.stats import describe  # scipy: only where statistics are made
+
     rows = read_rows(run_path)
     out: dict = {"seeds": len(rows[-1]["return"]) if rows else 0, "epochs": rows[-1]["epoch"] if rows else 0}
     for name in names:

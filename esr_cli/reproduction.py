@@ -20,7 +20,7 @@ import numpy as np
 import yaml
 
 from esr_cli import spec as specs
-from esr_cli.finals import FINAL_FRACTION, final_per_seed, series
+from esr_cli.finals import FINAL_FRACTION, final_per_seed, read_rows, series
 from esr_cli.stats import describe, format_summary, probability_of_improvement
 from esr_cli.store import Store, atomic_write_text
 
@@ -73,17 +73,6 @@ def _without_train(spec: specs.Spec) -> str:
     return json.dumps(part, sort_keys=True)
 
 
-def _read_metrics(path: Path) -> list[dict]:
-    rows = []
-    text = (path / "metrics.jsonl").read_text() if (path / "metrics.jsonl").exists() else ""
-    for line in text.splitlines():
-        try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError:
-            break  # a line cut short by a kill
-    return rows
-
-
 def index_store(store: Store) -> dict[str, list[Evidence]]:
     """Every training run of the store whose spec still validates, by spec outside `train`."""
     from esr_cli.runs import RUN_KIND
@@ -99,7 +88,7 @@ def index_store(store: Store) -> dict[str, list[Evidence]]:
         info = entry.manifest or {}
         commit = info.get("provenance", {}).get("git", {}).get("commit") or info.get("commit")
         ev = Evidence(entry.key, entry.path, entry.status, info.get("budget", spec.budget), spec,
-                      _read_metrics(entry.path), commit)
+                      read_rows(entry.path), commit)
         if ev.rows:
             out.setdefault(_without_train(spec), []).append(ev)
     return out

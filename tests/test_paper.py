@@ -29,7 +29,10 @@ def test_panels_figure_tables_every_line(tmp_path):
     b = rows_of([[5.0, 5.0]] * 10)
     fig, table = figs.panels_figure([("p1", [("A", "C0", a), ("B", "C1", b)])], "t", "return")
     files = figs.save(fig, tmp_path, "f", {"artifacts": {"runs": ["k1", "k2"]}, "budget": "smoke", "seeds": [0, 1]})
-    assert table == {"p1": {"A": {"mean": 2.0, "se": 1.0, "seeds": 2}, "B": {"mean": 5.0, "se": 0.0, "seeds": 2}}}
+    # per seed: A ends at 1 and 3, B at 5 and 5; with two seeds the IQM is the mean and the
+    # bootstrap resamples (1,1), (1,3), (3,1), (3,3) put its 95% interval at [1, 3]
+    assert table == {"p1": {"A": {"mean": 2.0, "se": 1.0, "seeds": 2, "per_seed": [1.0, 3.0], "iqm": 2.0, "iqm_low": 1.0, "iqm_high": 3.0},
+                            "B": {"mean": 5.0, "se": 0.0, "seeds": 2, "per_seed": [5.0, 5.0], "iqm": 5.0, "iqm_low": 5.0, "iqm_high": 5.0}}}
     assert [f.suffix for f in files] == [".png", ".pdf", ".json"]
     assert json.loads(files[2].read_text())["artifacts"]["runs"] == ["k1", "k2"]
     from PIL import Image

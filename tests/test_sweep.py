@@ -159,7 +159,8 @@ def test_sweep_through_submitit_local(smoke_run, tmp_path):
     assert [r["state"] for r in rows] == ["done"] * 5 and [r["seeds"] for r in rows] == [1] * 5
     for r, p in zip(rows, result.paths):
         last = json.loads((p / "metrics.jsonl").read_text().splitlines()[-1])
-        assert r["return"] == {"mean": pytest.approx(last["return"][0]), "se": 0.0}
+        assert r["return"] == {"mean": pytest.approx(last["return"][0]), "se": 0.0, "seeds": 1,
+                               "per_seed": [pytest.approx(last["return"][0])]}  # one seed: no IQM interval
         assert r["success"]["mean"] == pytest.approx(last["success"][0]) and r["path"] == str(p)
     md = esr("sweep", str(five), "--budget", "smoke", "--results", "--markdown", store=store).stdout
     assert "| run | method | seeds | return | success | wall |" in md

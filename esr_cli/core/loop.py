@@ -24,6 +24,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from esr_cli import faults
+from esr_cli.finals import read_rows
 from esr_cli.store import atomic_write_text, digest_file
 from esr_cli.core.train import TrainState, Trainer, compiled_chunk, compiled_init
 
@@ -151,16 +152,7 @@ def adopt_checkpoint(source_dir: Path, run_dir: Path, at_most: int) -> int:
 
 
 def read_metrics(run_dir: Path) -> list[dict]:
-    path = Path(run_dir) / METRICS_FILE
-    if not path.exists():
-        return []
-    rows = []
-    for line in path.read_text().splitlines():
-        try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError:
-            break  # a line cut short by a kill: everything after it is untrusted
-    return rows
+    return read_rows(run_dir)
 
 
 def _truncate_metrics(run_dir: Path, epoch: int) -> None:
