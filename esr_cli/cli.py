@@ -425,10 +425,35 @@ def verify(ref: Optional[str] = typer.Argument(None, help="artifact key or path 
 
 
 # ---------------------------------------------------------------- entry point
+GLOBAL_FLAGS, GLOBAL_VALUED = ("--debug",), ("--store",)
+
+
+def global_options_first(argv: list[str]) -> list[str]:
+    """Options shared by every command (--store DIR, --debug) may come before or after the
+    command (`esr exact SPEC --store DIR`): they are moved in front of it. Nothing after `--`
+    is touched."""
+    head, rest, i = [], [], 0
+    while i < len(argv):
+        a = argv[i]
+        if a == "--":
+            rest += argv[i:]
+            break
+        if a in GLOBAL_FLAGS or any(a.startswith(o + "=") for o in GLOBAL_VALUED):
+            head.append(a)
+        elif a in GLOBAL_VALUED and i + 1 < len(argv):
+            head += [a, argv[i + 1]]
+            i += 1
+        else:
+            rest.append(a)
+        i += 1
+    return head + rest
+
+
 def main(argv: list[str] | None = None) -> int:
     from esr_cli.core.loop import CorruptCheckpoint, Diverged, Interrupted
+    from esr_cli.resources import ResourceError
 
-    argv = sys.argv[1:] if argv is None else argv
+    argv = global_options_first(sys.argv[1:] if argv is None else list(argv))
     debug = "--debug" in argv
     try:
         app(args=argv, standalone_mode=False)
@@ -450,6 +475,8 @@ def main(argv: list[str] | None = None) -> int:
             code, msg = e.code, e.message
         elif isinstance(e, StoreError):
             code, msg = 2, str(e)
+        elif isinstance(e, ResourceError):
+            code, msg = 2, f"too large for this machine: {e}"
         elif isinstance(e, Interrupted):
             code, msg = 130, f"interrupted after epoch {e.epoch}; the checkpoint is saved: run the same command again to resume"
         elif isinstance(e, CorruptCheckpoint):

@@ -17,9 +17,8 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-import yaml
 
-from esr_cli import spec as specs
+from esr_cli import spec as specs, yamlio
 from esr_cli.finals import FINAL_FRACTION, final_per_seed, read_rows, series
 from esr_cli.stats import describe, format_summary, probability_of_improvement
 from esr_cli.store import Store, atomic_write_text
@@ -82,8 +81,8 @@ def index_store(store: Store) -> dict[str, list[Evidence]]:
         if entry.kind != RUN_KIND or not (entry.path / "spec.yaml").is_file():
             continue
         try:
-            spec = specs.validate(yaml.safe_load((entry.path / "spec.yaml").read_text()), str(entry.path))
-        except (specs.SpecError, yaml.YAMLError):
+            spec = specs.validate(yamlio.read(entry.path / "spec.yaml"), str(entry.path))
+        except (specs.SpecError, yamlio.YamlInputError):
             continue  # made by code whose spec fields this version no longer reads
         info = entry.manifest or {}
         commit = info.get("provenance", {}).get("git", {}).get("commit") or info.get("commit")

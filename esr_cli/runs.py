@@ -133,6 +133,10 @@ def _fmt_stats(row: dict, steps_per_s: float) -> str:
 def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
     """The committed run for `spec`, training it (or resuming it) if needed. -> (path, cache_hit)."""
     key, components = run_key(spec)
+    if store.lookup(RUN_KIND, key) is None:  # memory is checked before anything is built or written
+        from esr_cli.resources import check_run_fits
+
+        check_run_fits(spec)
 
     def waiting(holder: str):
         console.print(f"run {key[:12]} is in progress ({holder}); waiting for it to finish")
@@ -265,10 +269,10 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
 
 def run_spec(run_path: Path):
     """The validated spec a run was trained from (its spec.yaml)."""
-    import yaml
+    from esr_cli import yamlio
 
     source = run_path / "spec.yaml"
-    return specs.validate(yaml.safe_load(source.read_text()), str(source))
+    return specs.validate(yamlio.read(source), str(source))
 
 
 def load_run(store: Store, ref: str):

@@ -11,12 +11,15 @@ Every failure raises `SpecError` naming the file, the key path and the problem.
 from __future__ import annotations
 
 import copy
+import difflib
 import json
 from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from esr_cli import yamlio
 
 BUDGETS = ("paper", "quick", "smoke")
 
@@ -53,6 +56,11 @@ DEFAULT_BUDGETS: dict[str, dict[str, Any]] = {
 }
 
 
+MAX_SEEDS = 1024
+# Upper bounds on sizes that alone could hang or exhaust a machine; far above any real run.
+MAX_EPOCHS, MAX_ENVS, MAX_UPDATES, MAX_ENV_STEPS = 10_000_000, 1 << 20, 1_000_000, 10**12
+
+
 class SpecError(Exception):
     """A spec that cannot be used. `str()` is one line naming file, key path and problem."""
 
@@ -64,7 +72,8 @@ class SpecError(Exception):
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: `.inf` or `.nan` in any float field is refused by name
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 # ---------------------------------------------------------------- environments
@@ -155,7 +164,7 @@ class ESRMethodSpec(_Model):
     condition_on_robot_action: bool = True
     future_gamma: float = Field(0.9, ge=0.0, lt=1.0, description="future-state horizon: K ~ Geom(1 - future_gamma)")
     repr_lr: float = Field(1e-4, gt=0.0)
-    repr_updates_per_epoch: int = Field(100, ge=0)
+    repr_updates_per_epoch: int = Field(100, ge=0, le=MAX_UPDATES)
 
 
 class RandomMethodSpec(_Model):
@@ -190,7 +199,7 @@ class IQLearnMethodSpec(_Model):
     alpha: float = Field(1.0, gt=0.0, description="the human's soft-max temperature: V = alpha logsumexp(Q / alpha)")
     chi2: float = Field(0.5, ge=0.0, description="weight of the chi-squared regulariser on the recovered reward")
     lr: float = Field(1e-4, gt=0.0)
-    updates_per_epoch: int = Field(100, ge=0)
+    updates_per_epoch: int = Field(100, ge=0, le=MAX_UPDATES)
 
 
 class OracleMethodSpec(_Model):
@@ -232,18 +241,18 @@ class LearnerSpec(_Model):
         "squared", description="beta's dual step: squared (original) or linear (SAC-style, on log beta)"
     )
     initial_beta: float = Field(1.0, ge=1e-3, le=100.0)
-    updates_per_epoch: int = Field(100, ge=0)
-    dual_updates_per_epoch: int = Field(100, ge=0)
-    batch_size: int = Field(256, ge=2)
-    buffer_size: int = Field(15_000, ge=1, description="transitions held in the replay buffer")
+    updates_per_epoch: int = Field(100, ge=0, le=MAX_UPDATES)
+    dual_updates_per_epoch: int = Field(100, ge=0, le=MAX_UPDATES)
+    batch_size: int = Field(256, ge=2, le=1 << 20)
+    buffer_size: int = Field(15_000, ge=1, le=10**12, description="transitions held in the replay buffer (memory is checked before a run)")
     warmup_epochs: int = Field(
         0, ge=0, description="epochs in which the robot acts uniformly at random while every update runs"
     )
 
 
 class TrainSpec(_Model):
-    epochs: int = Field(10_000, ge=1)
-    num_envs: int = Field(100, ge=1)
+    epochs: int = Field(10_000, ge=1, le=MAX_EPOCHS)
+    num_envs: int = Field(100, ge=1, le=MAX_ENVS)
     seeds: tuple[int, ...] = Field((0, 1, 2, 3, 4), description="a list of seeds, or a count n meaning 0..n-1")
     chunk_epochs: int = Field(50, ge=1, description="epochs per compiled chunk (progress/checkpoint interval)")
 
@@ -255,7 +264,11 @@ class TrainSpec(_Model):
         if isinstance(v, int):
             if v < 1:
                 raise ValueError("a seed count must be >= 1")
+            if v > MAX_SEEDS:  # checked before the range is built: a huge count must not hang
+                raise ValueError(f"{v:,} seeds: at most {MAX_SEEDS:,} in one run (split them over runs)")
             return tuple(range(v))
+        if isinstance(v, (list, tuple)) and len(v) > MAX_SEEDS:
+            raise ValueError(f"{len(v):,} seeds: at most {MAX_SEEDS:,} in one run (split them over runs)")
         return v
 
     @field_validator("seeds")
@@ -271,7 +284,7 @@ class TrainSpec(_Model):
 
 
 class EvalSpec(_Model):
-    episodes: int = Field(100, ge=1, description="evaluation episodes per seed and policy")
+    episodes: int = Field(100, ge=1, le=1_000_000, description="evaluation episodes per seed and policy")
 
 
 class Spec(_Model):
@@ -309,6 +322,10 @@ class Spec(_Model):
         if self.method.kind == "goal_inference" and self.env.kind != "gridworld":
             raise ValueError("method.kind=goal_inference needs the gridworld's known human model (env.kind: gridworld)")
         steps = self.env.episode_steps
+        total = self.train.epochs * self.train.num_envs * steps * len(self.train.seeds)
+        if total > MAX_ENV_STEPS:
+            raise ValueError(f"train.epochs x train.num_envs x env.episode_steps x seeds = {total:.3g} environment steps; "
+                             f"at most {MAX_ENV_STEPS:.0e} in one run")
         if self.learner.buffer_size < self.train.num_envs * steps:
             raise ValueError(
                 f"learner.buffer_size={self.learner.buffer_size} cannot hold one epoch "
@@ -366,11 +383,16 @@ def parse_override(text: str) -> tuple[str, Any]:
     if "=" not in text:
         raise SpecError("--set", text, "expected key.path=value")
     path, raw = text.split("=", 1)
+    if len(raw) > MAX_OVERRIDE_CHARS:
+        raise SpecError("--set", path, f"value is {len(raw):,} characters long; at most {MAX_OVERRIDE_CHARS:,}")
     try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
-    except yaml.YAMLError as e:
+        value = yamlio.parse(raw) if raw.strip() else ""
+    except yamlio.YamlInputError as e:
         raise SpecError("--set", path, f"value is not valid YAML: {e}") from None
     return path.strip(), value
+
+
+MAX_OVERRIDE_CHARS = 10_000
 
 
 def _coerce_yaml_numbers(tree: Any) -> Any:
@@ -400,15 +422,42 @@ def _format_loc(loc: tuple) -> str:
     return "".join(out)
 
 
+SECTION_MODELS = {"network": "NetworkSpec", "learner": "LearnerSpec", "train": "TrainSpec", "eval": "EvalSpec"}
+
+
+def _valid_names(loc: tuple) -> list[str]:
+    """The field names valid where an unknown key `loc[-1]` was found."""
+    parent = loc[:-1]
+    if not parent:
+        return list(Spec.model_fields)
+    section = parent[0]
+    if section in KIND_MODELS and len(parent) >= 2:
+        model = KIND_MODELS[section].get(parent[1])
+        return list(model.model_fields) if model else []
+    if section in SECTION_MODELS and len(parent) == 1:
+        return list(globals()[SECTION_MODELS[section]].model_fields)
+    return []
+
+
+def _first_problem(errors: list[dict]) -> dict:
+    """The mistake to name first: an unknown key (a typo usually also makes a required key
+    'missing', which is its consequence), then anything else in pydantic's order."""
+    unknown = [e for e in errors if e["type"] == "extra_forbidden"]
+    return (unknown or errors)[0]
+
+
 def validate(raw: dict, source: str = "") -> Spec:
     try:
         return Spec.model_validate(raw)
     except ValidationError as e:
-        err = e.errors()[0]
+        err = _first_problem(e.errors())
         path = _format_loc(tuple(err["loc"]))
         msg = err["msg"]
         if err["type"] == "extra_forbidden":
             msg = "unknown key"
+            close = difflib.get_close_matches(str(err["loc"][-1]), _valid_names(tuple(err["loc"])), n=1, cutoff=0.6)
+            if close:
+                msg += f"; did you mean `{close[0]}`?"
         elif msg.startswith("Value error, "):
             msg = msg[len("Value error, ") :]
         if err["type"] == "union_tag_invalid" or err["type"] == "union_tag_not_found":
@@ -448,22 +497,11 @@ def load_raw(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict:
 
 
 def _read_yaml(path: str | Path) -> dict:
-    p = Path(path)
     source = str(path)
-    if not p.exists():
-        raise SpecError(source, "", "file not found")
-    if not p.is_file():
-        raise SpecError(source, "", "not a file")
     try:
-        text = p.read_text()
-    except (OSError, UnicodeDecodeError) as e:
-        raise SpecError(source, "", f"cannot read file: {e}") from None
-    try:
-        raw = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise SpecError(source, "", f"unreadable YAML{where}: {getattr(e, 'problem', e)}") from None
+        raw = yamlio.read(path)  # bounded: size limit, no aliases, no duplicate keys
+    except yamlio.YamlInputError as e:
+        raise SpecError(source, "", str(e)) from None
     if not isinstance(raw, dict):
         raise SpecError(source, "", "the top level must be a mapping of sections")
     return _coerce_yaml_numbers(raw)

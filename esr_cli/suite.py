@@ -25,10 +25,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from esr_cli import spec as specs
+from esr_cli import spec as specs, yamlio
 from esr_cli.store import content_key
 
 
@@ -185,16 +184,10 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
     source = str(path)
     if budget not in specs.BUDGETS:
         raise SuiteError(source, "--budget", f"unknown budget {budget!r}; known: {', '.join(specs.BUDGETS)}")
-    if not p.is_file():
-        raise SuiteError(source, "", "file not found" if not p.exists() else "not a file")
     try:
-        raw = yaml.safe_load(p.read_text())
-    except (OSError, UnicodeDecodeError) as e:
-        raise SuiteError(source, "", f"cannot read file: {e}") from None
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise SuiteError(source, "", f"unreadable YAML{where}: {getattr(e, 'problem', e)}") from None
+        raw = yamlio.read(p)  # bounded: size limit, no aliases, no duplicate keys
+    except yamlio.YamlInputError as e:
+        raise SuiteError(source, "", str(e)) from None
     model = _validate(specs._coerce_yaml_numbers(raw), source)
 
     from esr_cli import runs  # the run key needs jax (toolchain); import only when expanding

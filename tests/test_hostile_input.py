@@ -1,0 +1,201 @@
+"""Hostile and careless input: bounded work before validation, errors that name the real
+mistake, resources checked before anything is compiled or written (docs/reliability.md)."""
+
+import copy
+import time
+import tracemalloc
+from pathlib import Path
+
+import pytest
+import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from conftest import ROOT, esr
+from esr_cli import resources, spec as specs, suite as suites, yamlio
+
+VALID = """name: t
+env: {kind: gridworld, blocks: 2}
+human: {kind: noisy_greedy}
+method: {kind: esr}
+"""
+
+
+def write(tmp_path, text, name="s.yaml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def alias_bomb() -> str:
+    """Nine levels of nine-fold aliases in about 600 bytes: 9^9 strings if expanded."""
+    lines = ['a0: &a0 ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
+    for i in range(1, 10):
+        lines.append(f"a{i}: &a{i} [" + ",".join([f"*a{i - 1}"] * 9) + "]")
+    return VALID + "\n".join(lines) + "\n"
+
+
+def test_alias_bomb_is_refused_at_once_in_little_memory(tmp_path):
+    p = write(tmp_path, alias_bomb())
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    with pytest.raises(specs.SpecError, match=r"line 5: anchors \(&a0\) are not allowed"):
+        specs.load(p)
+    elapsed = time.perf_counter() - t0
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert elapsed < 1.0 and peak < 200 * 2**20
+
+
+def test_alias_bomb_through_the_cli_writes_nothing(tmp_path):
+    p = write(tmp_path, alias_bomb())
+    proc = esr("train", str(p), store=tmp_path / "store", check=False)
+    assert proc.returncode == 2 and "anchors" in proc.stderr
+    assert not (tmp_path / "store" / "runs").exists()
+
+
+def test_plain_alias_and_duplicate_keys_name_their_lines(tmp_path):
+    with pytest.raises(yamlio.YamlInputError, match=r"line 2: aliases \(\*x\)"):
+        yamlio.parse("a: 1\nb: *x\n")
+    dup = VALID + "train: {epochs: 5}\ntrain: {epochs: 7}\n"
+    with pytest.raises(specs.SpecError, match=r"key 'train' appears twice in one mapping \(lines 5 and 6\)"):
+        specs.load(write(tmp_path, dup))
+    with pytest.raises(specs.SpecError, match="key 'kind' appears twice"):
+        specs.load(write(tmp_path, VALID.replace("{kind: esr}", "{kind: esr, kind: ave}")))
+
+
+def test_oversized_file_is_refused_unread(tmp_path):
+    p = write(tmp_path, VALID + "# " + "x" * (yamlio.MAX_FILE_BYTES + 10) + "\n")
+    with pytest.raises(specs.SpecError, match="larger than the 1,048,576 bytes"):
+        specs.load(p)
+
+
+def test_a_typo_is_named_first_with_the_closest_name(tmp_path):
+    with pytest.raises(specs.SpecError) as e:
+        specs.load(write(tmp_path, VALID.replace("method:", "methd:")))
+    assert str(e.value).startswith(f"{tmp_path / 's.yaml'}: methd: unknown key; did you mean `method`?")
+    with pytest.raises(specs.SpecError, match=r"method.repr_dimm: unknown key; did you mean `repr_dim`\?"):
+        specs.load(write(tmp_path, VALID.replace("{kind: esr}", "{kind: esr, repr_dimm: 3}")))
+    with pytest.raises(specs.SpecError, match=r"learner.bach_size: unknown key; did you mean `batch_size`\?"):
+        specs.load(write(tmp_path, VALID + "learner: {bach_size: 3}\n"))
+
+
+@pytest.mark.parametrize("field,value", [("learner.lr", ".inf"), ("human.noise", ".nan"), ("method.repr_lr", "-.inf"),
+                                         ("learner.gamma", ".nan")])
+def test_non_finite_numbers_are_refused_by_name(tmp_path, field, value):
+    with pytest.raises(specs.SpecError, match=f"{field}: Input should be a finite number"):
+        specs.load(write(tmp_path, VALID), "paper", [f"{field}={value}"])
+
+
+def test_huge_seed_count_is_refused_before_it_is_built(tmp_path):
+    t0 = time.perf_counter()
+    with pytest.raises(specs.SpecError, match="train.seeds: 1,000,000,000 seeds: at most 1,024"):
+        specs.load(write(tmp_path, VALID), "paper", ["train.seeds=1000000000"])
+    assert time.perf_counter() - t0 < 1.0
+    with pytest.raises(specs.SpecError, match="environment steps"):
+        specs.load(write(tmp_path, VALID), "paper", ["train.epochs=10000000", "train.num_envs=100000"])
+
+
+def test_memory_estimate_by_hand():
+    spec = specs.load(ROOT / "experiments/grid_2.yaml", "paper", ["train.seeds=3"])
+    # 15,000 // 50 = 300 episodes of 51 observations of 5x5x2 bytes, and 12 bytes per step
+    est = resources.estimate(spec, resources.observation_bytes(spec), seeds_at_once=1)
+    assert resources.observation_bytes(spec) == 50
+    assert est.buffers == 3 * 300 * (51 * 50 + 12 * 50)
+    assert est.rollouts == 1 * 100 * 51 * (5 * 50 + 64)
+    assert est.total == 2 * (est.buffers + est.rollouts) + resources.RUNTIME_BYTES
+
+
+def test_huge_buffer_is_refused_before_anything_is_compiled_or_written(tmp_path):
+    t0 = time.perf_counter()
+    proc = esr("train", "experiments/grid_5.yaml", "--set", "learner.buffer_size=100000000000",
+               store=tmp_path / "store", check=False)
+    assert proc.returncode == 2
+    assert "too large for this machine" in proc.stderr and "lower learner.buffer_size" in proc.stderr
+    assert not (tmp_path / "store" / "runs").exists()
+    assert time.perf_counter() - t0 < 60
+
+
+def test_global_options_after_the_command(tmp_path):
+    from esr_cli.cli import global_options_first
+
+    assert global_options_first(["exact", "s.yaml", "--store", "D", "--debug"]) == ["--store", "D", "--debug", "exact", "s.yaml"]
+    assert global_options_first(["ls", "--store=D"]) == ["--store=D", "ls"]
+    assert global_options_first(["train", "s.yaml", "--", "--store"]) == ["train", "s.yaml", "--", "--store"]
+    proc = esr("exact", "experiments/grid_2.yaml", "--goal", "9,9", "--store", str(tmp_path / "elsewhere"),
+               store=tmp_path / "store", check=False)
+    assert proc.returncode == 2 and "outside the 5x5 grid" in proc.stderr and "No such option" not in proc.stderr
+
+
+def test_suite_files_follow_the_same_rules(tmp_path):
+    bad = tmp_path / "suite.yaml"
+    bad.write_text("name: x\nspecs: &s [a.yaml]\nset: *s\n")
+    with pytest.raises(suites.SuiteError, match="anchors"):
+        suites.load(bad)
+    bad.write_text("name: x\nspecs: [a.yaml]\nname: y\n")
+    with pytest.raises(suites.SuiteError, match="key 'name' appears twice"):
+        suites.load(bad)
+    with pytest.raises(specs.SpecError, match="--set: learner: value is not valid YAML: line 1: anchors"):
+        specs.load(ROOT / "experiments/grid_2.yaml", "paper", ["learner=&a {lr: 1}"])
+
+
+# ---------------------------------------------------------------- fuzz
+BASES = [specs.load_raw(ROOT / "experiments" / name) for name in
+         ("grid_2.yaml", "grid_5_ave.yaml", "grid_7_iq_learn.yaml", "cramped_room.yaml", "coord_ring_random.yaml")]
+ODD_VALUES = [None, "x", -1, 0, 10**12, 1e300, -1e-300, [], {}, True, float("inf"), float("nan"), [1] * 50, "1e-4",
+              {"kind": "esr"}, "a" * 5000]
+
+
+def _paths(tree, prefix=()):
+    for k, v in tree.items():
+        yield prefix + (k,)
+        if isinstance(v, dict):
+            yield from _paths(v, prefix + (k,))
+
+
+@st.composite
+def hostile_texts(draw):
+    tree = copy.deepcopy(draw(st.sampled_from(BASES)))
+    paths = list(_paths(tree))
+    op = draw(st.sampled_from(["drop", "retype", "inflate", "duplicate", "alias", "rename"]))
+    path = draw(st.sampled_from(paths))
+    parent = tree
+    for k in path[:-1]:
+        parent = parent[k]
+    if op == "drop":
+        parent.pop(path[-1])
+    elif op == "retype":
+        parent[path[-1]] = draw(st.sampled_from(ODD_VALUES))
+    elif op == "inflate":
+        parent[path[-1]] = {"k": [list(range(50))] * draw(st.integers(1, 200))}
+    elif op == "rename":
+        parent[path[-1] + draw(st.sampled_from(["s", "_", "x"]))] = parent.pop(path[-1])
+    text = yaml.safe_dump(tree, sort_keys=False)
+    lines = text.splitlines()
+    i = draw(st.integers(0, len(lines) - 1))
+    if op == "duplicate":
+        lines.insert(i, lines[i])
+    elif op == "alias":
+        lines[i] = lines[i] + " &z" if lines[i].rstrip().endswith(":") else lines[i]
+        lines.append("zz: *z")
+    return "\n".join(lines) + "\n"
+
+
+FUZZ_CASES = 400
+
+
+@settings(max_examples=FUZZ_CASES, deadline=2000, suppress_health_check=[HealthCheck.too_slow,
+                                                                         HealthCheck.function_scoped_fixture])
+@given(text=hostile_texts())
+def test_fuzzed_specs_are_a_clean_spec_or_a_one_line_error(tmp_path, text):
+    """Every mutation of a valid spec (a key dropped, renamed, duplicated, retyped, inflated or
+    aliased) loads as a valid spec or raises SpecError with a one-line message, fast."""
+    p = tmp_path / "fuzz.yaml"
+    p.write_text(text)
+    t0 = time.perf_counter()
+    for budget in ("paper", "smoke"):
+        try:
+            specs.load(p, budget)
+        except specs.SpecError as e:
+            assert "\n" not in str(e) and str(e).startswith(str(p))
+    assert time.perf_counter() - t0 < 2.0
