@@ -41,7 +41,7 @@ METHOD_LABELS = {
 METHOD_COLORS = {"esr": "C0", "ave": "C1", "goal_inference": "C2", "iq_learn": "C3", "random": "0.45", "oracle": "C4"}
 OVERCOOKED_LAYOUTS = ("cramped_room", "coord_ring", "asymm_advantages")
 OVERCOOKED_METHODS = ("esr", "iq_learn", "ave", "random")
-# REFERENCE section 5: the paper's Overcooked table, mean +- SE (Random: mean only).
+# The paper's published Overcooked table, mean +- SE (Random: mean only).
 PAPER_OVERCOOKED = {
     "asymm_advantages": {"esr": (72.00, 5.37), "iq_learn": (60.33, 0.26), "ave": (36.71, 1.71), "random": (59.36, None)},
     "coord_ring": {"esr": (8.40, 0.69), "iq_learn": (5.96, 0.20), "ave": (5.69, 0.93), "random": (6.02, None)},
@@ -307,7 +307,7 @@ def overcooked_table(inputs: PaperInputs, out_dir: Path) -> FigureResult:
             c.set_text_props(color="0.4", style="italic")
     ax.set_title(f"Overcooked with the BC human: return per 400 steps (ours: {inputs.budget} budget, "
                  f"{seeds_phrase(seed_counts).replace('1 SE', 'SE')}; paper in grey)", fontsize=9)
-    prov = inputs.provenance("fig2_overcooked", paths, paper_numbers="REFERENCE section 5")
+    prov = inputs.provenance("fig2_overcooked", paths, paper_numbers="the paper's published table")
     files = save(fig, out_dir, "fig2_overcooked", prov) + [out_dir / "fig2_overcooked.md", out_dir / "fig2_overcooked.tex"]
     return FigureResult("fig2_overcooked", files, prov, {"final_return": ours})
 

@@ -1,4 +1,4 @@
-"""The noisy-greedy human (REFERENCE section 2)."""
+"""The noisy-greedy human (docs/environments.md)."""
 
 import jax
 import jax.numpy as jnp

@@ -1,4 +1,4 @@
-"""The robot's soft Q-learner, shared by every method (REFERENCE section 1).
+"""The robot's soft Q-learner, shared by every method (docs/choices.md).
 
 - Critic Q(s, .) over robot actions; target r + gamma (1 - done) max_a' Q_target(s', a');
   mean squared error; Adam; Polyak-averaged target (rate tau).

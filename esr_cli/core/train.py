@@ -5,7 +5,7 @@
     init(seed) -> TrainState
     epoch(state) -> (state, metrics)   one episode in each of num_envs environments, then
                                        U_repr method updates, U_critic critic updates and
-                                       U_dual dual updates (REFERENCE section 1)
+                                       U_dual dual updates (docs/choices.md)
     chunk(n)     jit(over seeds(scan of n epochs)), the state donated; seeds are vmapped
                  on an accelerator and run one after another on the CPU
 

@@ -1,6 +1,6 @@
 """Obstacle gridworld (after Du et al. 2020), pure JAX.
 
-Rules (docs/environments.md; REFERENCE section 2):
+Rules (docs/environments.md):
 - an S x S grid indexed (row, col); a human, N movable blocks and a goal the robot never sees;
 - human actions: left, down, right, up, stay (0..4); moves stop at walls and at blocks;
 - robot actions: cell * 5 + direction, "push the block on `cell` one step in `direction`";

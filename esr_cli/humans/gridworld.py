@@ -1,4 +1,4 @@
-"""The gridworld's noisy-greedy human (Du et al. 2020; REFERENCE section 2).
+"""The gridworld's noisy-greedy human (Du et al. 2020; docs/environments.md).
 
 With probability 1 - noise the human takes the action whose resulting cell (walls and blocks
 taken into account) is closest to its goal in Euclidean distance, with stay's distance counted

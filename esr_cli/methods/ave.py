@@ -2,7 +2,7 @@
 
 The robot's reward at a state s is a proxy for the human's empowerment there: the log
 variance of where the human ends up after M rollouts of L uniformly random human actions from
-s, the robot staying meanwhile (REFERENCE section 4). Everything is batched: the B x M x L
+s, the robot staying meanwhile (docs/baselines.md). Everything is batched: the B x M x L
 rollouts of a critic batch are one vmapped scan (the environment's `random_human_futures`).
 
 Variants (`method.variant`, docs/baselines.md):
