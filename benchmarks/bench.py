@@ -104,7 +104,8 @@ def measure(spec_path: str, seeds: int, epochs: int, seed_batch: int | None) -> 
     import jax.numpy as jnp
 
     from esr_cli import spec as specs
-    from esr_cli.core.train import compiled_chunk, compiled_init, make_trainer
+    from esr_cli.core.train import compiled_chunk, compiled_init
+    from esr_cli.runs import build_trainer
     from esr_cli.provenance import apply_matmul_precision
     from esr_cli.store import Store
 
@@ -117,7 +118,7 @@ def measure(spec_path: str, seeds: int, epochs: int, seed_batch: int | None) -> 
         from esr_cli.human_runs import ensure_human
 
         ensure_human(spec.human, spec.env.layout, store, Console(stderr=True))
-    trainer = make_trainer(spec, store)
+    trainer = build_trainer(spec, store)
     state = compiled_init(trainer)(jnp.asarray(spec.train.seeds, jnp.int32))
     chunk = compiled_chunk(trainer, epochs, seed_batch)
     t = time.perf_counter()

@@ -368,13 +368,12 @@ def representations(inputs: PaperInputs, out_dir: Path) -> FigureResult:
     import jax
 
     from esr_cli.core import loop
-    from esr_cli.core.train import make_trainer
-    from esr_cli.runs import run_spec
+    from esr_cli.runs import build_trainer, run_spec
 
     _style()
     (path,) = inputs.paths("fig6_representations", WANTS["fig6_representations"]())
     spec = run_spec(path)
-    trainer = make_trainer(spec, inputs.store)
+    trainer = build_trainer(spec, inputs.store)
     state = loop.final_state(trainer, path)
     first = jax.tree.map(lambda x: x[0], state)  # seed 0
     roll = jax.jit(lambda k: trainer.rollout(first.learner, k, 16, "sample"))(jax.random.PRNGKey(7))
@@ -413,13 +412,12 @@ def overcooked_filmstrip(inputs: PaperInputs, out_dir: Path, frames: int = 8) ->
     import jax
 
     from esr_cli.core import loop
-    from esr_cli.core.train import make_trainer
-    from esr_cli.runs import run_spec
+    from esr_cli.runs import build_trainer, run_spec
 
     _style()
     (path,) = inputs.paths("fig8_filmstrip", WANTS["fig8_filmstrip"]())
     spec = run_spec(path)
-    trainer = make_trainer(spec, inputs.store)
+    trainer = build_trainer(spec, inputs.store)
     state = loop.final_state(trainer, path)
     first = jax.tree.map(lambda x: x[0], state)
     roll = jax.jit(lambda k: trainer.rollout(first.learner, k, 1, "sample"))(jax.random.PRNGKey(11))

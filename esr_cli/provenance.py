@@ -12,6 +12,7 @@ versions, device, host, wall time.
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import os
 import platform
@@ -21,33 +22,74 @@ from importlib import metadata
 from pathlib import Path
 
 PACKAGE_DIR = Path(__file__).resolve().parent
-# Source that defines what a training run computes. The host loop (chunking, checkpoints,
-# progress), CLI, store, plotting and docs are left out on purpose: they do not change the
-# numbers (resuming is bit-identical), and changing how results are shown or stored must not
-# invalidate trained artifacts. Evaluations add the evaluation code.
-TRAINING_SOURCES = (
-    "envs",
-    "humans",
-    "methods",
-    "networks.py",
-    "spec.py",
-    "core/train.py",
-    "core/buffer.py",
-    "core/learner.py",
-)
+# What a training run computes is decided by the runner and everything it imports: the code
+# digest covers the import closure of these roots (`module_closure`), found from the source, so
+# a module added to the training path re-keys runs without anyone listing it. The host loop
+# (chunking, checkpoints, progress), CLI, plotting and docs are outside that closure unless the
+# training path imports them: they do not change the numbers (resuming is bit-identical).
+# Evaluations add the evaluation code.
+TRAINING_SOURCES = ("core/train.py", "spec.py")
 EVAL_SOURCES = TRAINING_SOURCES + ("core/evaluate.py",)
 PACKAGES = ("jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy", "esr-cli")
 
 
-@cache
-def code_digest(sources: tuple[str, ...] = TRAINING_SOURCES) -> str:
-    h = hashlib.blake2b(digest_size=16)
-    for name in sources:
+def _module_file(dotted: str) -> Path | None:
+    """The file of an `esr_cli...` module (a package's __init__.py), or None."""
+    parts = dotted.split(".")
+    if parts[0] != PACKAGE_DIR.name:
+        return None
+    base = PACKAGE_DIR.joinpath(*parts[1:])
+    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _imports(path: Path) -> set[Path]:
+    """esr_cli files that `path` imports anywhere (module level or inside functions), with the
+    __init__.py of every package on the way."""
+    tree = ast.parse(path.read_text(), str(path))
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+            names.update(f"{node.module}.{a.name}" for a in node.names)  # `from pkg import module`
+    found = set()
+    for name in names:
+        parts = name.split(".")
+        for i in range(1, len(parts) + 1):
+            f = _module_file(".".join(parts[:i]))
+            if f is not None:
+                found.add(f)
+    return found
+
+
+def module_closure(roots: tuple[str, ...]) -> list[Path]:
+    """Every esr_cli source file reachable by imports from `roots` (files or directories,
+    relative to the package), sorted."""
+    todo = []
+    for name in roots:
         p = PACKAGE_DIR / name
-        files = sorted(p.rglob("*.py")) if p.is_dir() else [p]
-        for f in files:
-            h.update(f.relative_to(PACKAGE_DIR).as_posix().encode() + b"\0")
-            h.update(f.read_bytes() + b"\0")
+        todo += sorted(p.rglob("*.py")) if p.is_dir() else [p]
+    seen: set[Path] = set()
+    while todo:
+        f = todo.pop()
+        if f in seen:
+            continue
+        seen.add(f)
+        todo += [g for g in _imports(f) if g not in seen]
+    return sorted(seen)
+
+
+@cache
+def code_digest(roots: tuple[str, ...] = TRAINING_SOURCES) -> str:
+    """blake2b over the path and bytes of every file in the import closure of `roots`."""
+    h = hashlib.blake2b(digest_size=16)
+    for f in module_closure(roots):
+        h.update(f.relative_to(PACKAGE_DIR).as_posix().encode() + b"\0")
+        h.update(f.read_bytes() + b"\0")
     return h.hexdigest()
 
 

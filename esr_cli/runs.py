@@ -145,7 +145,6 @@ def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
         enable_compile_cache()
         _check_disk(store, spec)
         from esr_cli.core import loop
-        from esr_cli.core.train import make_trainer
 
         pending = {"kind": RUN_KIND, "name": spec.name, "key": key, "budget": spec.budget, "seeds": list(spec.train.seeds)}
         # The components are recorded from the start so that a longer run of the same spec can
@@ -154,7 +153,7 @@ def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
                                               "commit": provenance.git_state()["commit"]})
         atomic_write_text(run_dir / "spec.yaml", specs.to_yaml(spec))
         _adopt_shorter_run(store, key, components, run_dir, spec.train.epochs, console)
-        trainer = make_trainer(spec, store)
+        trainer = build_trainer(spec, store)
         started = time.time()
         with _progress(console) as bar:
             task = bar.add_task(f"{spec.name} [{spec.budget}]", total=spec.train.epochs, stats="compiling...")
@@ -228,24 +227,25 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
         enable_compile_cache()
         from esr_cli import plots
         from esr_cli.core import evaluate as ev, loop
-        from esr_cli.core.train import make_trainer
 
         pending = {"kind": EVAL_KIND, "name": spec.name, "key": key, "budget": spec.budget, "seeds": list(spec.train.seeds)}
         eval_dir = store.begin(EVAL_KIND, key, pending)
-        trainer = make_trainer(spec, store)
+        trainer = build_trainer(spec, store)
         started = time.time()
         with console.status(f"evaluating {spec.name}: {episodes} episodes x {len(spec.train.seeds)} seed(s)"):
             state = loop.final_state(trainer, run_path)
             results = ev.evaluate(trainer, state, episodes, spec.train.seeds)
         summary = {"name": spec.name, "budget": spec.budget, "seeds": list(spec.train.seeds), "episodes": episodes,
                    "run": run_manifest["key"], "results": {}}
-        for mode, r in results.items():
-            rm, rse = ev.mean_se(r["return"])
-            sm, sse = ev.mean_se(r["success"])
+        from esr_cli.stats import describe
+
+        for mode, r in results.items():  # per seed: the mean over its episodes
+            ret, succ = describe(r["return"].mean(axis=1)), describe(r["success"].mean(axis=1))
             summary["results"][mode] = {
-                "return_mean": rm, "return_se": rse, "success_mean": sm, "success_se": sse,
-                "return_per_seed": r["return"].mean(axis=1).round(4).tolist(),
-                "success_per_seed": r["success"].mean(axis=1).round(4).tolist(),
+                "return_mean": ret["mean"], "return_se": ret["se"], "success_mean": succ["mean"], "success_se": succ["se"],
+                "return_per_seed": [round(v, 4) for v in ret["per_seed"]],
+                "success_per_seed": [round(v, 4) for v in succ["per_seed"]],
+                "return": ret, "success": succ,
             }
         atomic_write_text(eval_dir / "summary.json", json.dumps(summary, indent=2))
         # One picture of the robot at work: the first seed's first episode, first policy mode.
@@ -267,6 +267,18 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
     return path, json.loads((path / "summary.json").read_text()), cached
 
 
+def build_trainer(spec, store: Store):
+    """The spec's Trainer with its stored inputs (a BC human's parameters) loaded from `store`."""
+    from esr_cli.core.train import make_trainer
+
+    params = None
+    if spec.human.kind == "bc":
+        from esr_cli.human_runs import human_params
+
+        params = human_params(spec.human, spec.env.layout, store)
+    return make_trainer(spec, params)
+
+
 def run_spec(run_path: Path):
     """The validated spec a run was trained from (its spec.yaml)."""
     from esr_cli import yamlio
@@ -278,13 +290,12 @@ def run_spec(run_path: Path):
 def load_run(store: Store, ref: str):
     """(run path, its manifest, its trainer, its final TrainState) for a committed training run."""
     from esr_cli.core import loop
-    from esr_cli.core.train import make_trainer
 
     path = store.resolve(ref)
     manifest = store.read_manifest(path)
     if manifest.get("kind") != RUN_KIND:
         raise StoreError(f"{ref} is not a training run")
-    trainer = make_trainer(run_spec(path), store)
+    trainer = build_trainer(run_spec(path), store)
     return path, manifest, trainer, loop.final_state(trainer, path)
 
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import copy
 import difflib
-import json
 from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union
 
@@ -535,10 +534,6 @@ def resolve(raw: dict, budget: str = "paper", overrides: list[str] | tuple[str, 
 
 def load(path: str | Path, budget: str = "paper", overrides: list[str] | tuple[str, ...] = ()) -> Spec:
     return resolve(load_raw(path), budget, overrides, source=str(path))
-
-
-def canonical_json(obj: Any) -> str:
-    return json.dumps(obj, sort_keys=True, separators=(",", ":"))
 
 
 def to_yaml(spec: Spec) -> str:

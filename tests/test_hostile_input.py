@@ -4,7 +4,6 @@ mistake, resources checked before anything is compiled or written (docs/reliabil
 import copy
 import time
 import tracemalloc
-from pathlib import Path
 
 import pytest
 import yaml

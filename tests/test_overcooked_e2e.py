@@ -98,10 +98,10 @@ def test_a_missing_human_is_a_clear_error(small_data, tmp_path):
 
 def test_co_adapting_human_learns_inside_the_runner(random_smoke, store):
     from esr_cli.core import loop
-    from esr_cli.core.train import make_trainer
+    from esr_cli.runs import build_trainer
 
     spec, path, _ = random_smoke
-    trainer = make_trainer(spec, store)
+    trainer = build_trainer(spec, store)
     assert trainer.human_learns and "human_kl_to_bc" in trainer.metric_names
     state = loop.final_state(trainer, path)  # the human's state is checkpointed with the rest
     clone = human_runs.human_params(spec.human, "coord_ring", store)

@@ -8,7 +8,6 @@ import numpy as np
 
 from conftest import esr
 from esr_cli import reproduction as rep
-from esr_cli.store import Store
 
 
 def _evidence(stem, sets=(), finals=(10.0,), epochs=3000, status="complete", mi=None):

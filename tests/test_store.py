@@ -99,3 +99,31 @@ def test_lock_of_a_dead_process_is_free(tmp_path):
     with store.lock("runs", key, on_wait=lambda h: pytest.fail("waited on a dead process")):
         pass
     assert time.time() - t0 < 1.0
+
+
+def test_code_digest_follows_what_the_training_path_imports(tmp_path, monkeypatch):
+    """A module that the runner starts importing re-keys runs without being listed anywhere; a
+    module nothing on the training path imports does not."""
+    import shutil
+
+    from esr_cli import provenance
+
+    copy = tmp_path / "esr_cli"
+    shutil.copytree(provenance.PACKAGE_DIR, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    monkeypatch.setattr(provenance, "PACKAGE_DIR", copy)
+    digest = provenance.code_digest.__wrapped__  # uncached
+    before = digest(provenance.TRAINING_SOURCES)
+    closure = {f.relative_to(copy).as_posix() for f in provenance.module_closure(provenance.TRAINING_SOURCES)}
+    assert {"core/train.py", "core/buffer.py", "methods/esr.py", "envs/gridworld.py", "networks.py", "spec.py"} <= closure
+    assert not closure & {"store.py", "runs.py", "core/loop.py", "cli.py", "human_runs.py"}  # the core never reads the store
+    (copy / "unrelated.py").write_text("X = 1\n")
+    assert digest(provenance.TRAINING_SOURCES) == before
+    (copy / "core" / "extra.py").write_text("SCALE = 2.0\n")
+    assert digest(provenance.TRAINING_SOURCES) == before  # not imported yet
+    train = copy / "core" / "train.py"
+    train.write_text(train.read_text().replace("from esr_cli.core import buffer as replay",
+                                               "from esr_cli.core import buffer as replay, extra  # noqa: F401"))
+    changed = digest(provenance.TRAINING_SOURCES)
+    assert changed != before
+    (copy / "core" / "extra.py").write_text("SCALE = 3.0\n")
+    assert digest(provenance.TRAINING_SOURCES) != changed  # the new module's own edits count now

@@ -37,13 +37,6 @@ def evaluate(trainer: Trainer, state: TrainState, episodes: int, seeds) -> dict:
     return out
 
 
-def mean_se(values: np.ndarray) -> tuple[float, float]:
-    """Mean across seeds of per-seed means, and its standard error (0 for one seed)."""
-    per_seed = np.asarray(values, dtype=float).reshape(len(values), -1).mean(axis=1)
-    se = float(per_seed.std(ddof=1) / np.sqrt(len(per_seed))) if len(per_seed) > 1 else 0.0
-    return float(per_seed.mean()), se
-
-
 def episode_states(states, seed_index: int, episode: int):
     """The env-state trajectory [T+1] of one evaluation episode."""
     return jax.tree.map(lambda x: np.asarray(x[seed_index, :, episode]), states)

@@ -80,12 +80,6 @@ class SoftQLearner(NamedTuple):
     def log_probs(self, state: LearnerState, obs):
         return policy_log_probs(self.q_values(state.params, obs), state.beta)
 
-    def act(self, state: LearnerState, obs, key):
-        return jax.random.categorical(key, self.log_probs(state, obs)).astype(jnp.int32)
-
-    def greedy(self, state: LearnerState, obs):
-        return jnp.argmax(self.q_values(state.params, obs), axis=-1).astype(jnp.int32)
-
     def critic_step(self, state: LearnerState, obs, action, reward, next_obs, done):
         q_next = self.q_values(state.target_params, next_obs)
 

@@ -265,10 +265,11 @@ class Trainer(NamedTuple):
         return jax.lax.scan(lambda s, _: self.epoch(s), state, None, length=n)
 
 
-def make_trainer(spec, store=None) -> Trainer:
-    """`store`: where stored dependencies (a BC human) are loaded from."""
+def make_trainer(spec, human_params=None) -> Trainer:
+    """`human_params`: the parameters of a stored human (a BC human), which the caller loads
+    (runs.build_trainer); the core never reads the store."""
     env = make_env(spec.env)
-    human = make_human(spec.human, env, store)
+    human = make_human(spec.human, env, human_params)
     return Trainer(
         spec=spec,
         env=env,

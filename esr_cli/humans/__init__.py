@@ -9,19 +9,21 @@ keeps `hstate` in its training state.
 from __future__ import annotations
 
 
-def make_human(human_spec, env, store=None):
-    """`store`: where stored human models (kind bc) are loaded from."""
+def make_human(human_spec, env, params=None):
+    """`params`: a cloned human's parameters (kind bc), loaded from the store by the caller
+    (runs.build_trainer): the models never reach into the store themselves."""
     if human_spec.kind == "noisy_greedy":
         from esr_cli.humans.gridworld import NoisyGreedyHuman
 
         return NoisyGreedyHuman(env=env, noise=float(human_spec.noise))
     if human_spec.kind == "bc":
-        from esr_cli.human_runs import human_params
         from esr_cli.humans.bc import BCHuman
 
+        if params is None:
+            raise ValueError("a BC human needs its cloned parameters (runs.build_trainer loads them from the store)")
         return BCHuman(
             env=env,
-            params=human_params(human_spec, env.layout, store),
+            params=params,
             hidden=tuple(human_spec.hidden),
             adapt=bool(human_spec.adapt),
             adapt_lr=float(human_spec.adapt_lr),
