@@ -41,7 +41,7 @@ METHOD_LABELS = {
 METHOD_COLORS = {"esr": "C0", "ave": "C1", "goal_inference": "C2", "iq_learn": "C3", "random": "0.45", "oracle": "C4"}
 OVERCOOKED_LAYOUTS = ("cramped_room", "coord_ring", "asymm_advantages")
 OVERCOOKED_METHODS = ("esr", "iq_learn", "ave", "random")
-# The paper's published Overcooked table, mean +- SE (Random: mean only).
+# The paper's published Overcooked table, mean +- SE (Random: mean only; docs/paper-facts.md).
 PAPER_OVERCOOKED = {
     "asymm_advantages": {"esr": (72.00, 5.37), "iq_learn": (60.33, 0.26), "ave": (36.71, 1.71), "random": (59.36, None)},
     "coord_ring": {"esr": (8.40, 0.69), "iq_learn": (5.96, 0.20), "ave": (5.69, 0.93), "random": (6.02, None)},

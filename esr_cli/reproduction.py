@@ -116,12 +116,10 @@ QUICK_CHANGES = ("learner.warmup_epochs=20", "method.repr_lr=0.001")
 PUBLISHED_AVE = ("method.variant=original",)
 NO_ROBOT_ACTION = ("method.condition_on_robot_action=false",)
 GREEDY = ("learner.gamma=0.0",)
-# The paper's Overcooked table: final return, mean ± SE over seeds (Random: mean only).
-PAPER_OVERCOOKED = {
-    "cramped_room": {"esr": "91.33 ± 4.08", "iq_learn": "39.24 ± 0.35", "ave": "5.13 ± 1.31", "random": "69.26"},
-    "coord_ring": {"esr": "8.40 ± 0.69", "iq_learn": "5.96 ± 0.20", "ave": "5.69 ± 0.93", "random": "6.02"},
-    "asymm_advantages": {"esr": "72.00 ± 5.37", "iq_learn": "60.33 ± 0.26", "ave": "36.71 ± 1.71", "random": "59.36"},
-}
+
+
+def _paper_cell(mean: float, se) -> str:
+    return f"{mean:.2f}" if se is None else f"{mean:.2f} ± {se:.2f}"
 
 
 def paper_claims() -> list[Claim]:
@@ -143,7 +141,10 @@ def paper_claims() -> list[Claim]:
             for base, label in (("goal_inference", "Goal Inference"), ("iq_learn", "Reward Inference")):
                 claims.append(Claim("Figure 1", f"N = {n}: ESR ends above {label}",
                                     f"{label} fails except at N = 2", "above", esr, (f"grid_{n}_{base}", ()), var))
-    for layout, paper in PAPER_OVERCOOKED.items():
+    from esr_cli.figures import PAPER_OVERCOOKED  # the paper's table: mean, SE (Random: mean only)
+
+    for layout in ("cramped_room", "coord_ring", "asymm_advantages"):
+        paper = {m: _paper_cell(*v) for m, v in PAPER_OVERCOOKED[layout].items()}
         for base, label in (("random", "Random"), ("iq_learn", "Reward Inference"), ("ave", "AvE")):
             claims.append(Claim("Figure 2", f"{layout}: ESR ends above {label}",
                                 f"ESR {paper['esr']} against {label} {paper[base]}", "above", (layout, ()), (f"{layout}_{base}", ())))
