@@ -64,15 +64,16 @@ class Trainer(NamedTuple):
 
     @property
     def future_gamma(self) -> float:
-        return float(getattr(self.spec.method, "future_gamma", self.spec.learner.gamma))
+        method = self.spec.method  # only ESR has its own future-state horizon
+        return float(method.future_gamma) if method.kind == "esr" else float(self.spec.learner.gamma)
 
     @property
     def metric_names(self) -> tuple[str, ...]:
-        return BASE_METRICS + tuple(self.method.metric_names) + tuple(getattr(self.human, "metric_names", ()))
+        return BASE_METRICS + tuple(self.method.metric_names) + tuple(self.human.metric_names)
 
     @property
     def human_learns(self) -> bool:
-        return bool(getattr(self.human, "learns", False))
+        return bool(self.human.learns)
 
     def obs_example(self):
         return self.env.observe(self.env.reset(jax.random.PRNGKey(0)))
@@ -115,7 +116,7 @@ class Trainer(NamedTuple):
 
     @property
     def acts_by_rule(self) -> bool:
-        return bool(getattr(self.method, "acts_by_rule", False))
+        return bool(self.method.acts_by_rule)
 
     def rollout(self, lstate: LearnerState, key, num_envs: int, mode: str = "sample", uniform=False, hstate=()) -> Rollout:
         """One episode in each of `num_envs` environments.
@@ -171,7 +172,7 @@ class Trainer(NamedTuple):
         batch: the buffer holds fewer transitions than the critic phase samples (the gridworld:
         15,000 against 100 x 256; not Overcooked's 200,000)."""
         learner = self.spec.learner
-        return hasattr(self.method, "reward_table") and self.stored_transitions <= learner.updates_per_epoch * learner.batch_size
+        return self.method.has_reward_table and self.stored_transitions <= learner.updates_per_epoch * learner.batch_size
 
     @property
     def q_table_pays(self) -> bool:

@@ -21,6 +21,8 @@ STAY_BONUS = 0.1
 class NoisyGreedyHuman(NamedTuple):
     env: Gridworld
     noise: float
+    learns: bool = False
+    metric_names: tuple = ()
 
     def greedy_action(self, state: GridState) -> jax.Array:
         targets = jax.vmap(lambda a: self.env.human_target(state, a))(jnp.arange(NUM_HUMAN_ACTIONS))

@@ -45,6 +45,8 @@ class AvE(NamedTuple):
     updates_per_epoch: int = 0
     learns_policy: bool = True
     metric_names: tuple = ()
+    acts_by_rule: bool = False
+    has_reward_table: bool = False
 
     init = stateless_init
     update = no_update

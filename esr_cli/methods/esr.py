@@ -110,6 +110,8 @@ class ESR(NamedTuple):
 
     learns_policy: bool = True
     metric_names: tuple = ("repr_loss", "mi_estimate", "contrastive_accuracy", "contrastive_chance")
+    acts_by_rule: bool = False
+    has_reward_table: bool = True  # reward_table / reward_from_table (core/train.reward_table_pays)
 
     @property
     def updates_per_epoch(self) -> int:

@@ -47,6 +47,7 @@ class GoalInference(NamedTuple):
     learns_policy: bool = False
     acts_by_rule: bool = True
     metric_names: tuple = ("goal_belief_true",)
+    has_reward_table: bool = False
 
     init = stateless_init
     update = no_update

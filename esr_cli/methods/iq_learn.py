@@ -52,6 +52,8 @@ class IQLearn(NamedTuple):
 
     learns_policy: bool = True
     metric_names: tuple = ("iq_loss", "iq_reward_taken", "iq_reward_random")
+    acts_by_rule: bool = False
+    has_reward_table: bool = False
 
     @property
     def updates_per_epoch(self) -> int:

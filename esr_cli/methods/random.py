@@ -13,6 +13,8 @@ class RandomRobot(NamedTuple):
     updates_per_epoch: int = 0
     learns_policy: bool = False
     metric_names: tuple = ()
+    acts_by_rule: bool = False
+    has_reward_table: bool = False
 
     init = stateless_init
     update = no_update

@@ -1,0 +1,41 @@
+"""Every environment, human model and method meets its interface (esr_cli/interfaces.py), with
+each optional capability declared and backed by the members it promises."""
+
+import pytest
+
+from conftest import ROOT
+from esr_cli import interfaces as api, spec as specs
+from esr_cli.core.train import make_trainer
+
+GRID_SPECS = ["grid_2", "grid_2_random", "grid_2_ave", "grid_2_goal_inference", "grid_2_iq_learn", "grid_2_oracle"]
+
+
+@pytest.mark.parametrize("name", GRID_SPECS)
+def test_every_gridworld_method_meets_its_interface(name):
+    trainer = make_trainer(specs.load(ROOT / "experiments" / f"{name}.yaml", "smoke"))
+    assert isinstance(trainer.env, api.Environment)
+    assert isinstance(trainer.human, api.Human) and trainer.human.learns is False
+    method = trainer.method
+    assert isinstance(method, api.Method)
+    assert all(isinstance(getattr(method, f), bool) for f in ("learns_policy", "acts_by_rule", "has_reward_table"))
+    assert isinstance(method.updates_per_epoch, int) and isinstance(method.metric_names, tuple)
+    if method.acts_by_rule:
+        assert isinstance(method, api.RuleMethod)
+    if method.has_reward_table:
+        assert isinstance(method, api.TableMethod)
+
+
+def test_overcooked_environment_and_an_adapting_bc_human_meet_theirs():
+    import jax
+    import jax.numpy as jnp
+
+    from esr_cli.envs import make_env
+    from esr_cli.humans.bc import BCHuman, policy_net
+
+    spec = specs.load(ROOT / "experiments/cramped_room.yaml", "smoke", ["human.adapt=true"])
+    env = make_env(spec.env)
+    assert isinstance(env, api.Environment)
+    obs = env.observe(env.reset(jax.random.PRNGKey(0)))
+    params = policy_net(tuple(spec.human.hidden)).init(jax.random.PRNGKey(0), jnp.zeros((1, obs.size)))
+    human = BCHuman(env=env, params=params, hidden=tuple(spec.human.hidden), adapt=True)
+    assert isinstance(human, api.LearningHuman) and human.learns is True and human.metric_names
