@@ -49,7 +49,7 @@ def epoch_flops(trainer) -> float:
     loop's body once, so each body is counted alone and multiplied by its trip count)."""
     import jax
 
-    from esr_cli.core import buffer as replay
+    from esr_cli import replay
 
     spec = trainer.spec
     state = trainer.init(0)

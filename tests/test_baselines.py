@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from esr_cli import spec as specs
-from esr_cli.core import buffer as replay
+from esr_cli import replay
 from esr_cli.core.train import make_trainer
 from esr_cli.envs.gridworld import DOWN, RIGHT, STAY, Gridworld, GridState
 from esr_cli.humans.gridworld import NoisyGreedyHuman

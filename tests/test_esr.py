@@ -135,7 +135,7 @@ def test_patch_conv_equals_a_real_convolution():
 
 def _filled_buffer(env, episodes=6, seed=0):
     """A replay buffer holding `episodes` random-play episodes of `env`."""
-    from esr_cli.core import buffer as replay
+    from esr_cli import replay
     from esr_cli.humans.gridworld import NoisyGreedyHuman
 
     human = NoisyGreedyHuman(env=env, noise=0.2)
@@ -160,7 +160,7 @@ def _filled_buffer(env, episodes=6, seed=0):
 
 
 def test_reward_table_gives_the_rewards_of_direct_representation():
-    from esr_cli.core import buffer as replay
+    from esr_cli import replay
 
     esr, env = _esr()
     buf = _filled_buffer(env)

@@ -39,3 +39,35 @@ def test_overcooked_environment_and_an_adapting_bc_human_meet_theirs():
     params = policy_net(tuple(spec.human.hidden)).init(jax.random.PRNGKey(0), jnp.zeros((1, obs.size)))
     human = BCHuman(env=env, params=params, hidden=tuple(spec.human.hidden), adapt=True)
     assert isinstance(human, api.LearningHuman) and human.learns is True and human.metric_names
+
+
+def test_no_import_cycle_between_files():
+    """Every esr_cli import (module level or inside functions, with the __init__.py of the
+    packages it passes through) forms no cycle: the dependency graph reads top to bottom."""
+    from esr_cli import provenance
+
+    files = sorted(provenance.PACKAGE_DIR.rglob("*.py"))
+    graph = {f: provenance._imports(f) - {f} for f in files}
+    state: dict = {}
+
+    def visit(f, path):
+        if state.get(f) == "done":
+            return
+        assert state.get(f) != "open", "import cycle: " + " -> ".join(p.name for p in path + [f])
+        state[f] = "open"
+        for g in sorted(graph[f]):
+            visit(g, path + [f])
+        state[f] = "done"
+
+    for f in files:
+        visit(f, [])
+
+
+def test_registry_builds_every_method_kind_of_the_spec():
+    from esr_cli.methods.registry import METHODS, method_class
+
+    assert set(METHODS) == set(specs.KIND_MODELS["method"])
+    for kind in METHODS:
+        assert hasattr(method_class(kind), "from_spec")
+    with pytest.raises(ValueError, match="unknown method kind 'nope'"):
+        method_class("nope")

@@ -116,7 +116,7 @@ def test_co_adapting_human_learns_inside_the_runner(random_smoke, store):
 
 def test_esr_takes_overcooked_batches():
     """ESR's input construction (observation + broadcast action planes) on Overcooked, MLP nets."""
-    from esr_cli.core.buffer import Batch
+    from esr_cli.replay import Batch
     from esr_cli.envs.overcooked import Overcooked
     from esr_cli.methods.esr import ESR
 

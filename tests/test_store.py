@@ -114,15 +114,15 @@ def test_code_digest_follows_what_the_training_path_imports(tmp_path, monkeypatc
     digest = provenance.code_digest.__wrapped__  # uncached
     before = digest(provenance.TRAINING_SOURCES)
     closure = {f.relative_to(copy).as_posix() for f in provenance.module_closure(provenance.TRAINING_SOURCES)}
-    assert {"core/train.py", "core/buffer.py", "methods/esr.py", "envs/gridworld.py", "networks.py", "spec.py"} <= closure
+    assert {"core/train.py", "replay.py", "methods/esr.py", "envs/gridworld.py", "networks.py", "spec.py"} <= closure
     assert not closure & {"store.py", "runs.py", "core/loop.py", "cli.py", "human_runs.py"}  # the core never reads the store
     (copy / "unrelated.py").write_text("X = 1\n")
     assert digest(provenance.TRAINING_SOURCES) == before
     (copy / "core" / "extra.py").write_text("SCALE = 2.0\n")
     assert digest(provenance.TRAINING_SOURCES) == before  # not imported yet
     train = copy / "core" / "train.py"
-    train.write_text(train.read_text().replace("from esr_cli.core import buffer as replay",
-                                               "from esr_cli.core import buffer as replay, extra  # noqa: F401"))
+    train.write_text(train.read_text().replace("from esr_cli import replay\n",
+                                               "from esr_cli import replay\nfrom esr_cli.core import extra  # noqa: F401\n"))
     changed = digest(provenance.TRAINING_SOURCES)
     assert changed != before
     (copy / "core" / "extra.py").write_text("SCALE = 3.0\n")

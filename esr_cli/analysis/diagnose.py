@@ -42,7 +42,7 @@ def situation(obs: np.ndarray, reward: np.ndarray) -> np.ndarray:
 def reward_by_situation(trainer, state, key, batches: int = 40) -> dict:
     """The method's reward on `batches` critic batches from the run's buffer, by situation:
     {situation: {"n", "mean", "sd"}}. `state` is one seed's TrainState."""
-    from esr_cli.core import buffer as replay
+    from esr_cli import replay
 
     spec = trainer.spec
     sample = jax.jit(lambda k: replay.sample(state.buffer, k, spec.learner.batch_size, trainer.future_gamma))
@@ -100,7 +100,7 @@ def representation_check(trainer, state, key, batches: int = 40) -> dict:
       mi_estimate                         mean diagonal logit of phi minus that of phi' (nats)
     When layout_only is near 1 the block layout alone names the episode, phi' solves the batch
     without the human's action, and the MI estimate has no reason to grow (docs/results.md)."""
-    from esr_cli.core import buffer as replay
+    from esr_cli import replay
 
     spec, method = trainer.spec, trainer.method
     params = state.method.params

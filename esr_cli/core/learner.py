@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from esr_cli.core.buffer import map_episodes
+from esr_cli.replay import map_episodes
 from esr_cli.networks import conv_net
 
 BETA_MIN, BETA_MAX = 1e-3, 100.0

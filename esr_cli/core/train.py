@@ -21,11 +21,11 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from esr_cli.core import buffer as replay
+from esr_cli import replay
 from esr_cli.core.learner import LearnerState, SoftQLearner, entropy
 from esr_cli.envs import make_env
 from esr_cli.humans import make_human
-from esr_cli.methods import make_method
+from esr_cli.methods.registry import make_method
 
 BASE_METRICS = (
     "return",

@@ -15,36 +15,6 @@ A method with `acts_by_rule = True` (Goal Inference) instead decides every step 
     rule_step(memory, obs, prev_human_action) -> (action, memory)
     rule_metrics(memory, final_env_state) -> dict   end-of-episode metrics
 
-Catalogue (docs/baselines.md): esr, random, ave, goal_inference, iq_learn, oracle.
+Catalogue (docs/baselines.md): esr, random, ave, goal_inference, iq_learn, oracle. Build one
+with `esr_cli.methods.registry.make_method`; a new one is added as registry.py says.
 """
-
-from __future__ import annotations
-
-
-def make_method(spec, env, human=None):
-    kind = spec.method.kind
-    if kind == "esr":
-        from esr_cli.methods.esr import ESR
-
-        return ESR(env=env, spec=spec.method, network_spec=spec.network)
-    if kind == "random":
-        from esr_cli.methods.random import RandomRobot
-
-        return RandomRobot()
-    if kind == "ave":
-        from esr_cli.methods.ave import AvE
-
-        return AvE(env=env, spec=spec.method)
-    if kind == "goal_inference":
-        from esr_cli.methods.goal_inference import GoalInference
-
-        return GoalInference(env=env, human=human)
-    if kind == "iq_learn":
-        from esr_cli.methods.iq_learn import IQLearn
-
-        return IQLearn(env=env, spec=spec.method, network_spec=spec.network)
-    if kind == "oracle":
-        from esr_cli.methods.oracle import Oracle
-
-        return Oracle()
-    raise ValueError(f"unknown method kind {kind!r}")

@@ -51,6 +51,10 @@ class AvE(NamedTuple):
     init = stateless_init
     update = no_update
 
+    @classmethod
+    def from_spec(cls, spec, env, human):
+        return cls(env=env, spec=spec.method)
+
     def rollout_actions(self, key, batch_size: int) -> jax.Array:
         shape = (batch_size, self.spec.num_rollouts, self.spec.rollout_length)
         if self.spec.variant == "original":

@@ -1,7 +1,7 @@
 """ESR: Empowerment via Successor Representations (the paper's section 4, Algorithm 1).
 
 Three representations, learned contrastively from (s, aR, aH, g) with g a future state of the
-same episode (see core/buffer.py):
+same episode (see replay.py):
     phi(s, aR, aH)    the controlled model   (12 input channels in the gridworld)
     phi'(s, aR)       the uncontrolled model = phi with the human-action planes zeroed
     psi(g)            the future-state representation
@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from esr_cli.core.buffer import map_episodes
+from esr_cli.replay import map_episodes
 from esr_cli.networks import conv_net
 
 
@@ -112,6 +112,10 @@ class ESR(NamedTuple):
     metric_names: tuple = ("repr_loss", "mi_estimate", "contrastive_accuracy", "contrastive_chance")
     acts_by_rule: bool = False
     has_reward_table: bool = True  # reward_table / reward_from_table (core/train.reward_table_pays)
+
+    @classmethod
+    def from_spec(cls, spec, env, human):
+        return cls(env=env, spec=spec.method, network_spec=spec.network)
 
     @property
     def updates_per_epoch(self) -> int:

@@ -52,6 +52,10 @@ class GoalInference(NamedTuple):
     init = stateless_init
     update = no_update
 
+    @classmethod
+    def from_spec(cls, spec, env, human):
+        return cls(env=env, human=human)
+
     def reward(self, state, batch, key):
         return jnp.zeros(batch.robot_action.shape, jnp.float32)
 

@@ -55,6 +55,10 @@ class IQLearn(NamedTuple):
     acts_by_rule: bool = False
     has_reward_table: bool = False
 
+    @classmethod
+    def from_spec(cls, spec, env, human):
+        return cls(env=env, spec=spec.method, network_spec=spec.network)
+
     @property
     def updates_per_epoch(self) -> int:
         return self.spec.updates_per_epoch

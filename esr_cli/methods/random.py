@@ -19,5 +19,9 @@ class RandomRobot(NamedTuple):
     init = stateless_init
     update = no_update
 
+    @classmethod
+    def from_spec(cls, spec, env, human):
+        return cls()
+
     def reward(self, state, batch, key):
         return jnp.zeros(batch.robot_action.shape, jnp.float32)
