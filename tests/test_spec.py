@@ -61,7 +61,7 @@ def test_training_part_excludes_name_and_eval(tmp_path):
 BAD = {
     "unknown key": (GOOD + "learner: {gama: 0.9}\n", "learner.gama", "unknown key"),
     "wrong type": (GOOD + "train: {epochs: many}\n", "train.epochs", "integer"),
-    "out of range": (GOOD.replace("blocks: 2}", "blocks: 2, size: 2}"), "env.size", "greater than or equal to 3"),
+    "out of range": (GOOD.replace("size: 5", "size: 2"), "env.size", "greater than or equal to 3"),
     "negative lr": (GOOD + "learner: {lr: -1}\n", "learner.lr", "greater than 0"),
     "too many blocks": (GOOD.replace("blocks: 2", "blocks: 24"), "env", "does not fit"),
     "corner needs two blocks": (GOOD.replace("blocks: 2", "blocks: 1"), "env", "blocks >= 2"),

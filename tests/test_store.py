@@ -116,6 +116,8 @@ def test_code_digest_follows_what_the_training_path_imports(tmp_path, monkeypatc
     closure = {f.relative_to(copy).as_posix() for f in provenance.module_closure(provenance.TRAINING_SOURCES)}
     assert {"core/train.py", "replay.py", "methods/esr.py", "envs/gridworld.py", "networks.py", "spec.py"} <= closure
     assert not closure & {"store.py", "runs.py", "core/loop.py", "cli.py", "human_runs.py"}  # the core never reads the store
+    methods = {f.relative_to(copy).as_posix() for f in (copy / "methods").glob("*.py")}
+    assert methods <= closure  # every method, however the runner reaches it
     (copy / "unrelated.py").write_text("X = 1\n")
     assert digest(provenance.TRAINING_SOURCES) == before
     (copy / "core" / "extra.py").write_text("SCALE = 2.0\n")

@@ -1,27 +1,32 @@
 """Which class implements each `method.kind`. A new method is one file with a class that meets
 `interfaces.Method` and has `from_spec(spec, env, human)`, one line here, and its spec model in
-spec.py (docs/extending.md walks through it)."""
+spec.py. The imports are plain module-level imports on purpose: the run key's code digest
+follows imports from the runner (provenance.module_closure), so every method's source is in it.
+"""
 
 from __future__ import annotations
 
-from importlib import import_module
+from esr_cli.methods.ave import AvE
+from esr_cli.methods.esr import ESR
+from esr_cli.methods.goal_inference import GoalInference
+from esr_cli.methods.iq_learn import IQLearn
+from esr_cli.methods.oracle import Oracle
+from esr_cli.methods.random import RandomRobot
 
-# kind -> "module:Class"; modules are imported when their kind is used.
 METHODS = {
-    "esr": "esr_cli.methods.esr:ESR",
-    "random": "esr_cli.methods.random:RandomRobot",
-    "ave": "esr_cli.methods.ave:AvE",
-    "goal_inference": "esr_cli.methods.goal_inference:GoalInference",
-    "iq_learn": "esr_cli.methods.iq_learn:IQLearn",
-    "oracle": "esr_cli.methods.oracle:Oracle",
+    "esr": ESR,
+    "random": RandomRobot,
+    "ave": AvE,
+    "goal_inference": GoalInference,
+    "iq_learn": IQLearn,
+    "oracle": Oracle,
 }
 
 
 def method_class(kind: str):
     if kind not in METHODS:
         raise ValueError(f"unknown method kind {kind!r}; known: {', '.join(METHODS)}")
-    module, name = METHODS[kind].split(":")
-    return getattr(import_module(module), name)
+    return METHODS[kind]
 
 
 def make_method(spec, env, human=None):
