@@ -30,6 +30,9 @@ PAPER_EPOCHS = 10_000
 # figure changes little), Overcooked at its full length (cheap enough to run whole).
 COMPARABLE_EPOCHS = {"gridworld": 3000, "overcooked": 10_000}
 SIMILAR_WITHIN = 0.15  # "similar" returns: within 15% of the larger one
+# "Positive" MI estimate: above this many nats at the end (a grid_2 run that learned ends near
+# +0.17; an estimate stuck at +0.002 carries no signal however many epochs are above zero).
+MI_POSITIVE = 0.01
 REPRODUCED, NOT_REPRODUCED, INCONCLUSIVE, NOT_YET = (
     "reproduced", "not reproduced", "inconclusive", "not yet run at a comparable budget")
 
@@ -186,7 +189,7 @@ def _mi_summary(ev: Evidence) -> tuple[bool, str]:
     k = max(1, int(round(len(mi) * FINAL_FRACTION)))
     final = float(np.nanmean(mi[-k:]))
     share = float(np.mean(second > 0)) if len(second) else float("nan")
-    holds = final > 0 and share >= 0.9
+    holds = final > MI_POSITIVE and share >= 0.9
     return holds, f"final MI {final:+.3f} nats; positive in {share:.0%} of the second half's epochs"
 
 
@@ -336,7 +339,9 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
         f"{COMPARABLE_EPOCHS['gridworld']:,} epochs (gridworld) or {COMPARABLE_EPOCHS['overcooked']:,} (Overcooked); "
         "with several seeds the statement holds when the lower end of the probability-of-improvement interval is above 0.5, "
         f"and is *{INCONCLUSIVE}* when the interval contains 0.5. Before that: *{NOT_YET}*, with the numbers so far. "
-        f"'Similar' means within {SIMILAR_WITHIN:.0%} of the larger return (one seed) or an interval containing 0.5.",
+        f"'Similar' means within {SIMILAR_WITHIN:.0%} of the larger return (one seed) or an interval containing 0.5. "
+        f"The MI estimate 'stays positive' when its mean over the last {FINAL_FRACTION:.0%} of epochs is above "
+        f"{MI_POSITIVE} nats and it is above 0 in at least 90% of the second half's epochs.",
         "- The paper ran 20 seeds (gridworld) and 5 to 15 (Overcooked) for 10,000 epochs.", "",
         f"**Summary:** {len(findings)} statements; " + ", ".join(f"{n} {v}" for v, n in counts.items()) + ".", "",
     ]

@@ -93,3 +93,9 @@ def test_cli_writes_the_report_from_a_store(tmp_path):
     assert "| N = 2: ESR ends above Random |" in text and f"`{run_path.name[:8]}`" in text
     assert "**Summary:** 38 statements" in text
     assert len(list(Path(store).glob("runs/*/*/manifest.json"))) == 3  # the report trained nothing
+
+
+def test_an_mi_estimate_stuck_near_zero_is_not_positive():
+    claim = _claim("N = 5: the MI estimate turns positive and stays positive")
+    stuck = _index(_evidence("grid_5", mi=lambda e: 0.002))
+    assert rep.judge(claim, stuck).verdict == "not reproduced (1 seed)"
