@@ -1,6 +1,6 @@
 """Artifacts made from specs: training runs and evaluations (lookup, lock, resume, commit).
 
-This is the flow of DESIGN.md: key -> lookup (hit: done) -> lock -> partial dir (resume) ->
+The artifact flow: key -> lookup (hit: done) -> lock -> partial dir (resume) ->
 train -> commit. Evaluations are artifacts too, keyed by their run and settings; they read
 trained runs only and never train silently.
 """
