@@ -23,7 +23,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from esr_cli import suite as suites  # noqa: E402
-from esr_cli.finals import final_per_seed, mean_se, read_rows, series  # noqa: E402,F401 - used by paper.py and tests
+from esr_cli.finals import final_per_seed, read_rows, series  # noqa: E402
 from esr_cli.stats import describe, format_summary  # noqa: E402
 from esr_cli.store import Store  # noqa: E402
 

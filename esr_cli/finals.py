@@ -43,12 +43,6 @@ def final_per_seed(rows: list[dict], name: str = "return") -> np.ndarray:
     return np.nanmean(vals[-k:], axis=0)
 
 
-def mean_se(per_seed: np.ndarray) -> tuple[float, float]:
-    per_seed = np.asarray(per_seed, dtype=float)
-    se = float(per_seed.std(ddof=1) / np.sqrt(len(per_seed))) if len(per_seed) > 1 else 0.0
-    return float(per_seed.mean()), se
-
-
 def run_finals(run_path: Path, names: tuple[str, ...] = ("return", "success")) -> dict:
     """{name: stats.describe(per-seed finals)} for each metric (mean, SE, IQM and its interval,
     the per-seed values), plus the run's seed and epoch counts."""

@@ -49,6 +49,7 @@ class Evidence:
     spec: specs.Spec
     rows: list[dict]
     commit: Optional[str]
+    _finals: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def epochs_done(self) -> int:
@@ -59,7 +60,10 @@ class Evidence:
         return len(self.rows[-1]["return"]) if self.rows else len(self.spec.train.seeds)
 
     def finals(self, name: str = "return") -> dict:
-        return describe(final_per_seed(self.rows, name))
+        """stats.describe of the per-seed finals, computed once (it bootstraps)."""
+        if name not in self._finals:
+            self._finals[name] = describe(final_per_seed(self.rows, name))
+        return self._finals[name]
 
     def comparable(self) -> bool:
         return self.epochs_done >= COMPARABLE_EPOCHS.get(self.spec.env.kind, PAPER_EPOCHS)

@@ -17,7 +17,8 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from esr_cli import provenance, spec as specs
-from esr_cli.store import Store, StoreError, atomic_write_text, content_key
+from esr_cli.finals import read_rows
+from esr_cli.store import LockBusy, Store, StoreError, atomic_write_text, content_key
 
 RUN_KIND, EVAL_KIND = "runs", "evals"
 # Rough upper bound of a checkpoint per seed plus metrics, checked before a run starts.
@@ -80,22 +81,14 @@ def _adopt_shorter_run(store: Store, key: str, components: dict, run_dir: Path, 
             adopted = loop.adopt_checkpoint(entry.path, run_dir, epochs)
         else:
             try:  # an unfinished run is only read while its lock shows no process is writing it
-                with store.lock(RUN_KIND, entry.key, on_wait=_busy):
+                with store.lock(RUN_KIND, entry.key, wait=False):
                     adopted = loop.adopt_checkpoint(entry.path, run_dir, epochs)
-            except _Busy:
+            except LockBusy:
                 continue
         if adopted:
             console.print(f"starting from run {entry.key[:12]} ({entry.status}) at epoch {adopted}: "
                           f"the same spec, {done} epochs long")
             return
-
-
-class _Busy(Exception):
-    pass
-
-
-def _busy(holder: str):
-    raise _Busy(holder)
 
 
 def _check_disk(store: Store, spec) -> None:
@@ -167,7 +160,7 @@ def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
                 bar.update(task, completed=epoch, stats=_fmt_stats(row, steps_per_s))
 
             summary = loop.train(trainer, run_dir, on_chunk=on_chunk, on_start=on_start)
-        rows = loop.read_metrics(run_dir)
+        rows = read_rows(run_dir)
         from esr_cli import plots
 
         plots.learning_curve(
@@ -255,7 +248,7 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
         plots.rollout_gif(frames, eval_dir / "rollout.gif")
         prov = {"artifacts": {RUN_KIND: run_manifest["key"], EVAL_KIND: key}, "budget": spec.budget, "seeds": list(spec.train.seeds)}
         plots.learning_curve(
-            loop.read_metrics(run_path), eval_dir / "learning_curve.png", f"{spec.name} [{spec.method.kind}]", prov,
+            read_rows(run_path), eval_dir / "learning_curve.png", f"{spec.name} [{spec.method.kind}]", prov,
             warmup_epochs=spec.learner.warmup_epochs,
         )
         manifest = provenance.complete_manifest(

@@ -38,6 +38,10 @@ class StoreError(Exception):
     """A problem with the store or an artifact; `str()` is a one-line explanation."""
 
 
+class LockBusy(StoreError):
+    """Another process holds an artifact's lock (Store.lock with wait=False)."""
+
+
 def digest_bytes(data: bytes, size: int = 16) -> str:
     return hashlib.blake2b(data, digest_size=size).hexdigest()
 
@@ -153,8 +157,10 @@ class Store:
 
     # ---------------------------------------------------------------- writing
     @contextmanager
-    def lock(self, kind: str, key: str, on_wait: Callable[[str], None] | None = None, poll_s: float = 1.0):
-        """Hold the artifact's exclusive lock; wait (calling on_wait once) while another holds it."""
+    def lock(self, kind: str, key: str, on_wait: Callable[[str], None] | None = None, poll_s: float = 1.0,
+             wait: bool = True):
+        """Hold the artifact's exclusive lock; wait (calling on_wait once) while another holds it,
+        or with wait=False raise LockBusy at once."""
         path = self.lock_path(kind, key)
         path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
@@ -167,6 +173,8 @@ class Store:
                 except OSError as e:
                     if e.errno not in (errno.EAGAIN, errno.EACCES):
                         raise
+                    if not wait:
+                        raise LockBusy(f"{kind} {key[:12]} is being written by another process") from None
                     if on_wait and not told:
                         holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
                         on_wait(holder)

@@ -97,9 +97,9 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path):
         raise AssertionError("the run did not stop")
     except loop.Interrupted as e:
         assert e.epoch == 1
-    assert len(loop.read_metrics(cut)) == 1
+    assert len(loop.read_rows(cut)) == 1
     loop.train(trainer, cut)
-    assert loop.read_metrics(cut) == loop.read_metrics(whole)
+    assert loop.read_rows(cut) == loop.read_rows(whole)
     a, b = loop.final_state(trainer, whole), loop.final_state(trainer, cut)
     for x, y in zip(__import__("jax").tree.leaves(a), __import__("jax").tree.leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

@@ -107,7 +107,7 @@ def test_co_adapting_human_learns_inside_the_runner(random_smoke, store):
     clone = human_runs.human_params(spec.human, "coord_ring", store)
     moved = max(float(np.abs(np.asarray(a)[0] - b).max()) for a, b in zip(jax.tree.leaves(state.human.params), jax.tree.leaves(clone)))
     assert moved > 0
-    rows = loop.read_metrics(path)
+    rows = loop.read_rows(path)
     assert rows[0]["human_kl_to_bc"][0] == pytest.approx(0.0, abs=1e-6)  # the first update starts at the clone
     # (whether it moves further depends on soups delivered in two smoke epochs; the unit tests
     # in test_overcooked.py check the direction of learning)

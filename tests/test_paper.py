@@ -9,6 +9,7 @@ import pytest
 
 from conftest import esr
 from esr_cli import figures as figs
+from esr_cli.stats import describe
 
 
 def rows_of(returns_by_epoch):
@@ -20,8 +21,8 @@ def test_final_return_is_the_last_tenth_per_seed_then_mean_and_se():
     rows = rows_of([[0.0, 0.0]] * 18 + [[10.0, 2.0], [20.0, 4.0]])
     per_seed = figs.final_per_seed(rows)
     assert per_seed.tolist() == [15.0, 3.0]
-    m, se = figs.mean_se(per_seed)
-    assert m == 9.0 and se == pytest.approx(np.std([15.0, 3.0], ddof=1) / np.sqrt(2))
+    d = describe(per_seed)
+    assert d["mean"] == 9.0 and d["se"] == pytest.approx(np.std([15.0, 3.0], ddof=1) / np.sqrt(2))
 
 
 def test_panels_figure_tables_every_line(tmp_path):

@@ -86,6 +86,29 @@ def test_lock_excludes_a_second_process(tmp_path):
     assert elapsed > 1.0
 
 
+def test_lock_without_waiting_reports_a_busy_artifact_at_once(tmp_path):
+    from esr_cli.store import LockBusy
+
+    store = Store(tmp_path)
+    key = "ab" * 16
+    holder = subprocess.Popen(
+        [sys.executable, "-c", (
+            "import sys, time; from esr_cli.store import Store; s = Store(sys.argv[1]);\n"
+            "with s.lock('runs', sys.argv[2]):\n    print('held', flush=True); time.sleep(3)"
+        ), str(tmp_path), key],
+        stdout=subprocess.PIPE, text=True,
+    )
+    assert holder.stdout.readline().strip() == "held"
+    t0 = time.time()
+    with pytest.raises(LockBusy, match="being written by another process"):
+        with store.lock("runs", key, wait=False):
+            pass
+    assert time.time() - t0 < 1.0
+    holder.wait()
+    with store.lock("runs", key, wait=False):  # free again once the holder is gone
+        pass
+
+
 def test_lock_of_a_dead_process_is_free(tmp_path):
     store = Store(tmp_path)
     key = "ef" * 16

@@ -145,19 +145,15 @@ def adopt_checkpoint(source_dir: Path, run_dir: Path, at_most: int) -> int:
         return 0
     target = Path(run_dir) / CHECKPOINT_DIR / str(step)
     shutil.copytree(Path(source_dir) / CHECKPOINT_DIR / str(step), target)
-    rows = [r for r in read_metrics(source_dir) if r["epoch"] <= step]
+    rows = [r for r in read_rows(source_dir) if r["epoch"] <= step]
     atomic_write_text(Path(run_dir) / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in rows))
     _record_digests(run_dir, [step], step)
     return step
 
 
-def read_metrics(run_dir: Path) -> list[dict]:
-    return read_rows(run_dir)
-
-
 def _truncate_metrics(run_dir: Path, epoch: int) -> None:
     """Keep only metrics of epochs <= epoch (those covered by the restored checkpoint)."""
-    rows = [r for r in read_metrics(run_dir) if r["epoch"] <= epoch]
+    rows = [r for r in read_rows(run_dir) if r["epoch"] <= epoch]
     text = "".join(json.dumps(r) + "\n" for r in rows)
     tmp = Path(run_dir) / (METRICS_FILE + ".tmp")
     tmp.write_text(text)
@@ -265,7 +261,7 @@ def train(
     finally:
         signal.signal(signal.SIGINT, previous)
         mngr.close()
-    return summarize(read_metrics(run_dir))
+    return summarize(read_rows(run_dir))
 
 
 def summarize(rows: list[dict], last: int = 10) -> dict:
