@@ -66,17 +66,23 @@ def test_unwritable_store(tmp_path):
         Store(blocker / "store").ensure_writable()
 
 
-def test_lock_excludes_a_second_process(tmp_path):
-    store = Store(tmp_path)
-    key = "cd" * 16
+def hold_lock(root, key, seconds: int = 3) -> subprocess.Popen:
+    """Another process holding `key`'s lock for `seconds`; returns once it holds it."""
     holder = subprocess.Popen(
         [sys.executable, "-c", (
             "import sys, time; from esr_cli.store import Store; s = Store(sys.argv[1]);\n"
-            "with s.lock('runs', sys.argv[2]):\n    print('held', flush=True); time.sleep(3)"
-        ), str(tmp_path), key],
+            f"with s.lock('runs', sys.argv[2]):\n    print('held', flush=True); time.sleep({seconds})"
+        ), str(root), key],
         stdout=subprocess.PIPE, text=True,
     )
     assert holder.stdout.readline().strip() == "held"
+    return holder
+
+
+def test_lock_excludes_a_second_process(tmp_path):
+    store = Store(tmp_path)
+    key = "cd" * 16
+    holder = hold_lock(tmp_path, key)
     waited = []
     t0 = time.time()
     with store.lock("runs", key, on_wait=waited.append, poll_s=0.1):
@@ -91,14 +97,7 @@ def test_lock_without_waiting_reports_a_busy_artifact_at_once(tmp_path):
 
     store = Store(tmp_path)
     key = "ab" * 16
-    holder = subprocess.Popen(
-        [sys.executable, "-c", (
-            "import sys, time; from esr_cli.store import Store; s = Store(sys.argv[1]);\n"
-            "with s.lock('runs', sys.argv[2]):\n    print('held', flush=True); time.sleep(3)"
-        ), str(tmp_path), key],
-        stdout=subprocess.PIPE, text=True,
-    )
-    assert holder.stdout.readline().strip() == "held"
+    holder = hold_lock(tmp_path, key)
     t0 = time.time()
     with pytest.raises(LockBusy, match="being written by another process"):
         with store.lock("runs", key, wait=False):
