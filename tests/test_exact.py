@@ -133,6 +133,8 @@ def test_exact_and_estimator_cli(tmp_path):
     assert "Spearman" in fig.stderr
     result = json.loads((png.parent / "summary.json").read_text())
     assert -1 <= result["spearman"] <= 1
+    assert 1 <= result["visited_pairs"] <= result["pairs"] and -1 <= result["spearman_visited"] <= 1 or \
+        np.isnan(result["spearman_visited"])  # a constant estimate over few pairs has no rank correlation
     bad = esr("plot", "estimator", path.name, store=store, check=False)
     assert bad.returncode == 2 and "--robot" in bad.stderr
 
@@ -151,3 +153,19 @@ def test_mi_is_zero_for_a_human_trapped_by_blocks():
     assert len(trapped) == 1
     np.testing.assert_allclose(emp.mi[trapped[0]], 0.0, atol=1e-12)
     assert emp.value[trapped[0]] > 0  # later steps, once freed, do carry information
+
+
+def test_visited_pairs_hold_99_percent_of_the_robots_occupancy_by_hand():
+    """Two states; from state 0 robot action 0 stays (prob 0.999), action 1 leads to the
+    absorbing state 1. At gamma 0.5: d = (0.999, 0.001), so the pair weights d(s) pi(a|s) are
+    0.998, 0.000999, 0.0005, 0.0005: the pair (0, 0) alone holds over 99%."""
+    from types import SimpleNamespace
+
+    from esr_cli.exact_runs import visited_pairs
+
+    space = SimpleNamespace(next_state=np.array([[[0], [1]], [[1], [1]]]), start=np.array([1.0, 0.0]))
+    pi_robot = np.array([[0.999, 0.001], [0.5, 0.5]])
+    mask = visited_pairs(space, pi_robot, np.ones((2, 1)), 0.5)
+    assert mask.tolist() == [[True, False], [False, False]]
+    uniform = visited_pairs(space, np.full((2, 2), 0.5), np.ones((2, 1)), 0.5)
+    assert uniform.sum() == 4  # d = (2/3, 1/3): every pair is needed to reach 99%
