@@ -148,7 +148,7 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
     env = trainer.env
     obs = jax.vmap(env.observe)(states)
     esr = trainer.method
-    psi_all = np.asarray(esr.psi_net.apply(mstate.params["psi"], obs), dtype=np.float64)  # [S, d]
+    psi_all = np.asarray(esr.represent_future(mstate.params, obs), dtype=np.float64)  # [S, d]
     gamma = manifest["key_components"]["gamma"]
     space = exact.StateSpace(env=env, goal=tuple(manifest["key_components"]["goal"]), human=data["human"], blocks=data["blocks"], next_state=data["next_state"], start=data["start"])
     m = exact.occupancy(exact.transition_matrix(space, data["pi_robot"], data["pi_human"]), gamma)

@@ -379,7 +379,7 @@ def representations(inputs: PaperInputs, out_dir: Path) -> FigureResult:
     roll = jax.jit(lambda k: trainer.rollout(first.learner, k, 16, "sample"))(jax.random.PRNGKey(7))
     obs = np.asarray(roll.episodes.obs).reshape(-1, *trainer.env.obs_shape)
     obs = np.unique(obs, axis=0)
-    psi = np.asarray(trainer.method.psi_net.apply(first.method.params["psi"], obs))
+    psi = np.asarray(trainer.method.represent_future(first.method.params, obs))
     reach = np.array([_reachable_cells(o) for o in obs])
     fig = plt.figure(figsize=(6.2, 5))
     ax = fig.add_subplot(projection="3d")

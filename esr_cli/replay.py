@@ -101,10 +101,15 @@ class Index(NamedTuple):
     future: jax.Array  # int32[B]
 
 
-def sample_index(buf: Buffer, key: jax.Array, batch_size: int, future_gamma: float) -> Index:
+def sample_index(buf: Buffer, key: jax.Array, batch_size: int, future_gamma: float, episode_group: int = 1) -> Index:
+    """Uniform transitions with geometric futures. With episode_group = k > 1 the batch is
+    ceil(B / k) uniform episodes, k uniform steps from each (the last group cut short), so
+    that transitions of one episode sit next to each other in the batch."""
     k_ep, k_t, k_future = jax.random.split(key, 3)
     steps = buf.robot_action.shape[1]
-    episode = jax.random.randint(k_ep, (batch_size,), 0, jnp.maximum(buf.count, 1))
+    groups = -(-batch_size // episode_group)
+    episode = jax.random.randint(k_ep, (groups,), 0, jnp.maximum(buf.count, 1))
+    episode = jnp.repeat(episode, episode_group)[:batch_size]
     t = jax.random.randint(k_t, (batch_size,), 0, steps)
     future = jnp.minimum(t + geometric_offsets(k_future, (batch_size,), future_gamma), steps)
     return Index(episode=episode, t=t, future=future)
@@ -125,5 +130,5 @@ def gather(buf: Buffer, idx: Index) -> Batch:
     )
 
 
-def sample(buf: Buffer, key: jax.Array, batch_size: int, future_gamma: float) -> Batch:
-    return gather(buf, sample_index(buf, key, batch_size, future_gamma))
+def sample(buf: Buffer, key: jax.Array, batch_size: int, future_gamma: float, episode_group: int = 1) -> Batch:
+    return gather(buf, sample_index(buf, key, batch_size, future_gamma, episode_group))

@@ -160,6 +160,14 @@ class ESRMethodSpec(_Model):
     repr_dim: int = Field(32, ge=1)
     reward: Literal["dot"] = "dot"
     infonce: Literal["stacked", "separate"] = "stacked"
+    episode_group: int = Field(
+        1, ge=1, le=1 << 20,
+        description="transitions drawn from each sampled episode in a representation batch: 1 (the paper) "
+        "draws them independently; k > 1 gives every anchor k - 1 negatives from its own episode (docs/estimators.md)",
+    )
+    future: Literal["full", "human"] = Field(
+        "full", description="what psi sees of the future state: all of it, or only the human's part (docs/estimators.md)"
+    )
     condition_on_robot_action: bool = True
     future_gamma: float = Field(0.9, ge=0.0, lt=1.0, description="future-state horizon: K ~ Geom(1 - future_gamma)")
     repr_lr: float = Field(1e-4, gt=0.0)
@@ -323,6 +331,9 @@ class Spec(_Model):
                              "coordinates); Overcooked has variant: fixed only")
         if self.method.kind == "goal_inference" and self.env.kind != "gridworld":
             raise ValueError("method.kind=goal_inference needs the gridworld's known human model (env.kind: gridworld)")
+        if self.method.kind == "esr" and self.method.episode_group > self.learner.batch_size:
+            raise ValueError(f"method.episode_group={self.method.episode_group} is larger than "
+                             f"learner.batch_size={self.learner.batch_size}: a batch cannot hold one group")
         steps = self.env.episode_steps
         total = self.train.epochs * self.train.num_envs * steps * len(self.train.seeds)
         if total > MAX_ENV_STEPS:

@@ -68,6 +68,12 @@ class Trainer(NamedTuple):
         return float(method.future_gamma) if method.kind == "esr" else float(self.spec.learner.gamma)
 
     @property
+    def repr_episode_group(self) -> int:
+        """Transitions per sampled episode in a representation batch (ESR's option; 1 otherwise)."""
+        method = self.spec.method
+        return int(method.episode_group) if method.kind == "esr" else 1
+
+    @property
     def metric_names(self) -> tuple[str, ...]:
         return BASE_METRICS + tuple(self.method.metric_names) + tuple(self.human.metric_names)
 
@@ -205,7 +211,7 @@ class Trainer(NamedTuple):
 
         def repr_step(mstate, key):
             k_sample, k_update = jax.random.split(key)
-            batch = replay.sample(buf, k_sample, batch_size, fg)
+            batch = replay.sample(buf, k_sample, batch_size, fg, self.repr_episode_group)
             return self.method.update(mstate, batch, k_update)
 
         mstate, m_metrics = self._scan_updates(repr_step, state.method, k_repr, self.method.updates_per_epoch)

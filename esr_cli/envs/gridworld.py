@@ -181,6 +181,10 @@ class Gridworld(NamedTuple):
 
         return jax.vmap(walk)(human_actions)
 
+    def human_view(self, obs: jax.Array) -> jax.Array:
+        """The observation with everything but the human's plane zeroed (same shape)."""
+        return obs.at[..., 1:].set(0)
+
     def robot_action_planes(self, action: jax.Array) -> jax.Array:
         """float32[S, S, 5]: one-hot at (cell row, cell col, direction)."""
         onehot = jax.nn.one_hot(action, self.num_robot_actions, dtype=jnp.float32)

@@ -27,6 +27,7 @@ LAYOUTS = ("cramped_room", "coord_ring", "asymm_advantages", "forced_coord", "co
 NUM_ACTIONS = 6
 UP, DOWN, RIGHT, LEFT, STAY, INTERACT = range(NUM_ACTIONS)
 ACTION_NAMES = ("up", "down", "right", "left", "stay", "interact")
+HUMAN_LAYERS = (1, 6, 7, 8, 9)  # in agent_0's view: the other agent's position and orientation
 URGENCY_CHANNEL = 25  # 1 everywhere in the last 40 steps of an episode
 # JaxMARL's OBJECT_TO_INDEX values used when decoding an observation.
 _EMPTY, _ONION, _PLATE, _DISH, _AGENT = 1, 3, 5, 9, 10
@@ -131,6 +132,13 @@ class Overcooked(NamedTuple):
     def observe_human(self, state) -> jax.Array:
         """The human's (agent_1's) view: uint8[H, W, 26] with its own layers first."""
         return self.base.get_obs(state)["agent_1"].astype(jnp.uint8)
+
+    def human_view(self, obs: jax.Array) -> jax.Array:
+        """A robot observation with all but the human's own layers zeroed (same shape): its
+        position (layer 1) and orientation (layers 6-9). What it holds is in the shared item
+        layers, so it is not part of this view."""
+        keep = jnp.zeros((obs.shape[-1],), obs.dtype).at[jnp.array(HUMAN_LAYERS)].set(1)
+        return obs * keep
 
     def _action_planes(self, action: jax.Array) -> jax.Array:
         onehot = jax.nn.one_hot(action, NUM_ACTIONS, dtype=jnp.float32)

@@ -149,10 +149,17 @@ class ESR(NamedTuple):
         both = self.phi_net.apply(params["phi"], self._phi_inputs(obs, robot_action, human_action))
         return tuple(jnp.split(both, 2, axis=0))
 
+    def represent_future(self, params, future_obs):
+        """psi(g), [B, repr_dim]. With `future: human` psi sees only the human's part of g
+        (the environment's `human_view`), so the future cannot be matched by the layout."""
+        if self.spec.future == "human":
+            future_obs = jax.vmap(self.env.human_view)(future_obs)
+        return self.psi_net.apply(params["psi"], future_obs)
+
     def represent(self, params, obs, robot_action, human_action, future_obs):
         """-> (phi'(s, aR), phi(s, aR, aH), psi(g)), each [B, repr_dim]."""
         phi_s, phi_sa = self.represent_phi(params, obs, robot_action, human_action)
-        return phi_s, phi_sa, self.psi_net.apply(params["psi"], future_obs)
+        return phi_s, phi_sa, self.represent_future(params, future_obs)
 
     def init(self, key, obs_example) -> ESRState:
         k_phi, k_psi = jax.random.split(key)
@@ -197,7 +204,7 @@ class ESR(NamedTuple):
         def episode(args):
             obs, robot_action, human_action = args
             phi_s, phi_sa = self.represent_phi(state.params, obs[:steps], robot_action, human_action)
-            return phi_s, phi_sa, self.psi_net.apply(state.params["psi"], obs)
+            return phi_s, phi_sa, self.represent_future(state.params, obs)
 
         phi_s, phi_sa, psi = map_episodes(episode, (buf.obs, buf.robot_action, buf.human_action), steps)
         return jax.lax.stop_gradient(RewardTable(phi_s=phi_s, phi_sa=phi_sa, psi=psi))
