@@ -62,7 +62,10 @@ def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | Non
         env = make_env(spec.env)
         human = make_human(spec.human, env)
         with console.status("enumerating reachable states"):
-            space = exact.enumerate_states(env, goal, exact.start_states(env, goal))
+            try:
+                space = exact.enumerate_states(env, goal, exact.start_states(env, goal), max_states=exact.MAX_STATES)
+            except exact.TooManyStates as e:
+                raise StoreError(f"{spec.name}: {e}") from None
         console.print(f"{space.size} reachable states, {env.num_robot_actions} robot actions")
         pi_h = exact.human_policy(space, human)
         if robot:
@@ -70,7 +73,7 @@ def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | Non
             pi_r = exact.boltzmann_robot(space, lambda obs: trainer.learner.log_probs(lstate, obs))
         else:
             pi_r = exact.uniform_robot(space)
-        with console.status("solving for occupancies and mutual information"):
+        with console.status(f"solving for occupancies and mutual information ({space.size:,} states)"):
             emp = exact.empowerment(space, pi_r, pi_h, gamma)
         np.savez_compressed(
             out / "exact.npz", human=space.human, blocks=space.blocks, next_state=space.next_state, start=space.start,
@@ -81,8 +84,8 @@ def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | Non
             "robot": components["robot"],
             "effective_empowerment": emp.effective_empowerment,
             "mean_mi_uniform_states": float(emp.state_mi.mean()),
-            "mean_mi_visited": float(emp.visitation @ emp.state_mi),
-            "max_mi": float(emp.mi.max()),
+            "mean_mi_visited": _visited_mean(emp, pi_r),
+            "max_mi": float(np.nanmax(emp.mi)),
             "states_with_zero_mi": int((emp.state_mi < 1e-9).sum()),
         }
         atomic_write_text(out / "summary.json", json.dumps(summary, indent=2))
@@ -151,38 +154,46 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
     psi_all = np.asarray(esr.represent_future(mstate.params, obs), dtype=np.float64)  # [S, d]
     gamma = manifest["key_components"]["gamma"]
     space = exact.StateSpace(env=env, goal=tuple(manifest["key_components"]["goal"]), human=data["human"], blocks=data["blocks"], next_state=data["next_state"], start=data["start"])
-    m = exact.occupancy(exact.transition_matrix(space, data["pi_robot"], data["pi_human"]), gamma)
-    psibar = m @ psi_all  # [S, d]: expected psi(g) from each next state
-    a_r, a_h = env.num_robot_actions, env.num_human_actions
+    occ = exact.Occupancy(exact.transition_matrix(space, data["pi_robot"], data["pi_human"]), gamma)
+    psibar = occ.times(psi_all)  # [S, d]: expected psi(g) from each next state
+    a_h = env.num_human_actions
+    mi = data["mi"]
+    computed = np.isfinite(mi)  # every pair, or the visited ones on large spaces
+    pair_state, pair_action = np.nonzero(computed)
 
     @jax.jit
     def phis(obs_b, ar_b, ah_b):
         phi_s, phi_sa, _ = esr.represent(mstate.params, obs_b, ar_b, ah_b, obs_b)
         return phi_s, phi_sa
 
-    est = np.zeros((n, a_r))
-    for h in range(a_h):
-        for s0 in range(0, n, 64):
-            sl = slice(s0, min(n, s0 + 64))
-            b = sl.stop - sl.start
-            ob = jnp.repeat(obs[sl], a_r, axis=0)
-            ar = jnp.tile(jnp.arange(a_r), b)
-            phi_s, phi_sa = phis(ob, ar, jnp.full((b * a_r,), h))
-            diff = (np.asarray(phi_sa) - np.asarray(phi_s)).reshape(b, a_r, -1)
-            nxt = data["next_state"][sl, :, h]  # [b, A_R]
-            est[sl] += data["pi_human"][sl, h][:, None] * np.einsum("brd,brd->br", diff, psibar[nxt])
-    mi = data["mi"]
-    rho, _ = spearmanr(est.reshape(-1), mi.reshape(-1))
+    est = np.full(mi.shape, np.nan)
+    chunk = 4096
+    for i in range(0, len(pair_state), chunk):
+        st, ar = pair_state[i : i + chunk], pair_action[i : i + chunk]
+        total = np.zeros(len(st))
+        for h in range(a_h):
+            phi_s, phi_sa = phis(obs[st], jnp.asarray(ar), jnp.full((len(st),), h))
+            diff = np.asarray(phi_sa, np.float64) - np.asarray(phi_s, np.float64)
+            total += data["pi_human"][st, h] * np.einsum("bd,bd->b", diff, psibar[data["next_state"][st, ar, h]])
+        est[st, ar] = total
+    rho, _ = spearmanr(est[computed], mi[computed])
     visited = visited_pairs(space, data["pi_robot"], data["pi_human"], gamma)
     rho_visited, _ = spearmanr(est[visited], mi[visited])
-    result = {"spearman": float(rho), "pairs": int(mi.size), "spearman_visited": float(rho_visited),
+    result = {"spearman": float(rho), "pairs": int(computed.sum()), "spearman_visited": float(rho_visited),
               "visited_pairs": int(visited.sum()), "visited_mass": VISITED_MASS,
               "run": run_manifest["key"], "exact": manifest["key"]}
     if out_png is not None:
-        plots.estimator_scatter(mi.reshape(-1), est.reshape(-1), float(rho), out_png,
+        plots.estimator_scatter(mi[computed], est[computed], float(rho), out_png,
                                 {"artifacts": {"runs": run_manifest["key"], "exact": manifest["key"]},
                                  "budget": run_manifest.get("budget"), "seeds": run_manifest.get("seeds")})
     return result
+
+
+def _visited_mean(emp, pi_robot: np.ndarray) -> float:
+    """Mean MI under the robot's discounted occupancy, over the pairs computed."""
+    weight = emp.visitation[:, None] * pi_robot
+    ok = np.isfinite(emp.mi)
+    return float(np.sum(weight[ok] * emp.mi[ok]) / np.sum(weight[ok]))
 
 
 # "Visited" (state, robot action) pairs: the most likely pairs under the robot's own discounted
@@ -195,8 +206,7 @@ def visited_pairs(space, pi_robot: np.ndarray, pi_human: np.ndarray, gamma: floa
     d(s) pi_R(aR | s), d the discounted state distribution from the start (exact.empowerment's)."""
     from esr_cli.analysis import exact
 
-    p = exact.transition_matrix(space, pi_robot, pi_human)
-    d = (1.0 - gamma) * np.linalg.solve((np.eye(len(p)) - gamma * p).T, space.start)
+    d = exact.Occupancy(exact.transition_matrix(space, pi_robot, pi_human), gamma).visitation(space.start)
     weight = (d[:, None] * pi_robot).reshape(-1)
     order = np.argsort(-weight)
     keep = np.cumsum(weight[order]) <= VISITED_MASS * weight.sum()

@@ -46,8 +46,10 @@ def test_enumeration_is_closed_and_complete(tiny):
 
 def test_rho_is_a_distribution(tiny):
     *_, emp = tiny
-    np.testing.assert_allclose(emp.occupancy.sum(axis=1), 1.0, atol=1e-10)
-    assert (emp.occupancy >= -1e-12).all()
+    m = emp.occupancy.rows(np.arange(len(emp.value)))
+    np.testing.assert_allclose(m.sum(axis=1), 1.0, atol=1e-10)
+    assert (m >= -1e-12).all()
+    np.testing.assert_allclose(emp.visitation.sum(), 1.0, atol=1e-10)
 
 
 def test_mi_is_zero_where_the_human_cannot_matter(tiny):
@@ -94,7 +96,7 @@ def test_mi_matches_monte_carlo_rollouts_of_the_environment(tiny):
         idx = [keys[tuple(x) + tuple(y.reshape(-1))] for x, y in zip(h, b)]
         rho_hat.append(np.bincount(idx, minlength=space.size) / n)
         # the geometric tail beyond 40 steps has mass 0.7^40 ~ 1e-6: negligible
-        np.testing.assert_allclose(rho_hat[-1], emp.occupancy[space.next_state[s, a_r, a_h]], atol=0.01)
+        np.testing.assert_allclose(rho_hat[-1], emp.occupancy.rows([space.next_state[s, a_r, a_h]])[0], atol=0.01)
     rho_hat = np.array(rho_hat)
     mix = pi_h[s] @ rho_hat
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -169,3 +171,33 @@ def test_visited_pairs_hold_99_percent_of_the_robots_occupancy_by_hand():
     assert mask.tolist() == [[True, False], [False, False]]
     uniform = visited_pairs(space, np.full((2, 2), 0.5), np.ones((2, 1)), 0.5)
     assert uniform.sum() == 4  # d = (2/3, 1/3): every pair is needed to reach 99%
+
+
+def test_factorised_occupancy_equals_the_dense_inverse(tiny):
+    """Rows, products, visitation and values from the LU equal the dense formulas."""
+    env, _, space, pi_h, pi_r, emp = tiny
+    p = exact.transition_matrix(space, pi_r, pi_h).toarray()
+    np.testing.assert_allclose(p.sum(axis=1), 1.0, atol=1e-12)
+    inv = np.linalg.inv(np.eye(space.size) - GAMMA * p)
+    m = (1 - GAMMA) * inv
+    occ = emp.occupancy
+    np.testing.assert_allclose(occ.rows([3, 0, 3]), m[[3, 0, 3]], atol=1e-12)
+    v = np.arange(space.size * 2, dtype=float).reshape(space.size, 2)
+    np.testing.assert_allclose(occ.times(v), m @ v, atol=1e-10)
+    np.testing.assert_allclose(emp.visitation, (1 - GAMMA) * space.start @ inv, atol=1e-12)
+    np.testing.assert_allclose(emp.value, inv @ emp.state_mi, atol=1e-10)
+
+
+def test_mi_restricted_to_some_pairs_equals_the_full_computation(tiny):
+    env, _, space, pi_h, pi_r, emp = tiny
+    pairs = np.zeros(emp.mi.shape, bool)
+    pairs[::7, ::3] = True
+    part = exact.empowerment(space, pi_r, pi_h, GAMMA, pairs=pairs)
+    np.testing.assert_allclose(part.mi[pairs], emp.mi[pairs], atol=1e-12)
+    assert np.isnan(part.mi[~pairs]).all() and not part.complete and emp.complete
+
+
+def test_too_large_a_space_is_refused_by_name():
+    env = Gridworld(size=5, num_blocks=2, start="corner", episode_steps=50)
+    with pytest.raises(exact.TooManyStates, match="more than 100 reachable states"):
+        exact.enumerate_states(env, (2, 2), exact.start_states(env, (2, 2), 64), max_states=100)

@@ -17,8 +17,10 @@ and the effective empowerment of the policy pair from start distribution mu0,
     m(s) = sum_aR pi_R(aR | s) I(aH; s+ | s, aR).
 
 The MDP is the infinite-horizon one (no 50-step cut-off), matching the geometric future of
-ESR's buffer except near episode ends. Everything is vectorised: transitions by `vmap` of
-the environment, occupancies by one dense linear solve.
+ESR's buffer except near episode ends. Transitions come from `vmap` of the environment; P is
+sparse, and M is never formed: one LU factorisation of I - gamma P gives the rows of M that a
+set of (state, robot action) pairs needs, so MI can be restricted to the pairs that matter
+(those a trained robot visits) on spaces of about 10,000 states (a 4 x 4 grid with 3 blocks).
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy import sparse
+from scipy.linalg import lu_factor, lu_solve
 
 from esr_cli.envs.gridworld import GridState, Gridworld
 
@@ -67,7 +71,16 @@ def _keys(human: np.ndarray, blocks: np.ndarray) -> list[bytes]:
     return [row.astype(np.int8).tobytes() for row in flat]
 
 
-def enumerate_states(env: Gridworld, goal, starts: GridState, max_states: int = 200_000) -> StateSpace:
+# The occupancy's dense LU needs 8 S^2 bytes and S^3 / 1.5 operations: about 1.2 GB and a
+# minute on 2 cores at this size.
+MAX_STATES = 12_000
+
+
+class TooManyStates(ValueError):
+    pass
+
+
+def enumerate_states(env: Gridworld, goal, starts: GridState, max_states: int = MAX_STATES) -> StateSpace:
     """Breadth-first enumeration of every state reachable from `starts` (a batch of states
     with this goal) under all joint actions."""
     goal = tuple(int(g) for g in goal)
@@ -112,7 +125,8 @@ def enumerate_states(env: Gridworld, goal, starts: GridState, max_states: int = 
         transitions.extend(ids.reshape(shape))
         done = batch.stop
         if len(humans) > max_states:
-            raise ValueError(f"more than {max_states} reachable states: too large for exact analysis")
+            raise TooManyStates(f"more than {max_states:,} reachable states: too large for exact analysis "
+                                f"(a {env.size}x{env.size} grid with {env.num_blocks} blocks; a 4x4 grid with 3 blocks has 8,851)")
     start = np.bincount(start_ids, minlength=len(humans)).astype(np.float64)
     return StateSpace(
         env=env,
@@ -142,24 +156,58 @@ def boltzmann_robot(space: StateSpace, log_probs_fn: Callable) -> np.ndarray:
     return probs / probs.sum(axis=1, keepdims=True)
 
 
-def transition_matrix(space: StateSpace, pi_robot: np.ndarray, pi_human: np.ndarray) -> np.ndarray:
-    """P[s, s'] under the joint policy (dense float64[S, S])."""
+def transition_matrix(space: StateSpace, pi_robot: np.ndarray, pi_human: np.ndarray) -> sparse.csr_matrix:
+    """P[s, s'] under the joint policy, sparse: each state has at most A_R x A_H successors and
+    most robot actions share their effect, so a few dozen non-zeros per row."""
     s, a_r, a_h = space.next_state.shape
     weights = pi_robot[:, :, None] * pi_human[:, None, :]
-    p = np.zeros((s, s))
-    np.add.at(p, (np.repeat(np.arange(s), a_r * a_h), space.next_state.reshape(-1)), weights.reshape(-1))
-    return p
+    rows = np.repeat(np.arange(s), a_r * a_h)
+    p = sparse.coo_matrix((weights.reshape(-1), (rows, space.next_state.reshape(-1))), shape=(s, s))
+    return p.tocsr()  # duplicates summed
 
 
-def occupancy(p: np.ndarray, gamma: float) -> np.ndarray:
-    """M = (1 - gamma) (I - gamma P)^-1: row s is the distribution of s_{t+K}, K ~ Geom from s_{t+1} = s."""
+def occupancy(p, gamma: float) -> np.ndarray:
+    """M = (1 - gamma) (I - gamma P)^-1, dense: row s is the distribution of s_{t+K}, K ~ Geom,
+    from s_{t+1} = s. For small state spaces and tests; `Occupancy` never forms M."""
+    p = p.toarray() if sparse.issparse(p) else np.asarray(p)
     n = len(p)
     return (1.0 - gamma) * np.linalg.solve(np.eye(n) - gamma * p, np.eye(n))
 
 
-def _mutual_information(m: np.ndarray, nxt: np.ndarray, pi_h: np.ndarray) -> np.ndarray:
-    """I(aH; s+ | s, aR) for rows of next states nxt int[U, A_H] with human policy pi_h [U, A_H]."""
-    rho = m[nxt]  # [U, A_H, S]
+class Occupancy:
+    """M = (1 - gamma) (I - gamma P)^-1 as one LU factorisation of I - gamma P: its rows, its
+    products and the discounted visitation, each a triangular solve. The factorisation is dense:
+    a sparse LU of a 4 x 4 grid with 4 blocks (29,000 states) fills in to 250 million entries and
+    takes longer than the dense one of 10,000 states, which is about the limit (`MAX_STATES`)."""
+
+    def __init__(self, p, gamma: float):
+        p = p.toarray() if sparse.issparse(p) else np.asarray(p, np.float64)
+        self.size, self.gamma = p.shape[0], gamma
+        self._lu = lu_factor(np.eye(self.size) - gamma * p, overwrite_a=True, check_finite=False)
+
+    def rows(self, states: np.ndarray) -> np.ndarray:
+        """float64[len(states), S]: M[states] (row s solves (I - gamma P)^T x = e_s)."""
+        e = np.zeros((self.size, len(states)))
+        e[np.asarray(states), np.arange(len(states))] = 1.0
+        return (1.0 - self.gamma) * lu_solve(self._lu, e, trans=1, check_finite=False).T
+
+    def times(self, v: np.ndarray) -> np.ndarray:
+        """M @ v."""
+        return (1.0 - self.gamma) * lu_solve(self._lu, np.asarray(v, np.float64), check_finite=False)
+
+    def discounted_sum(self, v: np.ndarray) -> np.ndarray:
+        """(I - gamma P)^-1 v: the discounted sum of v along the chain from each state."""
+        return lu_solve(self._lu, np.asarray(v, np.float64), check_finite=False)
+
+    def visitation(self, start: np.ndarray) -> np.ndarray:
+        """(1 - gamma) mu0 (I - gamma P)^-1: the discounted state distribution from mu0."""
+        return (1.0 - self.gamma) * lu_solve(self._lu, np.asarray(start, np.float64), trans=1, check_finite=False)
+
+
+def _mutual_information(m_rows: np.ndarray, pi_h: np.ndarray) -> np.ndarray:
+    """I(aH; s+ | s, aR) from rho = m_rows [U, A_H, S] (the rows of M at each next state) and the
+    human policy pi_h [U, A_H]."""
+    rho = m_rows
     mix = np.einsum("uh,uhs->us", pi_h, rho)[:, None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         terms = np.where(rho > 0, rho * np.log(rho / np.where(mix > 0, mix, 1.0)), 0.0)
@@ -168,36 +216,52 @@ def _mutual_information(m: np.ndarray, nxt: np.ndarray, pi_h: np.ndarray) -> np.
 
 @dataclass(frozen=True)
 class Empowerment:
-    mi: np.ndarray  # float64[S, A_R]: I(aH; s+ | s, aR), nats
-    state_mi: np.ndarray  # float64[S]: expected over the robot policy
+    mi: np.ndarray  # float64[S, A_R]: I(aH; s+ | s, aR), nats; NaN for pairs not computed
+    state_mi: np.ndarray  # float64[S]: expected over the robot policy (pairs not computed count 0)
     value: np.ndarray  # float64[S]: discounted effective empowerment from each state
     effective_empowerment: float  # from the start distribution
-    occupancy: np.ndarray  # M, float64[S, S]
+    occupancy: Occupancy
     visitation: np.ndarray  # float64[S]: discounted state distribution from the start, sums to 1
+    complete: bool  # MI computed for every pair (else only for `pairs`: state_mi, value are lower bounds)
 
 
-def empowerment(space: StateSpace, pi_robot: np.ndarray, pi_human: np.ndarray, gamma: float, batch: int = 256) -> Empowerment:
+def pair_weights(space: StateSpace, pi_robot: np.ndarray, visitation: np.ndarray) -> np.ndarray:
+    """float64[S, A_R]: d(s) pi_R(aR | s), the discounted occupancy of each (state, robot action)."""
+    return visitation[:, None] * pi_robot
+
+
+def empowerment(
+    space: StateSpace, pi_robot: np.ndarray, pi_human: np.ndarray, gamma: float,
+    pairs: np.ndarray | None = None, batch: int = 64,
+) -> Empowerment:
+    """Exact MI for every (state, robot action), or only where `pairs` (bool[S, A_R]) is true:
+    the rows of M are solved for just the next states those pairs need."""
     p = transition_matrix(space, pi_robot, pi_human)
-    m = occupancy(p, gamma)
+    occ = Occupancy(p, gamma)
+    s, a_r, a_h = space.next_state.shape
+    wanted = np.ones((s, a_r), bool) if pairs is None else np.asarray(pairs, bool)
     # Most robot actions are no-ops or share their effect: compute each distinct
     # (state, next states over aH) once.
-    s, a_r, a_h = space.next_state.shape
     rows = np.concatenate([np.repeat(np.arange(s), a_r)[:, None], space.next_state.reshape(s * a_r, a_h)], axis=1)
-    unique, inverse = np.unique(rows, axis=0, return_inverse=True)
-    mi_unique = np.concatenate(
-        [
-            _mutual_information(m, unique[i : i + batch, 1:], pi_human[unique[i : i + batch, 0]])
-            for i in range(0, len(unique), batch)
-        ]
-    )
-    mi = np.maximum(mi_unique[inverse.reshape(-1)].reshape(s, a_r), 0.0)  # KL >= 0; clip rounding
-    state_mi = np.sum(pi_robot * mi, axis=1)
-    a = np.eye(space.size) - gamma * p
-    value = np.linalg.solve(a, state_mi)
-    visitation = (1.0 - gamma) * np.linalg.solve(a.T, space.start)
+    picked = np.flatnonzero(wanted.reshape(-1))
+    unique, inverse = np.unique(rows[picked], axis=0, return_inverse=True)
+    # Rows of M one solve each, or all of M at once when most of it is needed anyway.
+    needed = np.unique(unique[:, 1:])
+    full = occ.rows(np.arange(s)) if len(needed) > s // 4 else None
+    mi_unique = np.empty(len(unique))
+    for i in range(0, len(unique), batch):
+        chunk = unique[i : i + batch]
+        nxt = chunk[:, 1:].reshape(-1)
+        m_rows = (full[nxt] if full is not None else occ.rows(nxt)).reshape(len(chunk), a_h, s)
+        mi_unique[i : i + batch] = _mutual_information(m_rows, pi_human[chunk[:, 0]])
+    mi = np.full(s * a_r, np.nan)
+    mi[picked] = np.maximum(mi_unique[inverse.reshape(-1)], 0.0)  # KL >= 0; clip rounding
+    mi = mi.reshape(s, a_r)
+    state_mi = np.sum(pi_robot * np.nan_to_num(mi, nan=0.0), axis=1)
+    value = occ.discounted_sum(state_mi)
     return Empowerment(
         mi=mi, state_mi=state_mi, value=value, effective_empowerment=float(space.start @ value),
-        occupancy=m, visitation=visitation,
+        occupancy=occ, visitation=occ.visitation(space.start), complete=bool(wanted.all()),
     )
 
 
