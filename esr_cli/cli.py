@@ -89,6 +89,8 @@ def sweep(
     show_results: bool = typer.Option(False, "--results", help="only show each finished run's final return and success (mean ± SE across seeds); trains nothing"),
     as_json: bool = typer.Option(False, "--json", help="--status / --results: print JSON instead of a table"),
     markdown: bool = typer.Option(False, "--markdown", help="--results: print a markdown table"),
+    metric: Optional[list[str]] = typer.Option(None, "--metric", help="--results: a logged metric to show (repeat for "
+                                               "several; default: return and success), e.g. mi_estimate"),
     plot: bool = typer.Option(False, "--plot", help="--results: also draw the runs' learning curves (a figures artifact; every run must be done)"),
     wait: Optional[bool] = typer.Option(None, "--wait/--no-wait", help="wait for submitted jobs (default: wait, except for slurm)"),
     partition: Optional[str] = typer.Option(None, "--partition", help="slurm: partition (default: the suite's slurm.partition)"),
@@ -105,13 +107,14 @@ def sweep(
     try:
         suite = sw.load_suite(suite_file, budget)
         if show_results:
-            rows = sw.results(suite, STATE.store)
+            metrics = tuple(dict.fromkeys(metric)) if metric else sw.DEFAULT_RESULT_METRICS
+            rows = sw.results(suite, STATE.store, metrics)
             if as_json:
                 out.print_json(json.dumps(rows))
             elif markdown:
-                out.print(sw.results_markdown(suite, rows), soft_wrap=True, highlight=False, markup=False)
+                out.print(sw.results_markdown(suite, rows, metrics), soft_wrap=True, highlight=False, markup=False)
             else:
-                out.print(sw.results_table(suite, rows))
+                out.print(sw.results_table(suite, rows, metrics))
             if plot:
                 from esr_cli import figures as figs, paper
 
@@ -229,9 +232,10 @@ def diagnose(
     rewards = dg.reward_by_situation(trainer, one, jax.random.PRNGKey(0), batches)
     starts = dg.corner_start_policy(trainer, one, jax.random.PRNGKey(1)) if trainer.method.learns_policy else []
     reprs = dg.representation_check(trainer, one, jax.random.PRNGKey(2), batches) if trainer.spec.method.kind == "esr" else None
+    contrast = dg.free_trapped_contrast(rewards)
     if as_json:
         out.print_json(json.dumps({"run": str(path), "seed_index": seed_index, "reward": rewards, "corner_starts": starts,
-                                   "representations": reprs}))
+                                   "free_vs_trapped": contrast, "representations": reprs}))
         return
     table = Table(title=f"{manifest['name']} ({manifest['budget']} budget), seed index {seed_index}: reward by the human's situation")
     for col in ("situation", "transitions", "mean reward", "sd"):
@@ -239,6 +243,8 @@ def diagnose(
     for name, r in rewards.items():
         table.add_row(name, str(r["n"]), f"{r['mean']:.3f}", f"{r['sd']:.3f}")
     out.print(table)
+    out.print(f"free vs trapped: {contrast['difference']:+.3f} in mean reward, effect size {contrast['effect_size']:.2f} "
+              "(pooled standard deviations)")
     if starts:
         table = Table(title="corner starts: robot actions by what they do (the human staying)")
         table.add_column("human at")

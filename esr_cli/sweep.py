@@ -206,16 +206,22 @@ def status_json(rows: list[RunStatus]) -> list[dict]:
              "state": r.state, "detail": r.note, "path": str(r.path) if r.path else None} for r in rows]
 
 
-def results(suite: Suite, store: Store) -> list[dict]:
-    """Each run's final return and success (mean +- SE across seeds, esr_cli.finals) and wall
-    time, read from the committed artifacts; runs not done carry their state and the command."""
-    from esr_cli.finals import run_finals
+DEFAULT_RESULT_METRICS = ("return", "success")
+
+
+def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS) -> list[dict]:
+    """Each run's final value of each metric (return and success unless told; mean +- SE across
+    seeds, esr_cli.finals) and wall time, read from the committed artifacts; a metric a run does
+    not log is left out of its row; runs not done carry their state and the command."""
+    from esr_cli.finals import read_rows, run_finals
 
     out = []
     for r in status(suite, store):
         row = {"run": r.run.label, "method": r.run.spec.method.kind, "key": r.run.key, "state": r.state}
         if r.state == "done":
-            row.update(run_finals(r.path), wall_s=store.read_manifest(r.path).get("wall_time_s"), path=str(r.path))
+            logged = set(read_rows(r.path)[-1]) if metrics != DEFAULT_RESULT_METRICS else set(metrics)
+            row.update(run_finals(r.path, tuple(m for m in metrics if m in logged)),
+                       wall_s=store.read_manifest(r.path).get("wall_time_s"), path=str(r.path))
         else:
             row["command"] = r.run.command(suite.budget)
         out.append(row)
@@ -228,30 +234,40 @@ def _pm(row: dict, name: str, digits: int) -> str:
     return format_summary(row[name], digits)
 
 
-def results_table(suite: Suite, rows: list[dict]) -> Table:
-    table = Table(title=f"suite {suite.name} ({suite.budget}): final return and success, mean ± SE and IQM "
+def _cell(row: dict, name: str) -> str:
+    if name not in row:
+        return "—"  # the run does not log this metric
+    return _pm(row, name, 2 if name == "return" else 3)
+
+
+def _what(metrics: tuple[str, ...]) -> str:
+    return ", ".join(metrics[:-1]) + f" and {metrics[-1]}" if len(metrics) > 1 else metrics[0]
+
+
+def results_table(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS) -> Table:
+    table = Table(title=f"suite {suite.name} ({suite.budget}): final {_what(metrics)}, mean ± SE and IQM "
                         "[95% bootstrap CI] across seeds (last 10% of epochs)")
-    for col in ("run", "method", "seeds", "return", "success", "wall"):
+    for col in ("run", "method", "seeds", *metrics, "wall"):
         table.add_column(col, overflow="fold")
     for r in rows:
         if r["state"] == "done":
             wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
-            table.add_row(r["run"], r["method"], str(r["seeds"]), _pm(r, "return", 2), _pm(r, "success", 3), wall)
+            table.add_row(r["run"], r["method"], str(r["seeds"]), *(_cell(r, m) for m in metrics), wall)
         else:
-            table.add_row(r["run"], r["method"], "", f"[{_STYLE[r['state']]}]{r['state']}[/]", "", "")
+            table.add_row(r["run"], r["method"], "", f"[{_STYLE[r['state']]}]{r['state']}[/]", *[""] * len(metrics))
     return table
 
 
-def results_markdown(suite: Suite, rows: list[dict]) -> str:
-    lines = [f"Suite `{suite.name}`, budget `{suite.budget}`: final return and success, mean ± SE and "
+def results_markdown(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS) -> str:
+    lines = [f"Suite `{suite.name}`, budget `{suite.budget}`: final {_what(metrics)}, mean ± SE and "
              "the interquartile mean [95% stratified bootstrap interval] across seeds (each seed's last 10% of epochs).", "",
-             "| run | method | seeds | return | success | wall |", "|---|---|---|---|---|---|"]
+             "| run | method | seeds | " + " | ".join(metrics) + " | wall |", "|---|---|---|" + "---|" * len(metrics) + "---|"]
     for r in rows:
         if r["state"] == "done":
             wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
-            lines.append(f"| {r['run']} | {r['method']} | {r['seeds']} | {_pm(r, 'return', 2)} | {_pm(r, 'success', 3)} | {wall} |")
+            lines.append(f"| {r['run']} | {r['method']} | {r['seeds']} | " + " | ".join(_cell(r, m) for m in metrics) + f" | {wall} |")
         else:
-            lines.append(f"| {r['run']} | {r['method']} | | {r['state']}: `{r['command']}` | | |")
+            lines.append(f"| {r['run']} | {r['method']} | | {r['state']}: `{r['command']}` |" + " |" * len(metrics))
     return "\n".join(lines)
 
 

@@ -5,7 +5,7 @@ import json
 import numpy as np
 
 from conftest import esr
-from esr_cli.analysis.diagnose import SITUATIONS, situation
+from esr_cli.analysis.diagnose import SITUATIONS, free_trapped_contrast, situation
 
 
 def test_situations_of_hand_made_states():
@@ -19,6 +19,19 @@ def test_situations_of_hand_made_states():
     assert got == ["trapped", "free", "dead", "at_goal", "trapped"]
 
 
+def test_free_trapped_contrast_is_cohens_d():
+    free = np.array([1.0, 2.0, 3.0, 6.0])
+    trapped = np.array([0.0, 1.0, -1.0])
+    rewards = {name: {"n": len(v), "mean": float(v.mean()), "sd": float(v.std())}
+               for name, v in (("free", free), ("trapped", trapped))}
+    pooled = np.sqrt((free.var(ddof=1) * 3 + trapped.var(ddof=1) * 2) / 5)
+    got = free_trapped_contrast(rewards)
+    assert abs(got["difference"] - 3.0) < 1e-12
+    assert abs(got["effect_size"] - 3.0 / pooled) < 1e-12
+    rewards["trapped"] = {"n": 1, "mean": 0.0, "sd": 0.0}
+    assert np.isnan(free_trapped_contrast(rewards)["effect_size"])  # one trapped transition: no spread
+
+
 def test_diagnose_reads_a_trained_run(smoke_run):
     store, path, _ = smoke_run
     proc = esr("diagnose", str(path), "--batches", "3", "--json", store=store)
@@ -27,6 +40,7 @@ def test_diagnose_reads_a_trained_run(smoke_run):
     counted = sum(r["n"] for r in report["reward"].values())
     assert counted == 3 * 16  # three smoke batches of 16, every transition in one situation
     assert len(report["corner_starts"]) == 4
+    assert set(report["free_vs_trapped"]) == {"difference", "effect_size"}
     for row in report["corner_starts"]:
         # A cornered human (N = 2): 4 robot actions free it, 2 push a block onto it.
         assert (row["free"]["actions"], row["dead"]["actions"], row["trapped"]["actions"]) == (4, 2, 119)

@@ -166,6 +166,13 @@ def test_sweep_through_submitit_local(smoke_run, tmp_path):
     assert "| run | method | seeds | return | success | wall |" in md
     assert sum(line.startswith("| grid_2 train.seeds=") for line in md.splitlines()) == 5
     assert "(1 seed)" in md and "±" not in md.split("|---|")[-1]  # one seed: no standard error shown
+    # --metric: any logged metric; one the run does not log is shown as a dash, not invented.
+    md = esr("sweep", str(five), "--budget", "smoke", "--results", "--markdown", "--metric", "mi_estimate",
+             "--metric", "no_such_metric", store=store).stdout
+    assert "| run | method | seeds | mi_estimate | no_such_metric | wall |" in md
+    last = json.loads((result.paths[0] / "metrics.jsonl").read_text().splitlines()[-1])
+    first_row = next(line for line in md.splitlines() if line.startswith("| grid_2 train.seeds="))
+    assert f"| {last['mi_estimate'][0]:.3f} (1 seed) | — |" in first_row
 
     # --plot: their learning curves and table as a figures artifact naming every run it read.
     proc = esr("sweep", str(five), "--budget", "smoke", "--results", "--plot", store=store, **WIDE)

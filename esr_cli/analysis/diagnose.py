@@ -61,6 +61,19 @@ def reward_by_situation(trainer, state, key, batches: int = 40) -> dict:
     }
 
 
+def free_trapped_contrast(rewards: dict) -> dict:
+    """How far the reward ranks a free human above a trapped one (from `reward_by_situation`):
+    the difference of means and Cohen's d, that difference in pooled standard deviations."""
+    free, trapped = rewards["free"], rewards["trapped"]
+    diff = free["mean"] - trapped["mean"]
+    n1, n2 = free["n"], trapped["n"]
+    if n1 < 2 or n2 < 2:
+        return {"difference": diff, "effect_size": float("nan")}
+    # reward_by_situation reports population SDs (ddof 0): back to sums of squares.
+    pooled = np.sqrt((n1 * free["sd"] ** 2 + n2 * trapped["sd"] ** 2) / (n1 + n2 - 2))
+    return {"difference": diff, "effect_size": float(diff / pooled) if pooled > 0 else float("nan")}
+
+
 def corner_start_policy(trainer, state, key, starts: int = 4) -> list[dict]:
     """For `starts` corner starts: per effect of the robot's action (the human staying), how many
     actions have it, their largest and mean Q, and the policy's probability of choosing one."""
