@@ -17,6 +17,20 @@ SPECS = [
 ]
 
 
+# ESR's estimator variants (docs/estimators.md) together, on the crowded grid of the estimator check.
+VARIANTS = [("experiments/grid_4x4_3.yaml", ("method.episode_group=4", "method.future=human", "method.infonce=separate"))]
+
+
+@pytest.mark.parametrize("path,sets", VARIANTS, ids=["esr_variants"])
+def test_esr_variants_train_at_smoke(path, sets, smoke_store):
+    spec = specs.load(path, "smoke", list(sets))
+    assert (spec.method.episode_group, spec.method.future, spec.method.infonce) == (4, "human", "separate")
+    run_path, _ = runs.ensure_run(spec, Store(smoke_store), Console(quiet=True))
+    rows = [json.loads(line) for line in (run_path / "metrics.jsonl").read_text().splitlines()]
+    assert len(rows) == spec.train.epochs
+    assert all(np.isfinite(row["repr_loss"]).all() and np.isfinite(row["mi_estimate"]).all() for row in rows)
+
+
 @pytest.mark.parametrize("path", SPECS, ids=lambda p: Path(p).stem)
 def test_spec_trains_at_smoke(path, smoke_store):
     spec = specs.load(path, "smoke")

@@ -34,6 +34,21 @@ def test_env_interface(cramped):
     assert img.shape == (4 * 32, 5 * 32, 3) and img.dtype == np.uint8 and img.std() > 0
 
 
+def test_human_view_is_the_humans_position_and_orientation(cramped):
+    """In the robot's view the human is layer 1 (position) and 6-9 (orientation, one-hot at its
+    cell); the human's own view has them as 0 and 2-5. Everything else is zeroed."""
+    env = cramped
+    s = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    obs, h = np.asarray(env.observe(s)), np.asarray(env.observe_human(s))
+    view = np.asarray(env.human_view(jnp.asarray(obs)))
+    assert view.shape == obs.shape and view.dtype == obs.dtype
+    np.testing.assert_array_equal(view[..., 1], h[..., 0])
+    np.testing.assert_array_equal(view[..., 6:10], h[..., 2:6])
+    assert view[..., 6:10].sum() == 1  # one orientation at the human's cell
+    others = [c for c in range(obs.shape[-1]) if c not in (1, 6, 7, 8, 9)]
+    assert view[..., others].sum() == 0 and obs[..., others].sum() > 0
+
+
 def test_an_episode_runs_400_steps_without_reset(cramped):
     env = cramped
 
