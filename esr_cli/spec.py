@@ -158,7 +158,10 @@ HumanSpec = Annotated[Union[NoisyGreedyHumanSpec, BCHumanSpec], Field(discrimina
 class ESRMethodSpec(_Model):
     kind: Literal["esr"]
     repr_dim: int = Field(32, ge=1)
-    reward: Literal["dot"] = "dot"
+    reward: Literal["dot", "simplified"] = Field(
+        "dot", description="dot: (phi - phi')^T psi(g); simplified: exp(|phi|^2 / 2d) (phi - phi')^T phi, "
+        "no future state (docs/estimators.md)",
+    )
     infonce: Literal["stacked", "separate"] = "stacked"
     episode_group: int = Field(
         1, ge=1, le=1 << 20,

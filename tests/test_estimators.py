@@ -197,3 +197,57 @@ def test_stacked_batch_negatives_lose_the_human_where_the_context_identifies_the
     so the estimate stays far below log 4 (about 0.16 after 1,500 updates)."""
     estimate = _synthetic_estimate("stacked", 1, "full")
     assert estimate < 0.3 * TRUE_MI, estimate
+
+
+# ---------------------------------------------------------------- the simplified reward
+def test_simplified_reward_by_hand():
+    from esr_cli.methods.esr import simplified_reward
+
+    phi_sa = np.array([[2.0, 0.0], [0.0, 0.0], [1.0, 1.0]], np.float32)
+    phi_s = np.array([[0.0, 0.0], [1.0, 1.0], [1.0, 1.0]], np.float32)
+    got = np.asarray(simplified_reward(jnp.asarray(phi_s), jnp.asarray(phi_sa)))
+    # d = 2: exp(|phi|^2 / 4) (phi - phi') . phi
+    np.testing.assert_allclose(got, [np.exp(1.0) * 4.0, 0.0, 0.0], rtol=1e-6)
+
+
+def test_simplified_reward_is_the_dot_reward_averaged_over_gaussian_futures():
+    """With psi / sqrt(d) ~ N(0, I), E_{p(g)}[exp(phi . psi / d) (phi - phi')^T psi] equals the
+    simplified reward: checked by Monte Carlo over a million Gaussian futures."""
+    from esr_cli.methods.esr import simplified_reward
+
+    d = 4
+    rng = np.random.default_rng(0)
+    phi_sa, phi_s = rng.normal(size=(2, d)) * 0.8
+    psi = rng.normal(size=(1_000_000, d)) * np.sqrt(d)
+    weights = np.exp(psi @ phi_sa / d)
+    monte_carlo = np.mean(weights * (psi @ (phi_sa - phi_s)))
+    got = float(simplified_reward(jnp.asarray(phi_s[None], jnp.float32), jnp.asarray(phi_sa[None], jnp.float32))[0])
+    assert got == pytest.approx(monte_carlo, rel=0.02)
+
+
+def test_simplified_reward_needs_no_future_and_the_table_agrees():
+    esr, env = _esr(reward="simplified")
+    rng = np.random.default_rng(1)
+    states = [_state(rng.integers(0, 5, 2), rng.integers(0, 5, (2, 2))) for _ in range(4)]
+    obs = jnp.stack([env.observe(s) for s in states])
+    ar, ah = jnp.array([3, 7, 9, 11], jnp.int32), jnp.array([0, 1, 2, 4], jnp.int32)
+
+    def batch(future):
+        return replay.Batch(obs=obs, next_obs=obs, future_obs=future, robot_action=ar, human_action=ah,
+                            reward=jnp.zeros(4), done=jnp.zeros(4), offset=jnp.ones(4, jnp.int32))
+
+    state = esr.init(jax.random.PRNGKey(0), obs[0])
+    a = esr.reward(state, batch(obs), jax.random.PRNGKey(1))
+    b = esr.reward(state, batch(obs[::-1]), jax.random.PRNGKey(2))
+    np.testing.assert_array_equal(a, b)  # the future state plays no part
+    from esr_cli.methods.esr import simplified_reward
+
+    np.testing.assert_allclose(a, simplified_reward(*esr.represent_phi(state.params, obs, ar, ah)), rtol=1e-6)
+    # The runner's reward table (every stored transition represented once) gives the same values.
+    buf = replay.add(replay.init(2, 2, obs.shape[1:], obs.dtype), replay.Episodes(
+        obs=jnp.stack([obs[:3], obs[1:]]), robot_action=ar.reshape(2, 2), human_action=ah.reshape(2, 2),
+        reward=jnp.zeros((2, 2))))
+    table = esr.reward_table(state, buf)
+    idx = replay.Index(episode=jnp.array([0, 0, 1, 1]), t=jnp.array([0, 1, 0, 1]), future=jnp.array([1, 2, 2, 2]))
+    direct = esr.reward(state, replay.gather(buf, idx), jax.random.PRNGKey(3))
+    np.testing.assert_allclose(esr.reward_from_table(table, idx), direct, rtol=1e-5, atol=1e-6)

@@ -90,6 +90,19 @@ def empowerment_reward(phi_s, phi_sa, psi) -> jax.Array:
     return jnp.sum((phi_sa - phi_s) * psi, axis=-1)
 
 
+def simplified_reward(phi_s, phi_sa) -> jax.Array:
+    """The reward without a future state: r = exp(|phi|^2 / 2d) (phi - phi')^T phi, per example.
+
+    If the future representations are standard normal on the logit scale (psi / sqrt(d) ~
+    N(0, I), since logits are phi . psi / d), then the expectation of the main reward over
+    g ~ p(g | s, aR, aH), E_g[(phi - phi')^T psi(g)] = E_{p(g)}[exp(phi . psi / d) (phi - phi')^T psi],
+    is this value times a constant (docs/estimators.md). The exponent is capped at 80 so that
+    float32 cannot overflow."""
+    d = phi_sa.shape[-1]
+    scale = jnp.exp(jnp.minimum(jnp.sum(phi_sa * phi_sa, axis=-1) / (2 * d), 80.0))
+    return scale * jnp.sum((phi_sa - phi_s) * phi_sa, axis=-1)
+
+
 class RewardTable(NamedTuple):
     """The representations of everything in the replay buffer, for one set of parameters."""
 
@@ -191,6 +204,9 @@ class ESR(NamedTuple):
         return ESRState(params=params, opt_state=opt_state), metrics
 
     def reward(self, state: ESRState, batch, key):
+        if self.spec.reward == "simplified":
+            phi_s, phi_sa = self.represent_phi(state.params, batch.obs, batch.robot_action, batch.human_action)
+            return jax.lax.stop_gradient(simplified_reward(phi_s, phi_sa))
         phi_s, phi_sa, psi = self.represent(
             state.params, batch.obs, batch.robot_action, batch.human_action, batch.future_obs
         )
@@ -211,6 +227,8 @@ class ESR(NamedTuple):
 
     def reward_from_table(self, table: RewardTable, idx) -> jax.Array:
         """The reward of the batch at buffer index `idx` (core/buffer.Index)."""
+        if self.spec.reward == "simplified":
+            return simplified_reward(table.phi_s[idx.episode, idx.t], table.phi_sa[idx.episode, idx.t])
         return empowerment_reward(
             table.phi_s[idx.episode, idx.t], table.phi_sa[idx.episode, idx.t], table.psi[idx.episode, idx.future]
         )
