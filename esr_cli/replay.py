@@ -73,6 +73,14 @@ def add(buf: Buffer, episodes: Episodes) -> Buffer:
     )
 
 
+def post_step_view(buf: Buffer) -> Buffer:
+    """The buffer as the published Overcooked code pairs it: row t holds the observation after
+    step t, o_{t+1}, with the actions a_t that led to it (docs/choices.md). Every lookup then
+    shifts by one step: next of row t is o_{t+2}, a future o_{t+1+K}. The episode's last row
+    keeps o_T (the original stored the next episode's first observation there)."""
+    return buf._replace(obs=jnp.concatenate([buf.obs[:, 1:], buf.obs[:, -1:]], axis=1))
+
+
 def episodes_per_call(steps: int) -> int:
     """How many stored episodes `map_episodes` takes at once: about 256 transitions, the size
     of a training batch, so that intermediates stay in cache."""

@@ -171,6 +171,14 @@ class ESRMethodSpec(_Model):
     future: Literal["full", "human"] = Field(
         "full", description="what psi sees of the future state: all of it, or only the human's part (docs/estimators.md)"
     )
+    pairing: Literal["aligned", "original"] = Field(
+        "aligned", description="original: every update pairs o_{t+1} with a_t, as the published Overcooked code "
+        "(docs/choices.md); aligned: o_t with a_t, as the paper's equations",
+    )
+    action_input: Literal["broadcast", "append"] = Field(
+        "broadcast", description="how actions enter phi: one-hot planes over the grid, or appended once to the "
+        "flattened observation (the published Overcooked code; needs network.kind: mlp)",
+    )
     condition_on_robot_action: bool = True
     future_gamma: float = Field(0.9, ge=0.0, lt=1.0, description="future-state horizon: K ~ Geom(1 - future_gamma)")
     repr_lr: float = Field(1e-4, gt=0.0)
@@ -334,6 +342,12 @@ class Spec(_Model):
                              "coordinates); Overcooked has variant: fixed only")
         if self.method.kind == "goal_inference" and self.env.kind != "gridworld":
             raise ValueError("method.kind=goal_inference needs the gridworld's known human model (env.kind: gridworld)")
+        if self.method.kind == "esr" and self.method.pairing == "original" and self.env.kind != "overcooked":
+            raise ValueError("method.pairing=original is the published Overcooked code's pairing; its gridworld code "
+                             "pairs o_t with a_t, which is pairing: aligned (docs/choices.md)")
+        if self.method.kind == "esr" and self.method.action_input == "append" and self.network.kind != "mlp":
+            raise ValueError("method.action_input=append feeds the one-hot once to a network that flattens its "
+                             "input: it needs network.kind: mlp (a convolution would see it in one cell only)")
         if self.method.kind == "esr" and self.method.episode_group > self.learner.batch_size:
             raise ValueError(f"method.episode_group={self.method.episode_group} is larger than "
                              f"learner.batch_size={self.learner.batch_size}: a batch cannot hold one group")

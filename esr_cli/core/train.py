@@ -74,6 +74,12 @@ class Trainer(NamedTuple):
         return int(method.episode_group) if method.kind == "esr" else 1
 
     @property
+    def post_step_pairing(self) -> bool:
+        """ESR's `pairing: original`: every update reads the buffer as `replay.post_step_view`."""
+        method = self.spec.method
+        return method.kind == "esr" and method.pairing == "original"
+
+    @property
     def metric_names(self) -> tuple[str, ...]:
         return BASE_METRICS + tuple(self.method.metric_names) + tuple(self.human.metric_names)
 
@@ -208,6 +214,9 @@ class Trainer(NamedTuple):
             ep = roll.episodes
             hstate, h_metrics = self.human.update(state.human, roll.states, ep.human_action, ep.reward, jax.random.fold_in(key, 2))
         batch_size, fg = spec.learner.batch_size, self.future_gamma
+        stored = buf
+        if self.post_step_pairing:  # the updates read the published code's pairing; the buffer is unchanged
+            buf = replay.post_step_view(buf)
 
         def repr_step(mstate, key):
             k_sample, k_update = jax.random.split(key)
@@ -265,7 +274,7 @@ class Trainer(NamedTuple):
         metrics.update(m_metrics)
         metrics.update(jax.tree.map(jnp.mean, roll.rule_metrics))
         metrics.update(h_metrics)
-        new_state = TrainState(epoch=state.epoch + 1, key=key, learner=lstate, method=mstate, buffer=buf, human=hstate)
+        new_state = TrainState(epoch=state.epoch + 1, key=key, learner=lstate, method=mstate, buffer=stored, human=hstate)
         return new_state, {k: metrics[k].astype(jnp.float32) for k in self.metric_names}
 
     def run_epochs(self, state: TrainState, n: int):

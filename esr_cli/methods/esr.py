@@ -146,12 +146,23 @@ class ESR(NamedTuple):
     def optimizer(self):
         return optax.adam(self.spec.repr_lr)
 
+    def _appended(self, action, n: int):
+        """[B, H, W, n]: the action's one-hot in cell (0, 0) only, zeros elsewhere. A network that
+        flattens its input first (the MLP) then sees the one-hot once, as if appended to the
+        flattened observation (the published Overcooked code); `broadcast` repeats it per cell."""
+        h, w = self.env.obs_shape[:2]
+        return jnp.zeros((action.shape[0], h, w, n), jnp.float32).at[:, 0, 0, :].set(jax.nn.one_hot(action, n))
+
     def _phi_inputs(self, obs, robot_action, human_action):
         """[2B, H, W, C]: the phi'(s, aR) inputs stacked on the phi(s, aR, aH) inputs."""
-        ar = jax.vmap(self.env.robot_action_planes)(robot_action)
+        if self.spec.action_input == "append":
+            ar = self._appended(robot_action, self.env.num_robot_actions)
+            ah = self._appended(human_action, self.env.num_human_actions)
+        else:
+            ar = jax.vmap(self.env.robot_action_planes)(robot_action)
+            ah = jax.vmap(self.env.human_action_planes)(human_action)
         if not self.spec.condition_on_robot_action:
             ar = jnp.zeros_like(ar)
-        ah = jax.vmap(self.env.human_action_planes)(human_action)
         base = jnp.concatenate([obs.astype(jnp.float32), ar], axis=-1)
         with_human = jnp.concatenate([base, ah], axis=-1)
         without_human = jnp.concatenate([base, jnp.zeros_like(ah)], axis=-1)
