@@ -337,9 +337,6 @@ class Spec(_Model):
             raise ValueError("method.kind=oracle is gridworld-only: in Overcooked the goal is the shared reward (docs/baselines.md)")
         if self.method.kind == "oracle" and not getattr(self.env, "goal_visible", False):
             raise ValueError("method.kind=oracle needs env.goal_visible: true (the oracle sees the goal)")
-        if self.method.kind == "ave" and self.method.variant == "original" and self.env.kind != "gridworld":
-            raise ValueError("method.variant=original is the published gridworld AvE (its features are block "
-                             "coordinates); Overcooked has variant: fixed only")
         if self.method.kind == "goal_inference" and self.env.kind != "gridworld":
             raise ValueError("method.kind=goal_inference needs the gridworld's known human model (env.kind: gridworld)")
         if self.method.kind == "esr" and self.method.pairing == "original" and self.env.kind != "overcooked":

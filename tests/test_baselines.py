@@ -61,6 +61,28 @@ def test_ave_proxy_matches_numpy(variant):
     assert got == pytest.approx(want, rel=1e-5, abs=1e-5)
 
 
+def test_published_overcooked_ave_is_one_step_and_one_variance_over_the_human_observation():
+    """variant: original on Overcooked, against JaxMARL stepped directly from the true state:
+    each rollout is one uniform human action (the robot staying), the reward the log of one
+    variance over every element of the rollouts' human observations."""
+    from esr_cli.envs.overcooked import STAY as OC_STAY, Overcooked
+
+    env = Overcooked("cramped_room", 400)
+    spec = specs.load("experiments/cramped_room_ave.yaml", "smoke", ["method.variant=original"])
+    ave = AvE.from_spec(spec, env, None)
+    state = jax.jit(env.reset)(jax.random.PRNGKey(4))
+    state, _ = jax.jit(env.step)(state, jnp.int32(OC_STAY), jnp.int32(1))  # not the start state
+    key = jax.random.PRNGKey(5)
+    actions = np.asarray(ave.rollout_actions(key, 1))[0]
+    assert actions.shape == (spec.method.num_rollouts, 1) and set(actions[:, 0]) <= set(range(6))
+    assert len(set(actions[:, 0])) > 1  # uniform over the six actions, not mostly 'stay'
+    step = jax.jit(lambda a: env.observe_human(env.step(state, jnp.int32(OC_STAY), a)[0]))
+    ends = np.stack([np.asarray(step(jnp.int32(a)), np.float64).reshape(-1) for a in actions[:, 0]])
+    want = np.log(ends.var())
+    got = float(jax.jit(ave.state_reward)(env.observe(state)[None], key)[0])
+    assert got == pytest.approx(want, rel=1e-5)
+
+
 def test_ave_proxy_is_lowest_for_a_trapped_human():
     env = Gridworld(size=5, num_blocks=2, start="corner", episode_steps=50)
     ave = AvE(env=env, spec=specs.AvEMethodSpec(kind="ave"))
