@@ -154,15 +154,20 @@ def eval_(
     budget: str = BudgetOpt,
     set_: Optional[List[str]] = SetOpt,
     episodes: Optional[int] = typer.Option(None, "--episodes", "-n", help="episodes per seed and policy (default: spec eval.episodes)"),
+    human: str = typer.Option("training", "--human", help="training: the human the robot trained with | proxy: a BC "
+                              "human cloned from the held-out test split of the human data (Overcooked)"),
 ):
     """Evaluate a trained robot with its human; writes an evaluation artifact, a GIF and a curve."""
     from esr_cli import runs
 
-    run_path = runs.find_run(target, budget, set_, STATE.store)
+    if human not in runs.EVAL_PARTNERS:
+        raise Exit(2, f"--human: unknown partner {human!r}; known: {', '.join(runs.EVAL_PARTNERS)}")
     if episodes is not None and episodes < 1:
         raise Exit(2, f"--episodes: must be >= 1 (got {episodes})")
-    path, summary, cached = runs.ensure_eval(run_path, STATE.store, episodes, err)
-    table = Table(title=f"{summary['name']} ({summary['budget']}, {len(summary['seeds'])} seed(s), {summary['episodes']} episodes each)")
+    run_path = runs.find_run(target, budget, set_, STATE.store)
+    path, summary, cached = runs.ensure_eval(run_path, STATE.store, episodes, err, human)
+    partner = "" if human == "training" else f", with the {human} human {summary['human_key'][:8]}"
+    table = Table(title=f"{summary['name']} ({summary['budget']}, {len(summary['seeds'])} seed(s), {summary['episodes']} episodes each{partner})")
     for col in ("policy", "return (mean ± SE)", "success (mean ± SE)"):
         table.add_column(col)
     for mode, r in summary["results"].items():

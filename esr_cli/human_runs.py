@@ -125,8 +125,10 @@ def ensure_human(human_spec, layout: str, store: Store, console: Console) -> tup
         pending = {"kind": HUMAN_KIND, "name": f"bc_{layout}", "key": key}
         out = store.begin(HUMAN_KIND, key, pending)
         data = load_data(data_path)
-        train, test = ~data["test"], data["test"]
-        with console.status(f"cloning the human of {layout} ({int(train.sum())} pairs, {human_spec.epochs} epochs)"):
+        # The split cloned from, and the one held out for its accuracy (test for a proxy human).
+        train, test = (data["test"], ~data["test"]) if human_spec.split == "test" else (~data["test"], data["test"])
+        with console.status(f"cloning the human of {layout} from its {human_spec.split} split "
+                            f"({int(train.sum())} pairs, {human_spec.epochs} epochs)"):
             params, losses = bc.train_bc(data["obs"][train], data["action"][train], human_spec, seed=human_spec.seed)
         acc_train = bc.accuracies(params, human_spec.hidden, data["obs"][train], data["action"][train])
         acc_test = bc.accuracies(params, human_spec.hidden, data["obs"][test], data["action"][test])
@@ -138,8 +140,9 @@ def ensure_human(human_spec, layout: str, store: Store, console: Console) -> tup
                                                           "input": "agent's own view, (H, W, 26), urgency channel zeroed"}))
         summary = {
             "layout": layout,
-            "train": acc_train,
-            "test": acc_test,
+            "split": human_spec.split,
+            "train": acc_train,  # on the split it was cloned from
+            "test": acc_test,  # on the other one
             "selfplay_return": {"mean": round(float(returns.mean()), 3), "se": round(se, 3), "episodes": len(returns),
                                 "episode_steps": 400},
             "final_train_loss": round(losses[-1], 5),

@@ -199,7 +199,10 @@ def find_run(target: str, budget: str, sets, store: Store) -> Path:
     return path
 
 
-def eval_key(run_manifest: dict, episodes: int) -> tuple[str, dict]:
+EVAL_PARTNERS = ("training", "proxy")
+
+
+def eval_key(run_manifest: dict, episodes: int, partner_key: str | None = None) -> tuple[str, dict]:
     components = {
         "kind": "eval",
         "run": run_manifest["key"],
@@ -207,14 +210,39 @@ def eval_key(run_manifest: dict, episodes: int) -> tuple[str, dict]:
         "code": provenance.code_digest(provenance.EVAL_SOURCES),
         "toolchain": provenance.toolchain(),
     }
+    if partner_key is not None:  # a human other than the one the robot trained with
+        components["human"] = partner_key
     return content_key(components), components
 
 
-def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Console) -> tuple[Path, dict, bool]:
+def _eval_partner(spec, partner: str, store: Store, console: Console):
+    """(spec with the evaluation's human, that human's key or None for the training partner)."""
+    if partner == "training":
+        return spec, None
+    if partner != "proxy":
+        raise StoreError(f"--human: unknown partner {partner!r}; known: {', '.join(EVAL_PARTNERS)}")
+    if spec.human.kind != "bc":
+        raise StoreError("--human proxy is a BC human cloned from the held-out split of the human data: "
+                         f"this run's human is {spec.human.kind!r} (Overcooked runs have one)")
+    if spec.human.adapt:
+        raise StoreError("--human proxy: this run's human adapted during training, and its state is part of the run's; "
+                         "evaluate it with its training human")
+    from esr_cli.human_runs import ensure_human, human_key
+
+    proxy = spec.human.proxy()
+    ensure_human(proxy, spec.env.layout, store, console)
+    return spec.model_copy(update={"human": proxy}), human_key(proxy, spec.env.layout)[0]
+
+
+def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Console,
+                partner: str = "training") -> tuple[Path, dict, bool]:
+    """Evaluate a run's final robot with its training human, or with a held-out proxy human
+    (`partner="proxy"`, a BC human cloned from the test split)."""
     run_manifest = store.read_manifest(run_path)
-    spec = run_spec(run_path)
+    train_spec = run_spec(run_path)
+    spec, partner_key = _eval_partner(train_spec, partner, store, console)
     episodes = episodes or spec.eval.episodes
-    key, components = eval_key(run_manifest, episodes)
+    key, components = eval_key(run_manifest, episodes, partner_key)
 
     def make() -> Path:
         enable_compile_cache()
@@ -229,7 +257,7 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
             state = loop.final_state(trainer, run_path)
             results = ev.evaluate(trainer, state, episodes, spec.train.seeds)
         summary = {"name": spec.name, "budget": spec.budget, "seeds": list(spec.train.seeds), "episodes": episodes,
-                   "run": run_manifest["key"], "results": {}}
+                   "run": run_manifest["key"], "human": partner, "human_key": partner_key, "results": {}}
         from esr_cli.stats import describe
 
         for mode, r in results.items():  # per seed: the mean over its episodes

@@ -131,6 +131,10 @@ class BCHumanSpec(_Model):
     lr: float = Field(1e-3, gt=0.0)
     batch_size: int = Field(256, ge=1)
     seed: int = Field(0, ge=0)
+    split: Literal["train", "test"] = Field(
+        "train", description="which split of the human data to clone: test gives a held-out proxy human "
+        "(`esr eval --human proxy`)",
+    )
     selfplay_episodes: int = Field(64, ge=2, description="BC+BC episodes for the recorded self-play return")
     adapt: bool = Field(False, description="the human keeps learning alongside the robot")
     adapt_lr: float = Field(1e-4, gt=0.0)
@@ -148,7 +152,14 @@ class BCHumanSpec(_Model):
         """The fields that decide the cloned policy (the human artifact's key)."""
         d = self.model_dump(mode="json")
         keep = ("hidden", "stay_weight", "epochs", "lr", "batch_size", "seed", "selfplay_episodes")
-        return {"layout": self.layout or layout, **{k: d[k] for k in keep}}
+        part = {"layout": self.layout or layout, **{k: d[k] for k in keep}}
+        if self.split != "train":  # only when set, so that the humans cloned before this field keep their keys
+            part["split"] = self.split
+        return part
+
+    def proxy(self) -> "BCHumanSpec":
+        """The held-out proxy of this human: the same cloning, on the test split, not adapting."""
+        return self.model_copy(update={"split": "test", "adapt": False})
 
 
 HumanSpec = Annotated[Union[NoisyGreedyHumanSpec, BCHumanSpec], Field(discriminator="kind")]

@@ -183,3 +183,32 @@ def test_mlp_network_flattens_the_grid():
     # No QR decomposition (a LAPACK call): several in one seed-vmapped program deadlock XLA on CPU.
     jaxpr = str(jax.make_jaxpr(lambda k: net.init(k, x))(jax.random.PRNGKey(0)))
     assert "qr[" not in jaxpr and "householder" not in jaxpr  # flax's orthogonal shows "qr["
+
+
+def test_proxy_human_is_cloned_from_the_held_out_split(random_smoke, store, console):
+    spec, path, _ = random_smoke
+    proxy = spec.human.proxy()
+    assert proxy.split == "test" and not proxy.adapt
+    # The training human's key has no split component (keys made before the field stay valid).
+    assert "split" not in spec.human.cloning_part("coord_ring") and proxy.cloning_part("coord_ring")["split"] == "test"
+    proxy_path, _ = human_runs.ensure_human(proxy, "coord_ring", store, console)
+    assert proxy_path != store.lookup(human_runs.HUMAN_KIND, human_runs.human_key(spec.human, "coord_ring")[0])
+    s = json.loads((proxy_path / "manifest.json").read_text())["summary"]
+    assert s["split"] == "test" and s["train"]["samples"] == s["test"]["samples"] == 2 * ROWS
+    # A run whose human adapted carries that human in its state: no proxy evaluation.
+    with pytest.raises(StoreError, match="adapted during training"):
+        runs.ensure_eval(path, store, 2, console, "proxy")
+
+
+def test_eval_with_the_proxy_human(small_data, store, console):
+    spec = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN)  # the module's data and humans
+    path, _ = runs.ensure_run(spec, store, console)
+    own, own_summary, _ = runs.ensure_eval(path, store, 2, console)
+    proxy, summary, cached = runs.ensure_eval(path, store, 2, console, "proxy")
+    assert not cached and proxy != own and own_summary["human"] == "training" and own_summary["human_key"] is None
+    proxy_key = human_runs.human_key(spec.human.proxy(), "coord_ring")[0]
+    assert summary["human"] == "proxy" and summary["human_key"] == proxy_key
+    assert json.loads((proxy / "manifest.json").read_text())["key_components"]["human"] == proxy_key
+    for r in summary["results"].values():
+        assert 0 <= r["return_mean"] <= 400 * 20
+    assert runs.ensure_eval(path, store, 2, console, "proxy")[2]  # a cache hit the second time
