@@ -156,6 +156,8 @@ def eval_(
     episodes: Optional[int] = typer.Option(None, "--episodes", "-n", help="episodes per seed and policy (default: spec eval.episodes)"),
     human: str = typer.Option("training", "--human", help="training: the human the robot trained with | proxy: a BC "
                               "human cloned from the held-out test split of the human data (Overcooked)"),
+    seat: Optional[int] = typer.Option(None, "--seat", help="Overcooked: the JaxMARL agent the robot plays (default: "
+                                       "its training seat; 1 flips the seats)"),
 ):
     """Evaluate a trained robot with its human; writes an evaluation artifact, a GIF and a curve."""
     from esr_cli import runs
@@ -165,8 +167,10 @@ def eval_(
     if episodes is not None and episodes < 1:
         raise Exit(2, f"--episodes: must be >= 1 (got {episodes})")
     run_path = runs.find_run(target, budget, set_, STATE.store)
-    path, summary, cached = runs.ensure_eval(run_path, STATE.store, episodes, err, human)
+    path, summary, cached = runs.ensure_eval(run_path, STATE.store, episodes, err, human, seat)
     partner = "" if human == "training" else f", with the {human} human {summary['human_key'][:8]}"
+    if seat is not None and summary.get("robot_seat") is not None:
+        partner += f", robot as agent_{summary['robot_seat']}"
     table = Table(title=f"{summary['name']} ({summary['budget']}, {len(summary['seeds'])} seed(s), {summary['episodes']} episodes each{partner})")
     for col in ("policy", "return (mean ± SE)", "success (mean ± SE)"):
         table.add_column(col)

@@ -202,7 +202,7 @@ def find_run(target: str, budget: str, sets, store: Store) -> Path:
 EVAL_PARTNERS = ("training", "proxy")
 
 
-def eval_key(run_manifest: dict, episodes: int, partner_key: str | None = None) -> tuple[str, dict]:
+def eval_key(run_manifest: dict, episodes: int, partner_key: str | None = None, seat: int | None = None) -> tuple[str, dict]:
     components = {
         "kind": "eval",
         "run": run_manifest["key"],
@@ -212,6 +212,8 @@ def eval_key(run_manifest: dict, episodes: int, partner_key: str | None = None) 
     }
     if partner_key is not None:  # a human other than the one the robot trained with
         components["human"] = partner_key
+    if seat is not None:  # seats other than the training ones
+        components["robot_seat"] = seat
     return content_key(components), components
 
 
@@ -234,15 +236,30 @@ def _eval_partner(spec, partner: str, store: Store, console: Console):
     return spec.model_copy(update={"human": proxy}), human_key(proxy, spec.env.layout)[0]
 
 
+def _eval_seat(spec, seat: int | None):
+    """(spec with the robot in `seat`, the seat if it differs from training's, else None)."""
+    if seat is None:
+        return spec, None
+    if spec.env.kind != "overcooked":
+        raise StoreError("--seat: seats are JaxMARL's Overcooked agents; a gridworld has one robot seat")
+    if seat not in (0, 1):
+        raise StoreError(f"--seat: 0 or 1, got {seat}")
+    if seat == spec.env.robot_seat:
+        return spec, None
+    return spec.model_copy(update={"env": spec.env.model_copy(update={"robot_seat": seat})}), seat
+
+
 def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Console,
-                partner: str = "training") -> tuple[Path, dict, bool]:
+                partner: str = "training", seat: int | None = None) -> tuple[Path, dict, bool]:
     """Evaluate a run's final robot with its training human, or with a held-out proxy human
-    (`partner="proxy"`, a BC human cloned from the test split)."""
+    (`partner="proxy"`, a BC human cloned from the test split); in its training seat, or in
+    `seat` (Overcooked: 1 plays the robot as agent_1, the flipped evaluation)."""
     run_manifest = store.read_manifest(run_path)
     train_spec = run_spec(run_path)
-    spec, partner_key = _eval_partner(train_spec, partner, store, console)
+    spec, new_seat = _eval_seat(train_spec, seat)
+    spec, partner_key = _eval_partner(spec, partner, store, console)
     episodes = episodes or spec.eval.episodes
-    key, components = eval_key(run_manifest, episodes, partner_key)
+    key, components = eval_key(run_manifest, episodes, partner_key, new_seat)
 
     def make() -> Path:
         enable_compile_cache()
@@ -257,7 +274,8 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
             state = loop.final_state(trainer, run_path)
             results = ev.evaluate(trainer, state, episodes, spec.train.seeds)
         summary = {"name": spec.name, "budget": spec.budget, "seeds": list(spec.train.seeds), "episodes": episodes,
-                   "run": run_manifest["key"], "human": partner, "human_key": partner_key, "results": {}}
+                   "run": run_manifest["key"], "human": partner, "human_key": partner_key,
+                   "robot_seat": spec.env.robot_seat if spec.env.kind == "overcooked" else None, "results": {}}
         from esr_cli.stats import describe
 
         for mode, r in results.items():  # per seed: the mean over its episodes

@@ -107,6 +107,8 @@ class OvercookedEnvSpec(_Model):
     kind: Literal["overcooked"]
     layout: Literal[OVERCOOKED_LAYOUTS]
     episode_steps: int = Field(400, ge=1, le=10_000)
+    robot_seat: Literal[0, 1] = Field(0, description="JaxMARL's agent the robot plays (1: the flipped seats; "
+                                      "`esr eval --seat 1`)")
 
 
 EnvSpec = Annotated[Union[GridworldEnvSpec, OvercookedEnvSpec], Field(discriminator="kind")]

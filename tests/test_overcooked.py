@@ -225,10 +225,26 @@ def test_adapting_human_follows_the_reward_and_the_kl_holds_it_back(cramped, pla
     assert kl_held < kl_free
 
 
-def test_observation_decodes_back_to_the_state(cramped):
+def test_flipped_seat_puts_the_robot_in_agent_1(cramped):
+    flipped = Overcooked("cramped_room", 400, robot_seat=1)
+    s = jax.jit(cramped.reset)(jax.random.PRNGKey(0))
+    base = cramped.base.get_obs(s)
+    np.testing.assert_array_equal(flipped.observe(s), base["agent_1"])
+    np.testing.assert_array_equal(flipped.observe_human(s), base["agent_0"])
+    # The robot's action moves agent_1: robot 'right', human 'stay' from both seats.
+    s0, _ = cramped.step(s, jnp.int32(2), jnp.int32(STAY))
+    s1, _ = flipped.step(s, jnp.int32(2), jnp.int32(STAY))
+    direct, _ = cramped.step_joint(s, jnp.int32(STAY), jnp.int32(2))  # agent_0 stays, agent_1 right
+    np.testing.assert_array_equal(s1.agent_pos, direct.agent_pos)
+    np.testing.assert_array_equal(s1.agent_dir_idx, direct.agent_dir_idx)
+    assert not (np.asarray(s0.agent_dir_idx) == np.asarray(s1.agent_dir_idx)).all()
+
+
+@pytest.mark.parametrize("seat", [0, 1])
+def test_observation_decodes_back_to_the_state(seat):
     """state_from_obs inverts observe (agents, orientations, inventories, map) along random
-    play, which AvE's rollouts from observations rely on."""
-    env = cramped
+    play, which AvE's rollouts from observations rely on; from either seat."""
+    env = Overcooked("cramped_room", 400, robot_seat=seat)
 
     @jax.jit
     def play(key):

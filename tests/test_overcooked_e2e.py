@@ -200,7 +200,7 @@ def test_proxy_human_is_cloned_from_the_held_out_split(random_smoke, store, cons
         runs.ensure_eval(path, store, 2, console, "proxy")
 
 
-def test_eval_with_the_proxy_human(small_data, store, console):
+def test_eval_with_the_proxy_human_and_in_the_flipped_seat(small_data, store, console):
     spec = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN)  # the module's data and humans
     path, _ = runs.ensure_run(spec, store, console)
     own, own_summary, _ = runs.ensure_eval(path, store, 2, console)
@@ -212,3 +212,8 @@ def test_eval_with_the_proxy_human(small_data, store, console):
     for r in summary["results"].values():
         assert 0 <= r["return_mean"] <= 400 * 20
     assert runs.ensure_eval(path, store, 2, console, "proxy")[2]  # a cache hit the second time
+    # The flipped seats: the robot plays agent_1, a separate evaluation; its training seat is the same as none.
+    flipped, fsummary, _ = runs.ensure_eval(path, store, 2, console, "training", 1)
+    assert flipped not in (own, proxy) and fsummary["robot_seat"] == 1 and own_summary["robot_seat"] == 0
+    assert json.loads((flipped / "manifest.json").read_text())["key_components"]["robot_seat"] == 1
+    assert runs.ensure_eval(path, store, 2, console, "training", 0)[0] == own

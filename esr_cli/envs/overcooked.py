@@ -1,7 +1,8 @@
 """Overcooked (Carroll et al. 2019) through JaxMARL's pure-JAX port, behind esr's env interface.
 
-- The robot is JaxMARL's agent_0, the human agent_1; 6 actions each (up, down, right, left,
-  stay, interact); both act on the same state every step (JaxMARL resolves the joint move).
+- The robot is JaxMARL's agent_0, the human agent_1 (`robot_seat: 1` swaps them: the
+  "flipped" evaluation); 6 actions each (up, down, right, left, stay, interact); both act on
+  the same state every step (JaxMARL resolves the joint move).
 - The reward is the shared sparse reward: 20 per delivered soup. An episode is
   `episode_steps` (400) steps with no early end and no automatic reset.
 - Observations are JaxMARL's lossless (H, W, 26) grid encoding; the robot sees agent_0's
@@ -81,6 +82,15 @@ def jaxmarl_env(layout: str, max_steps: int):
 class Overcooked(NamedTuple):
     layout: str
     episode_steps: int
+    robot_seat: int = 0  # JaxMARL's agent index the robot plays; the human plays the other
+
+    @property
+    def robot_agent(self) -> str:
+        return f"agent_{self.robot_seat}"
+
+    @property
+    def human_agent(self) -> str:
+        return f"agent_{1 - self.robot_seat}"
 
     # ---------------------------------------------------------------- static facts
     @property
@@ -115,23 +125,22 @@ class Overcooked(NamedTuple):
 
     def step(self, state, robot_action: jax.Array, human_action: jax.Array):
         """-> (next_state, reward). step_env: no automatic reset at the episode's end."""
-        actions = {"agent_0": robot_action, "agent_1": human_action}
-        # The vanilla environment's step draws no randomness: any key does.
-        _, next_state, rewards, _, _ = self.base.step_env(jax.random.PRNGKey(0), state, actions)
-        return next_state, rewards["agent_0"].astype(jnp.float32)
+        return self.step_joint(state, *((robot_action, human_action) if self.robot_seat == 0 else (human_action, robot_action)))
 
     def step_joint(self, state, action_0: jax.Array, action_1: jax.Array):
-        """Step with agent_0's and agent_1's actions (self-play and data replay)."""
-        return self.step(state, action_0, action_1)
+        """Step with agent_0's and agent_1's actions (self-play and data replay) -> (next_state, reward)."""
+        # The vanilla environment's step draws no randomness: any key does.
+        _, next_state, rewards, _, _ = self.base.step_env(jax.random.PRNGKey(0), state, {"agent_0": action_0, "agent_1": action_1})
+        return next_state, rewards["agent_0"].astype(jnp.float32)  # shared: both agents get it
 
     # ---------------------------------------------------------------- encodings
     def observe(self, state) -> jax.Array:
-        """The robot's (agent_0's) view: uint8[H, W, 26]."""
-        return self.base.get_obs(state)["agent_0"].astype(jnp.uint8)
+        """The robot's view (its own layers first): uint8[H, W, 26]."""
+        return self.base.get_obs(state)[self.robot_agent].astype(jnp.uint8)
 
     def observe_human(self, state) -> jax.Array:
-        """The human's (agent_1's) view: uint8[H, W, 26] with its own layers first."""
-        return self.base.get_obs(state)["agent_1"].astype(jnp.uint8)
+        """The human's view (its own layers first): uint8[H, W, 26]."""
+        return self.base.get_obs(state)[self.human_agent].astype(jnp.uint8)
 
     def human_view(self, obs: jax.Array) -> jax.Array:
         """A robot observation with all but the human's own layers zeroed (same shape): its
@@ -168,8 +177,11 @@ class Overcooked(NamedTuple):
             i = jnp.argmax(plane.reshape(-1))
             return jnp.stack([i % w, i // w]).astype(jnp.uint32)
 
+        # The view is the robot's: its own layers (0, 2-5) first, the human's (1, 6-9) second.
         pos = jnp.stack([where_is(obs[..., 0]), where_is(obs[..., 1])])
         dir_idx = jnp.stack([jnp.argmax(obs[pos[0, 1], pos[0, 0], 2:6]), jnp.argmax(obs[pos[1, 1], pos[1, 0], 6:10])]).astype(jnp.int32)
+        if self.robot_seat == 1:  # -> JaxMARL's agent order
+            pos, dir_idx = pos[::-1], dir_idx[::-1]
         # Loose objects and held ones share the plate (22), onion (23) and soup-ready (21) layers.
         item = jnp.where(obs[..., 22] > 0, _PLATE, jnp.where(obs[..., 23] > 0, _ONION, jnp.where(obs[..., 21] > 0, _DISH, _EMPTY)))
         is_pot = obs[..., 10] > 0
@@ -232,6 +244,6 @@ class Overcooked(NamedTuple):
 
 
 def make(env_spec) -> Overcooked:
-    env = Overcooked(layout=env_spec.layout, episode_steps=env_spec.episode_steps)
+    env = Overcooked(layout=env_spec.layout, episode_steps=env_spec.episode_steps, robot_seat=env_spec.robot_seat)
     env.base  # fail early on an unknown layout or a missing jaxmarl
     return env
