@@ -67,10 +67,24 @@ def human_key(human_spec, layout: str) -> tuple[str, dict]:
 
 
 def dependencies(spec) -> dict:
-    """Artifact keys a training run of `spec` is built from ({} when it needs none)."""
-    if spec.human.kind == "bc":
-        return {HUMAN_KIND: human_key(spec.human, spec.env.layout)[0]}
-    return {}
+    """Artifact keys a training run of `spec` is built from ({} when it needs none): its BC
+    human's, or the list of its per-seed humans' (in seed order)."""
+    if spec.human.kind != "bc":
+        return {}
+    keys = [human_key(h, spec.env.layout)[0] for h in spec.human.clones(spec.train.seeds)]
+    return {HUMAN_KIND: keys if spec.human.per_seed else keys[0]}
+
+
+def ensure_humans(spec, store: Store, console: Console) -> list[tuple[Path, bool]]:
+    """Every BC human a run of `spec` trains with (one, or one per seed), built if needed."""
+    return [ensure_human(h, spec.env.layout, store, console) for h in spec.human.clones(spec.train.seeds)]
+
+
+def humans_params(spec, store: Store | None):
+    """The parameters `make_trainer` takes for `spec`'s BC human: one tree, or a list of one per
+    seed (human.per_seed)."""
+    params = [human_params(h, spec.env.layout, store) for h in spec.human.clones(spec.train.seeds)]
+    return params if spec.human.per_seed else params[0]
 
 
 # ---------------------------------------------------------------- building

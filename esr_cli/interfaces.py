@@ -49,18 +49,22 @@ class Environment(Protocol):
 
 @runtime_checkable
 class Human(Protocol):
-    learns: bool  # True: also init / act_with / update (a human that adapts during training)
+    learns: bool  # True: also update (a human that adapts during training); implies has_state
+    has_state: bool  # True: init / act_with, a per-seed state in the training state (a per-seed or adapting human)
     metric_names: tuple  # keys of `update`'s metrics (empty for a fixed human)
 
     def act(self, key: jax.Array, env_state: Any) -> jax.Array: ...
 
 
 @runtime_checkable
-class LearningHuman(Human, Protocol):
-    def init(self, key: jax.Array) -> Any: ...
+class StatefulHuman(Human, Protocol):
+    def init(self, key: jax.Array, seed: jax.Array) -> Any: ...
 
     def act_with(self, hstate: Any, key: jax.Array, env_state: Any) -> jax.Array: ...
 
+
+@runtime_checkable
+class LearningHuman(StatefulHuman, Protocol):
     def update(self, hstate: Any, states: Any, human_actions: jax.Array, rewards: jax.Array, key: jax.Array) -> tuple[Any, dict]: ...
 
 

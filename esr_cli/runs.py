@@ -174,11 +174,11 @@ def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
                                                 method=spec.method.kind, env=spec.env.kind)
         return store.commit(RUN_KIND, key, manifest)
 
-    if spec.human.kind == "bc":  # the stored human this run trains with comes first
-        from esr_cli.human_runs import ensure_human
+    if spec.human.kind == "bc":  # the stored humans this run trains with come first
+        from esr_cli.human_runs import ensure_humans
 
-        human_path, human_cached = ensure_human(spec.human, spec.env.layout, store, console)
-        console.print(f"BC human ({'cache hit' if human_cached else 'built'}): {human_path}")
+        for human_path, human_cached in ensure_humans(spec, store, console):
+            console.print(f"BC human ({'cache hit' if human_cached else 'built'}): {human_path}")
     return store.get_or_make(RUN_KIND, key, make, on_wait=waiting)
 
 
@@ -229,11 +229,12 @@ def _eval_partner(spec, partner: str, store: Store, console: Console):
     if spec.human.adapt:
         raise StoreError("--human proxy: this run's human adapted during training, and its state is part of the run's; "
                          "evaluate it with its training human")
-    from esr_cli.human_runs import ensure_human, human_key
+    from esr_cli.human_runs import dependencies, ensure_humans
 
-    proxy = spec.human.proxy()
-    ensure_human(proxy, spec.env.layout, store, console)
-    return spec.model_copy(update={"human": proxy}), human_key(proxy, spec.env.layout)[0]
+    proxy_spec = spec.model_copy(update={"human": spec.human.proxy()})
+    ensure_humans(proxy_spec, store, console)
+    keys = dependencies(proxy_spec)["humans"]
+    return proxy_spec, keys if isinstance(keys, str) else content_key({"per_seed_humans": keys})
 
 
 def _eval_seat(spec, seat: int | None):
@@ -272,6 +273,8 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
         started = time.time()
         with console.status(f"evaluating {spec.name}: {episodes} episodes x {len(spec.train.seeds)} seed(s)"):
             state = loop.final_state(trainer, run_path)
+            if partner_key is not None and trainer.human.has_state:  # the checkpoint holds the training humans
+                state = state._replace(human=loop.initial_state(trainer, spec.train.seeds).human)
             results = ev.evaluate(trainer, state, episodes, spec.train.seeds)
         summary = {"name": spec.name, "budget": spec.budget, "seeds": list(spec.train.seeds), "episodes": episodes,
                    "run": run_manifest["key"], "human": partner, "human_key": partner_key,
@@ -312,9 +315,9 @@ def build_trainer(spec, store: Store):
 
     params = None
     if spec.human.kind == "bc":
-        from esr_cli.human_runs import human_params
+        from esr_cli.human_runs import humans_params
 
-        params = human_params(spec.human, spec.env.layout, store)
+        params = humans_params(spec, store)
     return make_trainer(spec, params)
 
 

@@ -138,6 +138,8 @@ class BCHumanSpec(_Model):
         "(`esr eval --human proxy`)",
     )
     selfplay_episodes: int = Field(64, ge=2, description="BC+BC episodes for the recorded self-play return")
+    per_seed: bool = Field(False, description="clone one human per training seed (cloning seed = human.seed + "
+                           "the training seed), so that the seeds' spread includes the human's")
     adapt: bool = Field(False, description="the human keeps learning alongside the robot")
     adapt_lr: float = Field(1e-4, gt=0.0)
     adapt_kl: float = Field(1.0, ge=0.0, description="weight of KL(pi_BC || pi) in the human's loss")
@@ -160,8 +162,15 @@ class BCHumanSpec(_Model):
         return part
 
     def proxy(self) -> "BCHumanSpec":
-        """The held-out proxy of this human: the same cloning, on the test split, not adapting."""
+        """The held-out proxy of this human: the same cloning (per seed if this one is), on the
+        test split, not adapting."""
         return self.model_copy(update={"split": "test", "adapt": False})
+
+    def clones(self, seeds: tuple[int, ...]) -> list["BCHumanSpec"]:
+        """The cloned humans a run with these training seeds uses: one, or one per seed."""
+        if not self.per_seed:
+            return [self]
+        return [self.model_copy(update={"seed": self.seed + s, "per_seed": False}) for s in seeds]
 
 
 HumanSpec = Annotated[Union[NoisyGreedyHumanSpec, BCHumanSpec], Field(discriminator="kind")]
@@ -344,6 +353,9 @@ class Spec(_Model):
             raise ValueError("human.kind=bc is cloned from Overcooked play: it needs env.kind: overcooked")
         if self.human.kind == "noisy_greedy" and self.env.kind != "gridworld":
             raise ValueError("human.kind=noisy_greedy walks to a gridworld goal: it needs env.kind: gridworld")
+        if self.human.kind == "bc" and self.human.per_seed and self.human.adapt:
+            raise ValueError("human.per_seed with human.adapt is not supported: an adapting human's pull back "
+                             "to its clone assumes one clone")
         if self.human.kind == "bc" and self.human.layout not in (None, self.env.layout):
             raise ValueError(f"human.layout={self.human.layout!r} differs from env.layout={self.env.layout!r}")
         if self.method.kind == "oracle" and self.env.kind != "gridworld":

@@ -265,3 +265,26 @@ def test_observation_decodes_back_to_the_state(seat):
     assert np.asarray(holding).any()  # the random play did pick things up
     futures = jax.jit(env.random_human_futures)(env.observe(env.reset(jax.random.PRNGKey(5))), jnp.zeros((3, 2), jnp.int32))
     assert futures.shape == (3, 4 * 5 * 26)
+
+
+def test_per_seed_humans_are_one_clone_per_training_seed(cramped):
+    """human.per_seed: the clones' specs (cloning seed = human.seed + training seed), and each
+    seed's training state holding its own clone's parameters."""
+    from esr_cli.humans import make_human
+
+    spec = specs.load("experiments/cramped_room.yaml", "smoke", ["human.per_seed=true", "human.seed=10", "train.seeds=[3,7]"])
+    clones = spec.human.clones(spec.train.seeds)
+    assert [c.seed for c in clones] == [13, 17] and not any(c.per_seed for c in clones)
+    assert spec.human.model_copy(update={"per_seed": False}).clones((3, 7)) == [spec.human.model_copy(update={"per_seed": False})]
+    net = bc.policy_net(tuple(spec.human.hidden))
+    params = [net.init(jax.random.PRNGKey(i), jnp.zeros((1,) + cramped.obs_shape)) for i in (13, 17)]
+    human = make_human(spec.human, cramped, params, spec.train.seeds)
+    assert human.has_state and not human.learns
+    states = jax.vmap(human.init)(jax.random.split(jax.random.PRNGKey(0), 2), jnp.array([3, 7]))
+    for i in range(2):
+        for got, want in zip(jax.tree.leaves(jax.tree.map(lambda x: x[i], states.params)), jax.tree.leaves(params[i])):
+            np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError, match="2 clones for 3 seeds"):
+        make_human(spec.human, cramped, params, (3, 7, 9))
+    with pytest.raises(specs.SpecError, match="per_seed with human.adapt is not supported"):
+        specs.load("experiments/cramped_room.yaml", "smoke", ["human.per_seed=true", "human.adapt=true"])

@@ -217,3 +217,23 @@ def test_eval_with_the_proxy_human_and_in_the_flipped_seat(small_data, store, co
     assert flipped not in (own, proxy) and fsummary["robot_seat"] == 1 and own_summary["robot_seat"] == 0
     assert json.loads((flipped / "manifest.json").read_text())["key_components"]["robot_seat"] == 1
     assert runs.ensure_eval(path, store, 2, console, "training", 0)[0] == own
+
+
+def test_a_run_with_per_seed_humans(small_data, store, console):
+    """Two seeds, two clones: both built as artifacts, both in the run's key, each seed playing
+    with its own (the first clone is the module's usual human: cloning seed 0)."""
+    from esr_cli.core import loop
+    from esr_cli.runs import build_trainer
+
+    spec = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN + ["human.per_seed=true", "train.seeds=2"])
+    path, _ = runs.ensure_run(spec, store, console)
+    keys = [human_runs.human_key(h, "coord_ring")[0] for h in spec.human.clones(spec.train.seeds)]
+    assert len(set(keys)) == 2 and all(store.lookup(human_runs.HUMAN_KIND, k) for k in keys)
+    m = json.loads((path / "manifest.json").read_text())
+    assert m["key_components"]["dependencies"] == {"humans": keys}
+    trainer = build_trainer(spec, store)
+    state = loop.final_state(trainer, path)
+    for i, clone in enumerate(spec.human.clones(spec.train.seeds)):
+        want = human_runs.human_params(clone, "coord_ring", store)
+        for got, w in zip(jax.tree.leaves(jax.tree.map(lambda x: x[i], state.human.params)), jax.tree.leaves(want)):
+            np.testing.assert_array_equal(got, w)

@@ -89,7 +89,7 @@ def restore_latest(trainer: Trainer, run_dir: Path, seeds, repair: bool = True) 
     training can save those steps again. repair=False (reading a committed artifact): nothing
     is touched, and only the newest checkpoint is acceptable.
     """
-    template = compiled_init(trainer)(jnp.asarray(seeds, jnp.int32))
+    template = initial_state(trainer, seeds)
     mngr = checkpoint_manager(run_dir)
     try:
         steps = sorted(mngr.all_steps(), reverse=True)
@@ -280,6 +280,11 @@ def summarize(rows: list[dict], last: int = 10) -> dict:
             "mean": None if not np.isfinite(seed_means).any() else round(float(np.nanmean(seed_means)), 6),
         }
     return out
+
+
+def initial_state(trainer: Trainer, seeds) -> TrainState:
+    """A fresh training state for these seeds (the one training starts from)."""
+    return compiled_init(trainer)(jnp.asarray(seeds, jnp.int32))
 
 
 def final_state(trainer: Trainer, run_dir: Path) -> TrainState:

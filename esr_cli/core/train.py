@@ -103,8 +103,8 @@ class Trainer(NamedTuple):
             learner=self.learner.init(k_learner, obs),
             method=self.method.init(k_method, obs),
             buffer=replay.init(capacity, steps, obs.shape, obs.dtype),
-            # fold_in: the other keys stay as they were for humans that learn nothing
-            human=self.human.init(jax.random.fold_in(key, 1)) if self.human_learns else (),
+            # fold_in: the other keys stay as they were for humans without a state
+            human=self.human.init(jax.random.fold_in(key, 1), seed) if self.human.has_state else (),
         )
 
     # ------------------------------------------------------------ acting
@@ -154,7 +154,7 @@ class Trainer(NamedTuple):
             else:
                 log_probs, a_r = self.robot_action(lstate, obs, k_robot, mode, uniform)
             k_each = jax.random.split(k_human, num_envs)
-            if self.human_learns:
+            if self.human.has_state:
                 a_h = jax.vmap(human.act_with, in_axes=(None, 0, 0))(hstate, k_each, states)
             else:
                 a_h = jax.vmap(human.act)(k_each, states)
@@ -285,7 +285,7 @@ def make_trainer(spec, human_params=None) -> Trainer:
     """`human_params`: the parameters of a stored human (a BC human), which the caller loads
     (runs.build_trainer); the core never reads the store."""
     env = make_env(spec.env)
-    human = make_human(spec.human, env, human_params)
+    human = make_human(spec.human, env, human_params, spec.train.seeds)
     return Trainer(
         spec=spec,
         env=env,

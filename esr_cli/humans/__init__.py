@@ -9,9 +9,10 @@ keeps `hstate` in its training state.
 from __future__ import annotations
 
 
-def make_human(human_spec, env, params=None):
+def make_human(human_spec, env, params=None, seeds: tuple = ()):
     """`params`: a cloned human's parameters (kind bc), loaded from the store by the caller
-    (runs.build_trainer): the models never reach into the store themselves."""
+    (runs.build_trainer): the models never reach into the store themselves. With
+    `human.per_seed`, a list of parameters, one per training seed in `seeds` order."""
     if human_spec.kind == "noisy_greedy":
         from esr_cli.humans.gridworld import NoisyGreedyHuman
 
@@ -21,9 +22,20 @@ def make_human(human_spec, env, params=None):
 
         if params is None:
             raise ValueError("a BC human needs its cloned parameters (runs.build_trainer loads them from the store)")
+        per_seed = None
+        if human_spec.per_seed:
+            import jax
+            import numpy as np
+
+            if len(params) != len(seeds):
+                raise ValueError(f"human.per_seed: {len(params)} clones for {len(seeds)} seeds")
+            per_seed = jax.tree.map(lambda *leaves: np.stack(leaves), *params)
+            params = params[0]
         return BCHuman(
             env=env,
             params=params,
+            per_seed_params=per_seed,
+            seeds=tuple(int(s) for s in seeds) if per_seed is not None else (),
             hidden=tuple(human_spec.hidden),
             adapt=bool(human_spec.adapt),
             adapt_lr=float(human_spec.adapt_lr),

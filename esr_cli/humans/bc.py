@@ -143,10 +143,18 @@ class BCHuman(NamedTuple):
     adapt_lr: float = 1e-4
     adapt_kl: float = 1.0
     adapt_gamma: float = 0.99
+    # One clone per training seed (human.per_seed): their parameters stacked in `seeds` order;
+    # each seed's training state then holds its own (`init`), and `params` is the first.
+    per_seed_params: Any = None
+    seeds: tuple = ()
 
     @property
     def learns(self) -> bool:
         return self.adapt
+
+    @property
+    def has_state(self) -> bool:
+        return self.adapt or self.per_seed_params is not None
 
     @property
     def metric_names(self) -> tuple[str, ...]:
@@ -166,9 +174,15 @@ class BCHuman(NamedTuple):
     def optimizer(self):
         return optax.adam(self.adapt_lr)
 
-    def init(self, key) -> AdaptState:
-        params = jax.tree.map(jnp.asarray, self.params)
-        return AdaptState(params=params, opt_state=self.optimizer.init(params))
+    def init(self, key, seed) -> AdaptState:
+        """This seed's human: its own clone (per seed) or the one clone, and, if it adapts, its
+        optimiser state. `seed` may be traced (the runner vmaps init over the seeds)."""
+        if self.per_seed_params is None:
+            params = jax.tree.map(jnp.asarray, self.params)
+        else:
+            index = jnp.argmax(jnp.asarray(self.seeds) == seed)
+            params = jax.tree.map(lambda stacked: jnp.asarray(stacked)[index], self.per_seed_params)
+        return AdaptState(params=params, opt_state=self.optimizer.init(params) if self.adapt else ())
 
     def act_with(self, hstate: AdaptState, key, env_state) -> jax.Array:
         return jax.random.categorical(key, self.logits(hstate.params, env_state)).astype(jnp.int32)

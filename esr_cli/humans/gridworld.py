@@ -22,6 +22,7 @@ class NoisyGreedyHuman(NamedTuple):
     env: Gridworld
     noise: float
     learns: bool = False
+    has_state: bool = False
     metric_names: tuple = ()
 
     def greedy_action(self, state: GridState) -> jax.Array:
