@@ -143,6 +143,9 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
     run_path, run_manifest, trainer, state = load_run(store, robot["run"])
     if trainer.spec.method.kind != "esr":
         raise StoreError("the estimator check needs an ESR run")
+    if trainer.spec.method.human_action == "inferred":
+        raise StoreError("the estimator check evaluates phi at each true human action; this run infers them "
+                         "(method.human_action: inferred), so its phi takes latent codes instead")
     data = np.load(exact_path / "exact.npz")
     mstate = seed_slice(state.method, robot["seed_index"])
     goal = jnp.asarray(manifest["key_components"]["goal"], jnp.int32)

@@ -193,6 +193,11 @@ class ESRMethodSpec(_Model):
     future: Literal["full", "human"] = Field(
         "full", description="what psi sees of the future state: all of it, or only the human's part (docs/estimators.md)"
     )
+    human_action: Literal["observed", "inferred"] = Field(
+        "observed", description="inferred: phi never reads the human's action; it gets the code of a latent-action "
+        "model trained on observations alone (docs/estimators.md)",
+    )
+    inferred_codes: int = Field(8, ge=2, le=64, description="human_action: inferred: the latent code's size")
     pairing: Literal["aligned", "original"] = Field(
         "aligned", description="original: every update pairs o_{t+1} with a_t, as the published Overcooked code "
         "(docs/choices.md); aligned: o_t with a_t, as the paper's equations",

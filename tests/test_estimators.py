@@ -251,3 +251,47 @@ def test_simplified_reward_needs_no_future_and_the_table_agrees():
     idx = replay.Index(episode=jnp.array([0, 0, 1, 1]), t=jnp.array([0, 1, 0, 1]), future=jnp.array([1, 2, 2, 2]))
     direct = esr.reward(state, replay.gather(buf, idx), jax.random.PRNGKey(3))
     np.testing.assert_allclose(esr.reward_from_table(table, idx), direct, rtol=1e-5, atol=1e-6)
+
+
+# ---------------------------------------------------------------- inferred human actions
+def test_code_action_agreement_by_hand():
+    from esr_cli.methods.latent_actions import code_action_agreement
+
+    # codes 0,0,1,1 for actions 2,2,3,4: the best map 0->2, 1->3 (or 4) is right 3 times in 4.
+    got = code_action_agreement(jnp.array([0, 0, 1, 1]), jnp.array([2, 2, 3, 4]), 3, 5)
+    assert float(got["code_accuracy"]) == pytest.approx(0.75)
+    # MI of the joint {(0,2): 1/2, (1,3): 1/4, (1,4): 1/4}: H(code) = log 2, H(code | action) = 0.
+    assert float(got["code_action_mi"]) == pytest.approx(np.log(2), rel=1e-6)
+
+
+def test_inferred_human_actions_never_reach_a_parameter():
+    """With human_action: inferred, permuting the true human actions of a batch changes no
+    parameter, no reward and no metric but the ones that measure the codes against them."""
+    esr, env = _esr(human_action="inferred")
+    rng = np.random.default_rng(2)
+    states = [_state(rng.integers(0, 5, 2), rng.integers(0, 5, (2, 2))) for _ in range(8)]
+    obs = jnp.stack([env.observe(s) for s in states])
+    actions = jnp.array(rng.integers(0, 5, 8), jnp.int32)
+
+    def batch(human_action):
+        return replay.Batch(obs=obs, next_obs=jnp.roll(obs, 1, axis=0), future_obs=jnp.roll(obs, 2, axis=0),
+                            robot_action=jnp.full((8,), 7, jnp.int32),
+                            human_action=human_action, reward=jnp.zeros(8), done=jnp.zeros(8), offset=jnp.ones(8, jnp.int32))
+
+    state = esr.init(jax.random.PRNGKey(0), obs[0])
+    assert {"encoder", "decoder"} <= set(state.params)
+    update, reward = jax.jit(esr.update), jax.jit(esr.reward)
+    a_state, a_metrics = update(state, batch(actions), jax.random.PRNGKey(1))
+    b_state, b_metrics = update(state, batch((actions + 1) % 5), jax.random.PRNGKey(1))
+    for x, y in zip(jax.tree.leaves(a_state), jax.tree.leaves(b_state)):
+        np.testing.assert_array_equal(x, y)
+    for name in ("repr_loss", "mi_estimate", "latent_loss", "contrastive_accuracy"):
+        assert float(a_metrics[name]) == float(b_metrics[name])
+    np.testing.assert_array_equal(reward(a_state, batch(actions), jax.random.PRNGKey(2)),
+                                  reward(a_state, batch(actions[::-1]), jax.random.PRNGKey(2)))
+    # The observed default does read them.
+    esr_obs, _ = _esr()
+    s0 = esr_obs.init(jax.random.PRNGKey(0), obs[0])
+    x, _ = jax.jit(esr_obs.update)(s0, batch(actions), jax.random.PRNGKey(1))
+    y, _ = jax.jit(esr_obs.update)(s0, batch((actions + 1) % 5), jax.random.PRNGKey(1))
+    assert not all(np.array_equal(p, q) for p, q in zip(jax.tree.leaves(x.params), jax.tree.leaves(y.params)))

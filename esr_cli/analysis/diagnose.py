@@ -120,7 +120,7 @@ def representation_check(trainer, state, key, batches: int = 40) -> dict:
 
     def one(k):
         b = replay.sample(state.buffer, k, spec.learner.batch_size, trainer.future_gamma)
-        phi_s, phi_sa, psi = method.represent(params, b.obs, b.robot_action, b.human_action, b.future_obs)
+        phi_s, phi_sa, psi = method.represent_batch(params, b)
         return representation_scores(phi_s, phi_sa, psi, b.future_obs)
 
     out = jax.jit(jax.vmap(one))(jax.random.split(key, batches))

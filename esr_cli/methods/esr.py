@@ -23,8 +23,9 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from esr_cli.replay import map_episodes
+from esr_cli.methods.latent_actions import LatentActions, code_action_agreement
 from esr_cli.networks import conv_net
+from esr_cli.replay import map_episodes
 
 
 def _symmetric_infonce(logits: jax.Array) -> jax.Array:
@@ -116,19 +117,42 @@ class ESRState(NamedTuple):
     opt_state: tuple
 
 
+BASE_METRICS = ("repr_loss", "mi_estimate", "contrastive_accuracy", "contrastive_chance")
+# human_action: inferred. Logged for the researcher; the code metrics read the true actions and
+# never enter a loss.
+INFERRED_METRICS = ("latent_loss", "code_accuracy", "code_action_mi")
+
+
 class ESR(NamedTuple):
     env: object
     spec: object  # ESRMethodSpec
     network_spec: object
 
     learns_policy: bool = True
-    metric_names: tuple = ("repr_loss", "mi_estimate", "contrastive_accuracy", "contrastive_chance")
+    metric_names: tuple = BASE_METRICS
     acts_by_rule: bool = False
     has_reward_table: bool = True  # reward_table / reward_from_table (core/train.reward_table_pays)
 
     @classmethod
     def from_spec(cls, spec, env, human):
-        return cls(env=env, spec=spec.method, network_spec=spec.network)
+        inferred = spec.method.human_action == "inferred"
+        return cls(env=env, spec=spec.method, network_spec=spec.network,
+                   metric_names=BASE_METRICS + (INFERRED_METRICS if inferred else ()))
+
+    @property
+    def infers_human_action(self) -> bool:
+        return self.spec.human_action == "inferred"
+
+    @property
+    def latent(self) -> LatentActions:
+        return LatentActions(env=self.env, network_spec=self.network_spec, codes=self.spec.inferred_codes)
+
+    def human_input(self, params, obs, human_action, next_obs):
+        """What phi receives for the human: the true action (observed), or the latent code's
+        distribution q(z | s, s') (inferred; the true action is never read)."""
+        if self.infers_human_action:
+            return jax.lax.stop_gradient(self.latent.code_probs(params, obs, next_obs))
+        return human_action
 
     @property
     def updates_per_epoch(self) -> int:
@@ -150,17 +174,31 @@ class ESR(NamedTuple):
         """[B, H, W, n]: the action's one-hot in cell (0, 0) only, zeros elsewhere. A network that
         flattens its input first (the MLP) then sees the one-hot once, as if appended to the
         flattened observation (the published Overcooked code); `broadcast` repeats it per cell."""
+        vectors = jax.nn.one_hot(action, n) if jnp.issubdtype(action.dtype, jnp.integer) else action
         h, w = self.env.obs_shape[:2]
-        return jnp.zeros((action.shape[0], h, w, n), jnp.float32).at[:, 0, 0, :].set(jax.nn.one_hot(action, n))
+        return jnp.zeros((action.shape[0], h, w, n), jnp.float32).at[:, 0, 0, :].set(vectors)
 
-    def _phi_inputs(self, obs, robot_action, human_action):
-        """[2B, H, W, C]: the phi'(s, aR) inputs stacked on the phi(s, aR, aH) inputs."""
+    def _human_planes(self, human):
+        """Planes for phi's human input: a true action [B] (int), or a code distribution [B, K]."""
+        if not self.infers_human_action:
+            if self.spec.action_input == "append":
+                return self._appended(human, self.env.num_human_actions)
+            return jax.vmap(self.env.human_action_planes)(human)
         if self.spec.action_input == "append":
-            ar = self._appended(robot_action, self.env.num_robot_actions)
-            ah = self._appended(human_action, self.env.num_human_actions)
-        else:
-            ar = jax.vmap(self.env.robot_action_planes)(robot_action)
-            ah = jax.vmap(self.env.human_action_planes)(human_action)
+            return self._appended(human, self.spec.inferred_codes)
+        h, w = self.env.obs_shape[:2]
+        return jnp.broadcast_to(human[:, None, None, :], (human.shape[0], h, w, human.shape[-1])).astype(jnp.float32)
+
+    def _robot_planes(self, robot_action):
+        if self.spec.action_input == "append":
+            return self._appended(robot_action, self.env.num_robot_actions)
+        return jax.vmap(self.env.robot_action_planes)(robot_action)
+
+    def _phi_inputs(self, obs, robot_action, human):
+        """[2B, H, W, C]: the phi'(s, aR) inputs stacked on the phi(s, aR, aH) inputs; `human` as
+        `_human_planes` takes it."""
+        ar = self._robot_planes(robot_action)
+        ah = self._human_planes(human)
         if not self.spec.condition_on_robot_action:
             ar = jnp.zeros_like(ar)
         base = jnp.concatenate([obs.astype(jnp.float32), ar], axis=-1)
@@ -168,9 +206,10 @@ class ESR(NamedTuple):
         without_human = jnp.concatenate([base, jnp.zeros_like(ah)], axis=-1)
         return jnp.concatenate([without_human, with_human], axis=0)
 
-    def represent_phi(self, params, obs, robot_action, human_action):
-        """-> (phi'(s, aR), phi(s, aR, aH)), each [B, repr_dim], in one pass of the network."""
-        both = self.phi_net.apply(params["phi"], self._phi_inputs(obs, robot_action, human_action))
+    def represent_phi(self, params, obs, robot_action, human):
+        """-> (phi'(s, aR), phi(s, aR, aH)), each [B, repr_dim], in one pass of the network.
+        `human`: the true actions, or with `human_action: inferred` the codes (`human_input`)."""
+        both = self.phi_net.apply(params["phi"], self._phi_inputs(obs, robot_action, human))
         return tuple(jnp.split(both, 2, axis=0))
 
     def represent_future(self, params, future_obs):
@@ -180,29 +219,39 @@ class ESR(NamedTuple):
             future_obs = jax.vmap(self.env.human_view)(future_obs)
         return self.psi_net.apply(params["psi"], future_obs)
 
-    def represent(self, params, obs, robot_action, human_action, future_obs):
+    def represent(self, params, obs, robot_action, human, future_obs):
         """-> (phi'(s, aR), phi(s, aR, aH), psi(g)), each [B, repr_dim]."""
-        phi_s, phi_sa = self.represent_phi(params, obs, robot_action, human_action)
+        phi_s, phi_sa = self.represent_phi(params, obs, robot_action, human)
         return phi_s, phi_sa, self.represent_future(params, future_obs)
 
+    def represent_batch(self, params, batch):
+        """`represent` of a replay batch, the human input chosen by `human_input`."""
+        human = self.human_input(params, batch.obs, batch.human_action, batch.next_obs)
+        return self.represent(params, batch.obs, batch.robot_action, human, batch.future_obs)
+
     def init(self, key, obs_example) -> ESRState:
-        k_phi, k_psi = jax.random.split(key)
+        k_phi, k_psi, k_latent = jax.random.split(key, 3)
         a = jnp.zeros((1,), jnp.int32)
-        phi_in = self._phi_inputs(obs_example[None], a, a)[:1]
+        human = jnp.zeros((1, self.spec.inferred_codes)) if self.infers_human_action else a
+        phi_in = self._phi_inputs(obs_example[None], a, human)[:1]
         params = {
             "phi": self.phi_net.init(k_phi, phi_in),
             "psi": self.psi_net.init(k_psi, obs_example[None]),
         }
+        if self.infers_human_action:
+            params.update(self.latent.init(k_latent, obs_example, self._robot_planes(a)[0]))
         return ESRState(params=params, opt_state=self.optimizer.init(params))
 
     def update(self, state: ESRState, batch, key):
         def loss_fn(params):
-            phi_s, phi_sa, psi = self.represent(
-                params, batch.obs, batch.robot_action, batch.human_action, batch.future_obs
-            )
-            return infonce_loss(phi_s, phi_sa, psi, self.spec.infonce), (phi_s, phi_sa, psi)
+            phi_s, phi_sa, psi = self.represent_batch(params, batch)
+            loss = infonce_loss(phi_s, phi_sa, psi, self.spec.infonce)
+            if not self.infers_human_action:
+                return loss, (loss, phi_s, phi_sa, psi, ())
+            latent_loss, logits = self.latent.loss(params, batch.obs, self._robot_planes(batch.robot_action), batch.next_obs, key)
+            return loss + latent_loss, (loss, phi_s, phi_sa, psi, (latent_loss, logits))
 
-        (loss, (phi_s, phi_sa, psi)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        (_, (loss, phi_s, phi_sa, psi, latent)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
         same = same_future(batch.future_obs)
         updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
@@ -212,15 +261,19 @@ class ESR(NamedTuple):
             "contrastive_accuracy": contrastive_accuracy(phi_sa, psi, same),
             "contrastive_chance": contrastive_chance(same),
         }
+        if self.infers_human_action:  # logged only: the true actions reach no parameter
+            latent_loss, logits = latent
+            agreement = code_action_agreement(jnp.argmax(logits, axis=-1), batch.human_action,
+                                              self.spec.inferred_codes, self.env.num_human_actions)
+            metrics.update({"latent_loss": latent_loss, **jax.lax.stop_gradient(agreement)})
         return ESRState(params=params, opt_state=opt_state), metrics
 
     def reward(self, state: ESRState, batch, key):
         if self.spec.reward == "simplified":
-            phi_s, phi_sa = self.represent_phi(state.params, batch.obs, batch.robot_action, batch.human_action)
+            human = self.human_input(state.params, batch.obs, batch.human_action, batch.next_obs)
+            phi_s, phi_sa = self.represent_phi(state.params, batch.obs, batch.robot_action, human)
             return jax.lax.stop_gradient(simplified_reward(phi_s, phi_sa))
-        phi_s, phi_sa, psi = self.represent(
-            state.params, batch.obs, batch.robot_action, batch.human_action, batch.future_obs
-        )
+        phi_s, phi_sa, psi = self.represent_batch(state.params, batch)
         return jax.lax.stop_gradient(empowerment_reward(phi_s, phi_sa, psi))
 
     # The critic phase uses one set of representation parameters, so the runner may represent
@@ -230,7 +283,8 @@ class ESR(NamedTuple):
 
         def episode(args):
             obs, robot_action, human_action = args
-            phi_s, phi_sa = self.represent_phi(state.params, obs[:steps], robot_action, human_action)
+            human = self.human_input(state.params, obs[:steps], human_action, obs[1 : steps + 1])
+            phi_s, phi_sa = self.represent_phi(state.params, obs[:steps], robot_action, human)
             return phi_s, phi_sa, self.represent_future(state.params, obs)
 
         phi_s, phi_sa, psi = map_episodes(episode, (buf.obs, buf.robot_action, buf.human_action), steps)
