@@ -18,7 +18,8 @@ SPECS = [
 
 
 # ESR's estimator variants (docs/estimators.md) together, on the crowded grid of the estimator check.
-VARIANTS = [("experiments/grid_4x4_3.yaml", ("method.episode_group=4", "method.future=human", "method.infonce=separate"))]
+VARIANTS = [("experiments/grid_4x4_3.yaml", ("method.episode_group=4", "method.future=human", "method.infonce=separate",
+                                              "method.human_action=inferred", "method.reward=simplified"))]
 
 
 @pytest.mark.parametrize("path,sets", VARIANTS, ids=["esr_variants"])
@@ -29,6 +30,7 @@ def test_esr_variants_train_at_smoke(path, sets, smoke_store):
     rows = [json.loads(line) for line in (run_path / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == spec.train.epochs
     assert all(np.isfinite(row["repr_loss"]).all() and np.isfinite(row["mi_estimate"]).all() for row in rows)
+    assert all(0 <= row["code_accuracy"][0] <= 1 and row["latent_loss"][0] >= 0 for row in rows)
 
 
 @pytest.mark.parametrize("path", SPECS, ids=lambda p: Path(p).stem)
