@@ -210,7 +210,10 @@ def exact(
     table = Table(title=f"exact empowerment: {spec.name}, goal {tuple(summary['goal'])}, gamma {summary['gamma']}")
     table.add_column("quantity")
     table.add_column("value")
-    for k in ("states", "effective_empowerment", "mean_mi_visited", "mean_mi_uniform_states", "max_mi", "states_with_zero_mi"):
+    for k in ("states", "effective_empowerment", "mean_mi_visited", "mean_mi_visited_merged_actions", "mean_mi_uniform_states",
+              "max_mi", "states_with_zero_mi"):
+        if k not in summary:  # made by an earlier version
+            continue
         v = summary[k]
         table.add_row(k, f"{v:.4f}" if isinstance(v, float) else str(v))
     err.print(table)

@@ -77,7 +77,7 @@ def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | Non
             emp = exact.empowerment(space, pi_r, pi_h, gamma)
         np.savez_compressed(
             out / "exact.npz", human=space.human, blocks=space.blocks, next_state=space.next_state, start=space.start,
-            pi_human=pi_h, pi_robot=pi_r, mi=emp.mi, state_mi=emp.state_mi, value=emp.value,
+            pi_human=pi_h, pi_robot=pi_r, mi=emp.mi, mi_merged=emp.mi_merged, state_mi=emp.state_mi, value=emp.value,
         )
         summary = {
             "name": spec.name, "goal": list(goal), "gamma": gamma, "states": space.size,
@@ -85,6 +85,8 @@ def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | Non
             "effective_empowerment": emp.effective_empowerment,
             "mean_mi_uniform_states": float(emp.state_mi.mean()),
             "mean_mi_visited": _visited_mean(emp, pi_r),
+            # what a robot that infers the human's action from (s, s') could at most see
+            "mean_mi_visited_merged_actions": _visited_mean(emp, pi_r, emp.mi_merged),
             "max_mi": float(np.nanmax(emp.mi)),
             "states_with_zero_mi": int((emp.state_mi < 1e-9).sum()),
         }
@@ -192,11 +194,12 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
     return result
 
 
-def _visited_mean(emp, pi_robot: np.ndarray) -> float:
-    """Mean MI under the robot's discounted occupancy, over the pairs computed."""
+def _visited_mean(emp, pi_robot: np.ndarray, mi: np.ndarray | None = None) -> float:
+    """Mean MI (emp.mi unless given) under the robot's discounted occupancy, over the pairs computed."""
+    mi = emp.mi if mi is None else mi
     weight = emp.visitation[:, None] * pi_robot
-    ok = np.isfinite(emp.mi)
-    return float(np.sum(weight[ok] * emp.mi[ok]) / np.sum(weight[ok]))
+    ok = np.isfinite(mi)
+    return float(np.sum(weight[ok] * mi[ok]) / np.sum(weight[ok]))
 
 
 # "Visited" (state, robot action) pairs: the most likely pairs under the robot's own discounted

@@ -201,3 +201,19 @@ def test_too_large_a_space_is_refused_by_name():
     env = Gridworld(size=5, num_blocks=2, start="corner", episode_steps=50)
     with pytest.raises(exact.TooManyStates, match="more than 100 reachable states"):
         exact.enumerate_states(env, (2, 2), exact.start_states(env, (2, 2), 64), max_states=100)
+
+
+def test_actions_with_the_same_next_state_merge_into_one_class():
+    nxt = np.array([[3, 3, 5], [1, 2, 1]])
+    pi = np.array([[0.2, 0.3, 0.5], [0.1, 0.6, 0.3]])
+    np.testing.assert_allclose(exact.merge_indistinguishable(nxt, pi), [[0.5, 0.0, 0.5], [0.4, 0.6, 0.0]])
+
+
+def test_merged_mi_equals_the_true_mi_under_deterministic_dynamics(tiny):
+    """The future depends on aH only through next(s, aR, aH), so merging the actions that
+    observations cannot tell apart (a blocked move and 'stay') loses no information."""
+    *_, emp = tiny
+    np.testing.assert_allclose(emp.mi_merged, emp.mi, atol=1e-12)
+    space = tiny[2]
+    merges = (space.next_state[..., :, None] == space.next_state[..., None, :]).sum(axis=(-1, -2)) > space.next_state.shape[-1]
+    assert merges.any()  # the tiny grid does have indistinguishable actions

@@ -214,9 +214,22 @@ def _mutual_information(m_rows: np.ndarray, pi_h: np.ndarray) -> np.ndarray:
     return np.einsum("uh,uh->u", pi_h, terms.sum(axis=-1))
 
 
+def merge_indistinguishable(next_states: np.ndarray, pi_h: np.ndarray) -> np.ndarray:
+    """[U, A_H] -> [U, A_H]: the human policy over the classes of actions that observations can
+    tell apart. Actions with the same next state leave the same (s, s'), so each class's
+    probability goes to its first action and the others get 0 (a model that sees only
+    observations can infer at most the class)."""
+    first = np.ones(next_states.shape, bool)
+    for h in range(1, next_states.shape[1]):
+        first[:, h] = ~np.any(next_states[:, :h] == next_states[:, h : h + 1], axis=1)
+    same = next_states[:, :, None] == next_states[:, None, :]  # [U, h, h']
+    return np.where(first, np.einsum("uhk,uk->uh", same, pi_h), 0.0)
+
+
 @dataclass(frozen=True)
 class Empowerment:
     mi: np.ndarray  # float64[S, A_R]: I(aH; s+ | s, aR), nats; NaN for pairs not computed
+    mi_merged: np.ndarray  # float64[S, A_R]: the same with actions merged into observable classes
     state_mi: np.ndarray  # float64[S]: expected over the robot policy (pairs not computed count 0)
     value: np.ndarray  # float64[S]: discounted effective empowerment from each state
     effective_empowerment: float  # from the start distribution
@@ -248,19 +261,24 @@ def empowerment(
     # Rows of M one solve each, or all of M at once when most of it is needed anyway.
     needed = np.unique(unique[:, 1:])
     full = occ.rows(np.arange(s)) if len(needed) > s // 4 else None
-    mi_unique = np.empty(len(unique))
+    mi_unique, merged_unique = np.empty(len(unique)), np.empty(len(unique))
     for i in range(0, len(unique), batch):
         chunk = unique[i : i + batch]
         nxt = chunk[:, 1:].reshape(-1)
         m_rows = (full[nxt] if full is not None else occ.rows(nxt)).reshape(len(chunk), a_h, s)
         mi_unique[i : i + batch] = _mutual_information(m_rows, pi_human[chunk[:, 0]])
-    mi = np.full(s * a_r, np.nan)
-    mi[picked] = np.maximum(mi_unique[inverse.reshape(-1)], 0.0)  # KL >= 0; clip rounding
-    mi = mi.reshape(s, a_r)
+        merged_unique[i : i + batch] = _mutual_information(m_rows, merge_indistinguishable(chunk[:, 1:], pi_human[chunk[:, 0]]))
+
+    def per_pair(values):
+        out = np.full(s * a_r, np.nan)
+        out[picked] = np.maximum(values[inverse.reshape(-1)], 0.0)  # KL >= 0; clip rounding
+        return out.reshape(s, a_r)
+
+    mi, mi_merged = per_pair(mi_unique), per_pair(merged_unique)
     state_mi = np.sum(pi_robot * np.nan_to_num(mi, nan=0.0), axis=1)
     value = occ.discounted_sum(state_mi)
     return Empowerment(
-        mi=mi, state_mi=state_mi, value=value, effective_empowerment=float(space.start @ value),
+        mi=mi, mi_merged=mi_merged, state_mi=state_mi, value=value, effective_empowerment=float(space.start @ value),
         occupancy=occ, visitation=occ.visitation(space.start), complete=bool(wanted.all()),
     )
 
