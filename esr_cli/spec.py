@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 import difflib
 from pathlib import Path
-from typing import Annotated, Any, Literal, Optional, Union
+from typing import Annotated, Any, Literal, Optional, Union, get_args
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -253,12 +253,16 @@ class OracleMethodSpec(_Model):
     kind: Literal["oracle"]
 
 
-MethodSpec = Annotated[
-    Union[
-        ESRMethodSpec, RandomMethodSpec, AvEMethodSpec, GoalInferenceMethodSpec, IQLearnMethodSpec, OracleMethodSpec
-    ],
-    Field(discriminator="kind"),
-]
+# Every method's spec model, once: the union below and KIND_MODELS derive from it, and
+# methods/registry.py has the class of each kind (tests/test_interfaces.py checks they agree).
+METHOD_SPECS = (ESRMethodSpec, RandomMethodSpec, AvEMethodSpec, GoalInferenceMethodSpec, IQLearnMethodSpec, OracleMethodSpec)
+
+
+def _kind(model) -> str:
+    return get_args(model.model_fields["kind"].annotation)[0]
+
+
+MethodSpec = Annotated[Union[METHOD_SPECS], Field(discriminator="kind")]
 
 
 # ---------------------------------------------------------------- shared parts
@@ -415,14 +419,7 @@ def _set_path(tree: dict, dotted: str, value: Any, source: str) -> None:
 KIND_MODELS = {
     "env": {"gridworld": GridworldEnvSpec, "overcooked": OvercookedEnvSpec},
     "human": {"noisy_greedy": NoisyGreedyHumanSpec, "bc": BCHumanSpec},
-    "method": {
-        "esr": ESRMethodSpec,
-        "random": RandomMethodSpec,
-        "ave": AvEMethodSpec,
-        "goal_inference": GoalInferenceMethodSpec,
-        "iq_learn": IQLearnMethodSpec,
-        "oracle": OracleMethodSpec,
-    },
+    "method": {_kind(m): m for m in METHOD_SPECS},
 }
 
 
