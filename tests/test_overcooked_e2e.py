@@ -200,33 +200,22 @@ def test_proxy_human_is_cloned_from_the_held_out_split(random_smoke, store, cons
         runs.ensure_eval(path, store, 2, console, "proxy")
 
 
-def test_eval_with_the_proxy_human_and_in_the_flipped_seat(small_data, store, console):
-    spec = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN)  # the module's data and humans
+@pytest.fixture(scope="module")
+def per_seed_run(small_data, store, console):
+    """A smoke Random run whose two seeds play with their own clones (one compile serves the
+    per-seed, proxy and flipped-seat tests)."""
+    spec = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN + ["human.per_seed=true", "train.seeds=2"])
     path, _ = runs.ensure_run(spec, store, console)
-    own, own_summary, _ = runs.ensure_eval(path, store, 2, console)
-    proxy, summary, cached = runs.ensure_eval(path, store, 2, console, "proxy")
-    assert not cached and proxy != own and own_summary["human"] == "training" and own_summary["human_key"] is None
-    proxy_key = human_runs.human_key(spec.human.proxy(), "coord_ring")[0]
-    assert summary["human"] == "proxy" and summary["human_key"] == proxy_key
-    assert json.loads((proxy / "manifest.json").read_text())["key_components"]["human"] == proxy_key
-    for r in summary["results"].values():
-        assert 0 <= r["return_mean"] <= 400 * 20
-    assert runs.ensure_eval(path, store, 2, console, "proxy")[2]  # a cache hit the second time
-    # The flipped seats: the robot plays agent_1, a separate evaluation; its training seat is the same as none.
-    flipped, fsummary, _ = runs.ensure_eval(path, store, 2, console, "training", 1)
-    assert flipped not in (own, proxy) and fsummary["robot_seat"] == 1 and own_summary["robot_seat"] == 0
-    assert json.loads((flipped / "manifest.json").read_text())["key_components"]["robot_seat"] == 1
-    assert runs.ensure_eval(path, store, 2, console, "training", 0)[0] == own
+    return spec, path
 
 
-def test_a_run_with_per_seed_humans(small_data, store, console):
+def test_a_run_with_per_seed_humans(per_seed_run, store):
     """Two seeds, two clones: both built as artifacts, both in the run's key, each seed playing
     with its own (the first clone is the module's usual human: cloning seed 0)."""
     from esr_cli.core import loop
     from esr_cli.runs import build_trainer
 
-    spec = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN + ["human.per_seed=true", "train.seeds=2"])
-    path, _ = runs.ensure_run(spec, store, console)
+    spec, path = per_seed_run
     keys = [human_runs.human_key(h, "coord_ring")[0] for h in spec.human.clones(spec.train.seeds)]
     assert len(set(keys)) == 2 and all(store.lookup(human_runs.HUMAN_KIND, k) for k in keys)
     m = json.loads((path / "manifest.json").read_text())
@@ -237,3 +226,22 @@ def test_a_run_with_per_seed_humans(small_data, store, console):
         want = human_runs.human_params(clone, "coord_ring", store)
         for got, w in zip(jax.tree.leaves(jax.tree.map(lambda x: x[i], state.human.params)), jax.tree.leaves(want)):
             np.testing.assert_array_equal(got, w)
+
+
+def test_eval_with_the_proxy_human_and_in_the_flipped_seat(per_seed_run, store, console):
+    spec, path = per_seed_run
+    own, own_summary, _ = runs.ensure_eval(path, store, 2, console)
+    proxy, summary, cached = runs.ensure_eval(path, store, 2, console, "proxy")
+    assert not cached and proxy != own and own_summary["human"] == "training" and own_summary["human_key"] is None
+    # Per-seed proxies: each seed's clone of the held-out split, all built and named in the key.
+    proxies = [human_runs.human_key(h, "coord_ring")[0] for h in spec.human.proxy().clones(spec.train.seeds)]
+    assert all(store.lookup(human_runs.HUMAN_KIND, k) for k in proxies)
+    assert summary["human"] == "proxy" and summary["human_key"] == json.loads((proxy / "manifest.json").read_text())["key_components"]["human"]
+    for r in summary["results"].values():
+        assert 0 <= r["return_mean"] <= 400 * 20
+    assert runs.ensure_eval(path, store, 2, console, "proxy")[2]  # a cache hit the second time
+    # The flipped seats: the robot plays agent_1, a separate evaluation; its training seat is the same as none.
+    flipped, fsummary, _ = runs.ensure_eval(path, store, 2, console, "training", 1)
+    assert flipped not in (own, proxy) and fsummary["robot_seat"] == 1 and own_summary["robot_seat"] == 0
+    assert json.loads((flipped / "manifest.json").read_text())["key_components"]["robot_seat"] == 1
+    assert runs.ensure_eval(path, store, 2, console, "training", 0)[0] == own
