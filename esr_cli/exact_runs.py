@@ -16,10 +16,8 @@ from rich.console import Console
 
 from esr_cli import provenance
 from esr_cli.runs import load_run, seed_slice
-from esr_cli.store import Store, StoreError, atomic_write_text, content_key
+from esr_cli.store import EXACT_KIND, FIGURE_KIND, Store, StoreError, atomic_write_text, content_key
 
-EXACT_KIND = "exact"
-FIGURE_KIND = "figures"
 
 
 def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | None, seed_index: int, console: Console):

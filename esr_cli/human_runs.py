@@ -22,9 +22,8 @@ import numpy as np
 from rich.console import Console
 
 from esr_cli import provenance
-from esr_cli.store import Store, StoreError, atomic_write_text, content_key
+from esr_cli.store import DATA_KIND, HUMAN_KIND, Store, StoreError, atomic_write_text, content_key
 
-DATA_KIND, HUMAN_KIND = "humandata", "humans"
 DATA_SOURCES = ("envs/overcooked.py", "humans/overcooked_data.py")
 BC_SOURCES = DATA_SOURCES + ("humans/bc.py", "networks.py")
 # Rows checked by replaying the recorded joint action when the data artifact is built.

@@ -21,9 +21,8 @@ from rich.console import Console
 from esr_cli import figures as figs
 from esr_cli import provenance
 from esr_cli.stats import format_summary
-from esr_cli.store import Store, atomic_write_text, content_key
+from esr_cli.store import FIGURE_KIND, Store, atomic_write_text, content_key
 
-FIGURE_KIND = "figures"
 PLOT_SOURCES = ("figures.py", "plots.py", "paper.py", "analysis")
 
 

@@ -18,9 +18,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from esr_cli import provenance, spec as specs
 from esr_cli.finals import read_rows
-from esr_cli.store import LockBusy, Store, StoreError, atomic_write_text, content_key
+from esr_cli.store import EVAL_KIND, LockBusy, RUN_KIND, Store, StoreError, atomic_write_text, content_key
 
-RUN_KIND, EVAL_KIND = "runs", "evals"
 # Rough upper bound of a checkpoint per seed plus metrics, checked before a run starts.
 MIN_FREE_BYTES_PER_SEED = 32 << 20
 

@@ -31,7 +31,9 @@ from typing import Callable, Iterator
 from esr_cli import faults
 
 MANIFEST = "manifest.json"
-KINDS = ("runs", "evals", "exact", "figures", "humandata", "humans")
+# The artifact kinds, each a top-level folder of the store; every module names them from here.
+RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND = "runs", "evals", "exact", "figures", "humandata", "humans"
+KINDS = (RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND)
 
 
 class StoreError(Exception):
