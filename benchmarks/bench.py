@@ -115,9 +115,10 @@ def measure(spec_path: str, seeds: int, epochs: int, seed_batch: int | None) -> 
     if spec.human.kind == "bc":  # the BC human of an Overcooked spec: built once, then stored
         from rich.console import Console
 
-        from esr_cli.human_runs import ensure_human
+        from esr_cli.artifacts import ensure
+        from esr_cli.human_runs import human_recipe
 
-        ensure_human(spec.human, spec.env.layout, store, Console(stderr=True))
+        ensure(human_recipe(spec.human, spec.env.layout, Console(stderr=True)), store)
     trainer = build_trainer(spec, store)
     state = compiled_init(trainer)(jnp.asarray(spec.train.seeds, jnp.int32))
     chunk = compiled_chunk(trainer, epochs, seed_batch)

@@ -15,6 +15,7 @@ from rich.console import Console
 from rich.table import Table
 
 from esr_cli import spec as specs
+from esr_cli.artifacts import ensure
 from esr_cli.store import Store, StoreError
 
 app = typer.Typer(
@@ -74,7 +75,8 @@ def train(
     from esr_cli import runs
 
     spec = _load_spec(spec_file, budget, set_)
-    path, cached = runs.ensure_run(spec, STATE.store, err)
+    built = ensure(runs.run_recipe(spec, err), STATE.store)
+    path, cached = built.path, built.cached
     err.print(f"[green]{'cache hit' if cached else 'trained'}[/]: {spec.name} ({spec.budget}) -> {path}")
     out.print(str(path), soft_wrap=True, highlight=False)
 
@@ -119,10 +121,11 @@ def sweep(
                 from esr_cli import figures as figs, paper
 
                 try:
-                    path, hit = paper.suite_figure(suite, STATE.store)
+                    built = ensure(paper.suite_figure_recipe(suite, STATE.store), STATE.store)
                 except figs.MissingRuns as e:
                     raise Exit(2, f"{e}\nor all at once: esr sweep {suite_file} --budget {budget}") from None
-                err.print(f"[green]{'cache hit' if hit else 'drawn'}[/]: {path / 'suite.png'}  (table: {path / 'table.md'})")
+                path = built.path
+                err.print(f"[green]{'cache hit' if built.cached else 'drawn'}[/]: {path / 'suite.png'}  (table: {path / 'table.md'})")
             return
         if show_status:
             rows = sw.status(suite, STATE.store)
@@ -167,7 +170,8 @@ def eval_(
     if episodes is not None and episodes < 1:
         raise Exit(2, f"--episodes: must be >= 1 (got {episodes})")
     run_path = runs.find_run(target, budget, set_, STATE.store)
-    path, summary, cached = runs.ensure_eval(run_path, STATE.store, episodes, err, human, seat)
+    built = ensure(runs.eval_recipe(run_path, STATE.store, episodes, err, human, seat), STATE.store)
+    path, summary, cached = built.path, built.summary(), built.cached
     partner = "" if human == "training" else f", with the {human} human {summary['human_key'][:8]}"
     if seat is not None and summary.get("robot_seat") is not None:
         partner += f", robot as agent_{summary['robot_seat']}"
@@ -206,7 +210,8 @@ def exact(
             assert len(cell) == 2
         except (ValueError, AssertionError):
             raise Exit(2, f"--goal: expected 'row,col', got {goal!r}") from None
-    path, summary, cached = exact_runs.ensure_exact(spec, STATE.store, cell, gamma, robot, seed_index, err)
+    built = ensure(exact_runs.exact_recipe(spec, STATE.store, cell, gamma, robot, seed_index, err), STATE.store)
+    path, summary, cached = built.path, built.summary(), built.cached
     table = Table(title=f"exact empowerment: {spec.name}, goal {tuple(summary['goal'])}, gamma {summary['gamma']}")
     table.add_column("quantity")
     table.add_column("value")
@@ -294,25 +299,27 @@ def plot(
     if figure == "estimator":
         if ref is None:
             raise Exit(2, "esr plot estimator needs an exact artifact: make one with `esr exact SPEC --robot RUN`")
-        path, result, cached = exact_runs.ensure_estimator_figure(ref, STATE.store, err)
+        built = ensure(exact_runs.estimator_recipe(ref, STATE.store, err), STATE.store)
+        result = built.summary()
         err.print(f"Spearman rank correlation of ESR's reward with the exact MI: {result['spearman']:.3f} over {result['pairs']} (state, robot action) pairs")
-        png = path / "estimator.png"
+        png = built.path / "estimator.png"
     elif figure == "geometry":
-        path, result, cached = exact_runs.ensure_geometry_figure(STATE.store, gamma, state)
+        built = ensure(exact_runs.geometry_recipe(gamma, state), STATE.store)
+        result = built.summary()
         err.print(f"3-state MDP, state {state}, gamma {gamma}: capacity I = {result['mutual_information']:.4f} nats "
                   f"(uniform policy: {result['uniform_policy_mi']:.4f})")
-        png = path / "geometry.png"
+        png = built.path / "geometry.png"
     elif figure in PAPER_FIGURES:
         from esr_cli import figures as figs, paper
 
         try:
-            path, cached = paper.ensure_figure(STATE.store, budget, figure)
+            built = ensure(paper.figure_recipe(STATE.store, budget, figure), STATE.store)
         except figs.MissingRuns as e:
             raise Exit(2, f"{e}\nor all at once: make paper-figures BUDGET={budget}") from None
-        png = path / f"{figs.FIGURES[figure][0]}.png"
+        png = built.path / f"{figs.FIGURES[figure][0]}.png"
     else:
         raise Exit(2, f"unknown figure {figure!r}; known: estimator, geometry, {', '.join(PAPER_FIGURES)}")
-    err.print(f"[green]{'cache hit' if cached else 'drawn'}[/]: {png}")
+    err.print(f"[green]{'cache hit' if built.cached else 'drawn'}[/]: {png}")
     out.print(str(png), soft_wrap=True, highlight=False)
 
 

@@ -7,24 +7,28 @@ robot action, and the effective empowerment (esr_cli/analysis/exact.py).
 
 from __future__ import annotations
 
-import json
-import time
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 from rich.console import Console
+from scipy.stats import spearmanr
 
-from esr_cli import provenance
-from esr_cli.runs import load_run, seed_slice
-from esr_cli.store import EXACT_KIND, FIGURE_KIND, Store, StoreError, atomic_write_text, content_key
+from esr_cli import plots, provenance
+from esr_cli.analysis import exact, geometry
+from esr_cli.artifacts import Recipe
+from esr_cli.envs import make_env
+from esr_cli.envs.gridworld import GridState
+from esr_cli.humans import make_human
+from esr_cli.runs import load_run, run_spec, seed_slice
+from esr_cli.store import EXACT_KIND, FIGURE_KIND, RUN_KIND, Store, StoreError
 
 
-
-def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | None, seed_index: int, console: Console):
-    from esr_cli.analysis import exact
-    from esr_cli.envs import make_env
-    from esr_cli.humans import make_human
-
+def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | None, seed_index: int,
+                 console: Console) -> Recipe:
+    """Exact empowerment of `spec`'s gridworld at `goal` and discount `gamma`, for a uniform
+    robot or the Boltzmann policy of seed `seed_index` of the trained run `robot`."""
     if spec.env.kind != "gridworld":
         raise StoreError("exact empowerment is defined for gridworld specs only")
     size = spec.env.size
@@ -36,11 +40,15 @@ def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | Non
         raise StoreError(f"--gamma must be in [0, 1), got {gamma}")
     robot_manifest = None
     if robot:
-        run_path, robot_manifest, trainer, state = load_run(store, robot)
-        if trainer.spec.env != spec.env:
+        run_path = store.resolve(robot)
+        robot_manifest = store.read_manifest(run_path)
+        if robot_manifest.get("kind") != RUN_KIND:
+            raise StoreError(f"{robot} is not a training run")
+        robot_spec = run_spec(run_path)
+        if robot_spec.env != spec.env:
             raise StoreError(f"robot {robot} was trained on another environment than {spec.name}")
-        if not 0 <= seed_index < len(trainer.spec.train.seeds):
-            raise StoreError(f"--seed-index {seed_index} out of range for a run with {len(trainer.spec.train.seeds)} seeds")
+        if not 0 <= seed_index < len(robot_spec.train.seeds):
+            raise StoreError(f"--seed-index {seed_index} out of range for a run with {len(robot_spec.train.seeds)} seeds")
     components = {
         "kind": "exact",
         "env": spec.training_part()["env"],
@@ -51,12 +59,8 @@ def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | Non
         "code": provenance.code_digest(provenance.EVAL_SOURCES + ("analysis",)),
         "toolchain": provenance.toolchain(),
     }
-    key = content_key(components)
 
-    def make() -> Path:
-        pending = {"kind": EXACT_KIND, "name": spec.name, "key": key, "budget": spec.budget, "seeds": []}
-        out = store.begin(EXACT_KIND, key, pending)
-        started = time.time()
+    def build(out: Path, store: Store) -> dict:
         env = make_env(spec.env)
         human = make_human(spec.human, env)
         with console.status("enumerating reachable states"):
@@ -67,6 +71,7 @@ def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | Non
         console.print(f"{space.size} reachable states, {env.num_robot_actions} robot actions")
         pi_h = exact.human_policy(space, human)
         if robot:
+            _, _, trainer, state = load_run(store, robot_manifest["key"])
             lstate = seed_slice(state.learner, seed_index)
             pi_r = exact.boltzmann_robot(space, lambda obs: trainer.learner.log_probs(lstate, obs))
         else:
@@ -77,7 +82,7 @@ def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | Non
             out / "exact.npz", human=space.human, blocks=space.blocks, next_state=space.next_state, start=space.start,
             pi_human=pi_h, pi_robot=pi_r, mi=emp.mi, mi_merged=emp.mi_merged, state_mi=emp.state_mi, value=emp.value,
         )
-        summary = {
+        return {
             "name": spec.name, "goal": list(goal), "gamma": gamma, "states": space.size,
             "robot": components["robot"],
             "effective_empowerment": emp.effective_empowerment,
@@ -88,15 +93,11 @@ def ensure_exact(spec, store: Store, goal, gamma: float | None, robot: str | Non
             "max_mi": float(np.nanmax(emp.mi)),
             "states_with_zero_mi": int((emp.state_mi < 1e-9).sum()),
         }
-        atomic_write_text(out / "summary.json", json.dumps(summary, indent=2))
-        manifest = provenance.complete_manifest(pending, components, summary, started)
-        return store.commit(EXACT_KIND, key, manifest)
 
-    path, cached = store.get_or_make(EXACT_KIND, key, make)
-    return path, json.loads((path / "summary.json").read_text()), cached
+    return Recipe(EXACT_KIND, spec.name, components, build, budget=spec.budget)
 
 
-def ensure_estimator_figure(exact_ref: str, store: Store, console: Console) -> tuple[Path, dict, bool]:
+def estimator_recipe(exact_ref: str, store: Store, console: Console) -> Recipe:
     """`esr plot estimator`: a figure artifact (kind `figures`) from an exact artifact."""
     exact_path = store.resolve(exact_ref)
     manifest = store.read_manifest(exact_path)
@@ -104,20 +105,12 @@ def ensure_estimator_figure(exact_ref: str, store: Store, console: Console) -> t
         raise StoreError(f"{exact_ref} is not an exact-empowerment artifact (make one with `esr exact SPEC --robot RUN`)")
     components = {"kind": "figure", "figure": "estimator", "exact": manifest["key"],
                   "code": provenance.code_digest(provenance.EVAL_SOURCES + ("analysis", "exact_runs.py"))}
-    key = content_key(components)
 
-    def make() -> Path:
-        pending = {"kind": FIGURE_KIND, "name": f"estimator-{manifest['name']}", "key": key,
-                   "budget": manifest.get("budget"), "seeds": []}
-        out = store.begin(FIGURE_KIND, key, pending)
+    def build(out: Path, store: Store) -> dict:
         with console.status("computing ESR's estimate for every state and robot action"):
-            result = estimator_check(exact_path, store, out / "estimator.png")
-        atomic_write_text(out / "summary.json", json.dumps(result, indent=2))
-        manifest_out = provenance.complete_manifest(pending, components, result)
-        return store.commit(FIGURE_KIND, key, manifest_out)
+            return estimator_check(exact_path, store, out / "estimator.png")
 
-    path, cached = store.get_or_make(FIGURE_KIND, key, make)
-    return path, json.loads((path / "summary.json").read_text()), cached
+    return Recipe(FIGURE_KIND, f"estimator-{manifest['name']}", components, build, budget=manifest.get("budget"))
 
 
 def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None) -> dict:
@@ -128,14 +121,6 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
     the run's own robot (`esr exact SPEC --robot RUN`), so that rho is the future the
     representations were trained on. -> Spearman rank correlation and a scatter plot.
     """
-    import jax
-    import jax.numpy as jnp
-    from scipy.stats import spearmanr
-
-    from esr_cli import plots
-    from esr_cli.analysis import exact
-    from esr_cli.envs.gridworld import GridState
-
     manifest = store.read_manifest(exact_path)
     robot = manifest["key_components"]["robot"]
     if robot == "uniform":
@@ -208,8 +193,6 @@ VISITED_MASS = 0.99
 def visited_pairs(space, pi_robot: np.ndarray, pi_human: np.ndarray, gamma: float) -> np.ndarray:
     """bool[S, A_R]: the smallest set of pairs holding VISITED_MASS of the discounted occupancy
     d(s) pi_R(aR | s), d the discounted state distribution from the start (exact.empowerment's)."""
-    from esr_cli.analysis import exact
-
     d = exact.Occupancy(exact.transition_matrix(space, pi_robot, pi_human), gamma).visitation(space.start)
     weight = (d[:, None] * pi_robot).reshape(-1)
     order = np.argsort(-weight)
@@ -220,31 +203,21 @@ def visited_pairs(space, pi_robot: np.ndarray, pi_human: np.ndarray, gamma: floa
     return mask.reshape(pi_robot.shape)
 
 
-def ensure_geometry_figure(store: Store, gamma: float, state: int) -> tuple[Path, dict, bool]:
+def geometry_recipe(gamma: float, state: int) -> Recipe:
     """`esr plot geometry`: the information-geometry picture of a 3-state MDP (exact)."""
-    from esr_cli import plots
-    from esr_cli.analysis import geometry
-
     if not 0.0 <= gamma < 1.0:
         raise StoreError(f"--gamma must be in [0, 1), got {gamma}")
     if state not in (0, 1, 2):
         raise StoreError(f"--state must be 0, 1 or 2, got {state}")
     components = {"kind": "figure", "figure": "geometry", "gamma": gamma, "state": state,
                   "code": provenance.code_digest(("analysis", "plots.py"))}
-    key = content_key(components)
 
-    def make() -> Path:
-        pending = {"kind": FIGURE_KIND, "name": "information-geometry", "key": key, "budget": None, "seeds": []}
-        out = store.begin(FIGURE_KIND, key, pending)
+    def build(out: Path, store: Store) -> dict:
         geo = geometry.geometry(geometry.example_mdp(), state, gamma)
         plots.information_geometry(geo, gamma, out / "geometry.png", {"artifacts": {}, "budget": None, "seeds": [],
                                                                      "mdp": "analysis.geometry.example_mdp", "state": state})
-        result = {"gamma": gamma, "state": state, "mutual_information": geo.mutual_information,
-                  "uniform_policy_mi": geo.uniform_mi, "capacity_policy": geo.policy.round(6).tolist(),
-                  "kl_to_centre": geo.kl.round(6).tolist()}
-        atomic_write_text(out / "summary.json", json.dumps(result, indent=2))
-        manifest = provenance.complete_manifest(pending, components, result)
-        return store.commit(FIGURE_KIND, key, manifest)
+        return {"gamma": gamma, "state": state, "mutual_information": geo.mutual_information,
+                "uniform_policy_mi": geo.uniform_mi, "capacity_policy": geo.policy.round(6).tolist(),
+                "kl_to_centre": geo.kl.round(6).tolist()}
 
-    path, cached = store.get_or_make(FIGURE_KIND, key, make)
-    return path, json.loads((path / "summary.json").read_text()), cached
+    return Recipe(FIGURE_KIND, "information-geometry", components, build)

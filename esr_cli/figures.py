@@ -25,7 +25,8 @@ import numpy as np  # noqa: E402
 from esr_cli import suite as suites  # noqa: E402
 from esr_cli.finals import final_per_seed, read_rows, series  # noqa: E402
 from esr_cli.stats import describe, format_summary  # noqa: E402
-from esr_cli.store import Store  # noqa: E402
+from esr_cli.plots import smooth  # noqa: E402
+from esr_cli.store import RUN_KIND, Store  # noqa: E402
 
 PAPER_SUITE = Path(__file__).resolve().parents[1] / "experiments" / "suites" / "paper.yaml"
 GRID_NS = (2, 5, 7, 10)
@@ -83,8 +84,6 @@ class PaperInputs:
 
     def paths(self, figure: str, wanted: list[tuple[str, tuple[str, ...]]]) -> list[Path]:
         """The committed artifacts of `wanted` runs, or MissingRuns naming the commands."""
-        from esr_cli.runs import RUN_KIND
-
         runs = [self.run(stem, sets) for stem, sets in wanted]
         found = [self.store.lookup(RUN_KIND, r.key) for r in runs]
         missing = [r.command(self.budget) for r, p in zip(runs, found) if p is None]
@@ -100,8 +99,6 @@ class PaperInputs:
 
 
 def _smooth(y: np.ndarray, window: int) -> np.ndarray:
-    from esr_cli.plots import smooth
-
     return smooth(y, window)
 
 

@@ -1,27 +1,31 @@
 """Human-model artifacts: the converted human data and the BC human, one per layout.
 
-Two kinds in the store, each built the first time something needs it (lookup, lock,
-partial directory, atomic commit: store.get_or_make), like training runs:
+Two kinds in the store, each a recipe (esr_cli/artifacts.py) made the first time something
+needs it, like training runs:
 
   humandata  the 2019 trials of one layout as (observation, action) pairs from both players'
              views (data.npz), with a replay check of the conversion in the manifest
   humans     the cloned policy (params.msgpack + policy.json) with its accuracies and BC+BC
-             self-play return in the manifest; depends on the humandata key
+             self-play return in the manifest; requires the humandata artifact
 
-A training run with a BC human lists the human's key among its key's dependencies.
+A training run with a BC human lists the human's key among its key's dependencies, and its
+recipe requires the human's.
 """
 
 from __future__ import annotations
 
 import json
-import time
 from importlib import metadata
 from pathlib import Path
 
 import numpy as np
+from flax import serialization
 from rich.console import Console
 
 from esr_cli import provenance
+from esr_cli.artifacts import Recipe
+from esr_cli.envs.overcooked import Overcooked
+from esr_cli.humans import bc, overcooked_data as od
 from esr_cli.store import DATA_KIND, HUMAN_KIND, Store, StoreError, atomic_write_text, content_key
 
 DATA_SOURCES = ("envs/overcooked.py", "humans/overcooked_data.py")
@@ -39,8 +43,6 @@ def _version(name: str) -> str | None:
 
 
 def data_key(layout: str) -> tuple[str, dict]:
-    from esr_cli.humans import overcooked_data as od
-
     components = {
         "kind": "humandata",
         "layout": layout,
@@ -74,9 +76,11 @@ def dependencies(spec) -> dict:
     return {HUMAN_KIND: keys if spec.human.per_seed else keys[0]}
 
 
-def ensure_humans(spec, store: Store, console: Console) -> list[tuple[Path, bool]]:
-    """Every BC human a run of `spec` trains with (one, or one per seed), built if needed."""
-    return [ensure_human(h, spec.env.layout, store, console) for h in spec.human.clones(spec.train.seeds)]
+def human_recipes(spec, console: Console) -> tuple[Recipe, ...]:
+    """Every BC human a run of `spec` trains with (one, or one per seed); () for other humans."""
+    if spec.human.kind != "bc":
+        return ()
+    return tuple(human_recipe(h, spec.env.layout, console) for h in spec.human.clones(spec.train.seeds))
 
 
 def humans_params(spec, store: Store | None):
@@ -87,15 +91,11 @@ def humans_params(spec, store: Store | None):
 
 
 # ---------------------------------------------------------------- building
-def ensure_data(layout: str, store: Store, console: Console) -> tuple[Path, bool]:
+def data_recipe(layout: str, console: Console) -> Recipe:
+    """The human data of `layout` converted to JaxMARL observations, checked by replay."""
     key, components = data_key(layout)
 
-    def make() -> Path:
-        from esr_cli.humans import overcooked_data as od
-
-        started = time.time()
-        pending = {"kind": DATA_KIND, "name": layout, "key": key}
-        out = store.begin(DATA_KIND, key, pending)
+    def build(out: Path, store: Store) -> dict:
         with console.status(f"converting the human data of {layout} to JaxMARL observations"):
             data = od.convert(layout)
             check = od.replay_match(layout, "train", sample=REPLAY_SAMPLE)
@@ -106,15 +106,13 @@ def ensure_data(layout: str, store: Store, console: Console) -> tuple[Path, bool
             )
         np.savez_compressed(out / DATA_FILE, **data)
         counts = np.bincount(data["action"], minlength=6)
-        summary = {
+        return {
             "pairs": {"train": int((~data["test"]).sum()), "test": int(data["test"].sum())},
             "action_fraction": [round(float(c) / len(data["action"]), 4) for c in counts],
             "replay_check": check,
         }
-        manifest = provenance.complete_manifest(pending, components, summary, started)
-        return store.commit(DATA_KIND, key, manifest)
 
-    return store.get_or_make(DATA_KIND, key, make)
+    return Recipe(DATA_KIND, layout, components, build, summary_file=False)
 
 
 def load_data(path: Path) -> dict[str, np.ndarray]:
@@ -122,36 +120,32 @@ def load_data(path: Path) -> dict[str, np.ndarray]:
         return {k: f[k] for k in f.files}
 
 
-def ensure_human(human_spec, layout: str, store: Store, console: Console) -> tuple[Path, bool]:
-    """The committed BC human for `human_spec` on `layout`, building it (and its data) if needed."""
+def human_recipe(human_spec, layout: str, console: Console) -> Recipe:
+    """The BC human of `human_spec` on `layout` (its own layout if it names one)."""
     key, components = human_key(human_spec, layout)
     layout = human_spec.layout or layout
+    data = data_recipe(layout, console)
 
-    def make() -> Path:
-        from flax import serialization
-
-        from esr_cli.envs.overcooked import Overcooked
-        from esr_cli.humans import bc
-
-        data_path, _ = ensure_data(layout, store, console)
-        started = time.time()
-        pending = {"kind": HUMAN_KIND, "name": f"bc_{layout}", "key": key}
-        out = store.begin(HUMAN_KIND, key, pending)
-        data = load_data(data_path)
+    def build(out: Path, store: Store) -> dict:
+        pairs = load_data(store.lookup(DATA_KIND, data.key))
         # The split cloned from, and the one held out for its accuracy (test for a proxy human).
-        train, test = (data["test"], ~data["test"]) if human_spec.split == "test" else (~data["test"], data["test"])
+        train, test = (pairs["test"], ~pairs["test"]) if human_spec.split == "test" else (~pairs["test"], pairs["test"])
         with console.status(f"cloning the human of {layout} from its {human_spec.split} split "
                             f"({int(train.sum())} pairs, {human_spec.epochs} epochs)"):
-            params, losses = bc.train_bc(data["obs"][train], data["action"][train], human_spec, seed=human_spec.seed)
-        acc_train = bc.accuracies(params, human_spec.hidden, data["obs"][train], data["action"][train])
-        acc_test = bc.accuracies(params, human_spec.hidden, data["obs"][test], data["action"][test])
+            params, losses = bc.train_bc(pairs["obs"][train], pairs["action"][train], human_spec, seed=human_spec.seed)
+        acc_train = bc.accuracies(params, human_spec.hidden, pairs["obs"][train], pairs["action"][train])
+        acc_test = bc.accuracies(params, human_spec.hidden, pairs["obs"][test], pairs["action"][test])
         with console.status(f"BC+BC self-play on {layout}: {human_spec.selfplay_episodes} episodes"):
             returns = bc.selfplay_returns(Overcooked(layout, 400), params, human_spec.hidden, human_spec.selfplay_episodes)
         se = float(returns.std(ddof=1) / np.sqrt(len(returns)))
         (out / PARAMS_FILE).write_bytes(serialization.msgpack_serialize(serialization.to_state_dict(params)))
         atomic_write_text(out / POLICY_FILE, json.dumps({"layout": layout, "hidden": list(human_spec.hidden), "actions": 6,
                                                           "input": "agent's own view, (H, W, 26), urgency channel zeroed"}))
-        summary = {
+        console.print(
+            f"BC human {key[:12]} ({layout}): test accuracy {acc_test['accuracy']:.3f}, non-stay "
+            f"{acc_test['non_stay_accuracy']:.3f}; BC+BC self-play {returns.mean():.1f} +- {se:.1f}"
+        )
+        return {
             "layout": layout,
             "split": human_spec.split,
             "train": acc_train,  # on the split it was cloned from
@@ -162,25 +156,16 @@ def ensure_human(human_spec, layout: str, store: Store, console: Console) -> tup
             # what `esr ls` shows in its return column for this artifact
             "return": {"mean": round(float(returns.mean()), 3), "of": "BC+BC self-play"},
         }
-        manifest = provenance.complete_manifest(pending, components, summary, started)
-        path = store.commit(HUMAN_KIND, key, manifest)
-        console.print(
-            f"BC human {key[:12]} ({layout}): test accuracy {acc_test['accuracy']:.3f}, non-stay "
-            f"{acc_test['non_stay_accuracy']:.3f}; BC+BC self-play {returns.mean():.1f} +- {se:.1f}"
-        )
-        return path
 
-    return store.get_or_make(HUMAN_KIND, key, make)
+    return Recipe(HUMAN_KIND, f"bc_{layout}", components, build, requires=(data,), summary_file=False)
 
 
 def load_params(path: Path):
-    from flax import serialization
-
     return serialization.msgpack_restore((Path(path) / PARAMS_FILE).read_bytes())
 
 
 def human_params(human_spec, layout: str, store: Store | None):
-    """The committed BC human's parameters (it must have been built: see ensure_human)."""
+    """The committed BC human's parameters (it must have been made: see human_recipe)."""
     key, _ = human_key(human_spec, layout)
     if store is None:
         raise StoreError("a BC human is a stored artifact: this command needs the store to load it")

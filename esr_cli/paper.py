@@ -1,8 +1,9 @@
 """Figures, the paper report and ablations as artifacts (docs/paper.md).
 
-- `ensure_figure`: one figure of esr_cli.figures as a `figures` artifact, keyed by the figure,
+- `figure_recipe`: one figure of esr_cli.figures as a `figures` artifact, keyed by the figure,
   the budget, the keys of the runs it reads and the plotting code. Never trains.
 - `ensure_report`: every figure, then a report artifact (report.md with the figures inline).
+- `suite_figure_recipe`: the learning curves and final-return table of a suite's runs.
 - `make_paper`: train what the paper suite lacks (esr sweep's executors), then the report.
 - `ablate`: a base spec (or the gridworld suite) and its ablated variants -> one comparison
   artifact (figure + table, mean ± SE across seeds); runs already in the store are reused.
@@ -19,26 +20,13 @@ from typing import Optional
 from rich.console import Console
 
 from esr_cli import figures as figs
-from esr_cli import provenance
+from esr_cli import provenance, runs, spec as specs, sweep
+from esr_cli.artifacts import Recipe, ensure
+from esr_cli.core.train import release_compiled
 from esr_cli.stats import format_summary
-from esr_cli.store import FIGURE_KIND, Store, atomic_write_text, content_key
+from esr_cli.store import FIGURE_KIND, RUN_KIND, Store, atomic_write_text, content_key
 
 PLOT_SOURCES = ("figures.py", "plots.py", "paper.py", "analysis")
-
-
-def _commit(store: Store, key: str, components: dict, name: str, budget, seeds, make_files) -> Path:
-    """Create a figures artifact: `make_files(dir) -> summary dict`, then commit atomically."""
-
-    def make() -> Path:
-        pending = {"kind": FIGURE_KIND, "name": name, "key": key, "budget": budget, "seeds": seeds}
-        out = store.begin(FIGURE_KIND, key, pending)
-        summary = make_files(out)
-        atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=float))
-        manifest = provenance.complete_manifest(pending, components, summary)
-        return store.commit(FIGURE_KIND, key, manifest)
-
-    path, _ = store.get_or_make(FIGURE_KIND, key, make)
-    return path
 
 
 def figure_key(inputs: figs.PaperInputs, figure: str) -> tuple[str, dict, list[Path]]:
@@ -49,37 +37,33 @@ def figure_key(inputs: figs.PaperInputs, figure: str) -> tuple[str, dict, list[P
     return content_key(components), components, paths
 
 
-def ensure_figure(store: Store, budget: str, name: str, inputs: Optional[figs.PaperInputs] = None) -> tuple[Path, bool]:
-    """`esr plot NAME --budget B`: -> (artifact dir, cache hit). Raises figs.MissingRuns."""
+def figure_recipe(store: Store, budget: str, name: str, inputs: Optional[figs.PaperInputs] = None) -> Recipe:
+    """`esr plot NAME --budget B`. Raises figs.MissingRuns when a run it reads is not trained."""
     figure, draw = figs.FIGURES[name]
     inputs = inputs or figs.PaperInputs(store, budget)
-    key, components, paths = figure_key(inputs, figure)
-    hit = store.lookup(FIGURE_KIND, key) is not None
+    _, components, paths = figure_key(inputs, figure)
     seeds = sorted({s for p in paths for s in store.read_manifest(p).get("seeds", [])})
 
-    def files(out: Path) -> dict:
+    def build(out: Path, store: Store) -> dict:
         result = draw(inputs, out)
         return {"figure": figure, "files": [f.name for f in result.files], "provenance": result.provenance, **result.summary}
 
-    return _commit(store, key, components, figure, budget, seeds, files), hit
+    return Recipe(FIGURE_KIND, figure, components, build, budget=budget, seeds=tuple(seeds))
 
 
 def ensure_report(store: Store, budget: str, console: Console) -> Path:
     """Every figure (artifacts), then the report artifact with them inline."""
     inputs = figs.PaperInputs(store, budget)
-    from esr_cli.core.train import release_compiled
-
     made = {}
     for name, (figure, _) in figs.FIGURES.items():
         release_compiled()
-        path, hit = ensure_figure(store, budget, name, inputs)
-        console.print(f"  {figure}: {'cache hit' if hit else 'drawn'} {path}")
-        made[figure] = path
+        built = ensure(figure_recipe(store, budget, name, inputs), store)
+        console.print(f"  {figure}: {'cache hit' if built.cached else 'drawn'} {built.path}")
+        made[figure] = built.path
     components = {"kind": "report", "budget": budget, "figures": {f: p.name for f, p in made.items()},
                   "code": provenance.code_digest(PLOT_SOURCES)}
-    key = content_key(components)
 
-    def files(out: Path) -> dict:
+    def build(out: Path, store: Store) -> dict:
         lines = [f"# ESR paper figures ({budget} budget)", "",
                  f"Made by `make paper-figures BUDGET={budget}` from the runs of `experiments/suites/paper.yaml`. "
                  "Each figure's sidecar JSON lists the training-run keys it read; `esr show KEY` prints a run's spec.", ""]
@@ -99,15 +83,13 @@ def ensure_report(store: Store, budget: str, console: Console) -> Path:
         atomic_write_text(out / "report.md", "\n".join(lines))
         return {"figures": {f: p.name for f, p in made.items()}, "report": "report.md"}
 
-    return _commit(store, key, components, f"paper-report-{budget}", budget, [], files)
+    return ensure(Recipe(FIGURE_KIND, f"paper-report-{budget}", components, build, budget=budget), store).path
 
 
-def suite_figure(suite, store: Store) -> tuple[Path, bool]:
+def suite_figure_recipe(suite, store: Store) -> Recipe:
     """`esr sweep SUITE --results --plot`: learning curves of every run of a suite (one panel
-    per environment) and their final-return table, as a figures artifact keyed by the runs and
-    the plotting code. -> (artifact dir, cache hit). Raises figs.MissingRuns; never trains."""
-    from esr_cli.runs import RUN_KIND
-
+    per environment) and their final-return table, keyed by the runs and the plotting code.
+    Raises figs.MissingRuns; never trains."""
     found = [store.lookup(RUN_KIND, run.key) for run in suite.runs]
     missing = [run.command(suite.budget) for run, p in zip(suite.runs, found) if p is None]
     if missing:
@@ -116,12 +98,10 @@ def suite_figure(suite, store: Store) -> tuple[Path, bool]:
     keys = [m["key"] for m in manifests]
     components = {"kind": "suite_figure", "suite": suite.name, "budget": suite.budget, "runs": keys,
                   "code": provenance.code_digest(PLOT_SOURCES)}
-    key = content_key(components)
-    hit = store.lookup(FIGURE_KIND, key) is not None
     seeds = sorted({s for m in manifests for s in m.get("seeds", [])})
     warmups = {getattr(run.spec.learner, "warmup_epochs", 0) for run in suite.runs}
 
-    def files(out: Path) -> dict:
+    def build(out: Path, store: Store) -> dict:
         fig, table = figs.panels_figure(figs.suite_panels(list(zip(suite.runs, found))), f"suite {suite.name}", "return",
                                         warmups.pop() if len(warmups) == 1 else 0, suite.budget)
         prov = {"figure": "suite", "suite": suite.name, "artifacts": {"runs": keys}, "budget": suite.budget,
@@ -130,7 +110,7 @@ def suite_figure(suite, store: Store) -> tuple[Path, bool]:
         atomic_write_text(out / "table.md", "\n".join(_final_table(table)) + "\n")
         return {"final_return": table, "provenance": prov}
 
-    return _commit(store, key, components, f"suite {suite.name}", suite.budget, seeds, files), hit
+    return Recipe(FIGURE_KIND, f"suite {suite.name}", components, build, budget=suite.budget, seeds=tuple(seeds))
 
 
 def _final_table(table: dict) -> list[str]:
@@ -161,8 +141,6 @@ _FIGURE_DOCS = {
 
 def make_paper(store: Store, budget: str, executor: str, console: Console) -> Path:
     """Train the paper suite's missing runs with `executor`, then the report. -> report dir."""
-    from esr_cli import sweep
-
     result = sweep.run_suite(figs.PAPER_SUITE, budget, executor, store, console)
     if result.failed:
         raise sweep.SweepError(f"{len(result.failed)} run(s) failed: " + "; ".join(f"{r.label}: {m}" for r, m in result.failed))
@@ -200,32 +178,27 @@ def ablation_variants(names: list[str], custom: list[str]) -> list[Variant]:
 def ablate(spec_paths: list[str], names: list[str], custom: list[str], budget: str, store: Store,
            console: Console) -> tuple[Path, dict]:
     """Train (or reuse) each spec and its variants; -> (comparison artifact, final-return table)."""
-    from esr_cli import runs
-    from esr_cli import spec as specs
-
     variants = ablation_variants(names, custom)
     loaded = []  # (spec path, variant, spec)
     for path in spec_paths or DEFAULT_ABLATION_SPECS:
         for v in variants:
             loaded.append((path, v, specs.load(path, budget, list(v.sets))))  # all validated before any work
-    from esr_cli.core.train import release_compiled
 
     run_paths = []
     for i, (path, v, spec) in enumerate(loaded, 1):
         console.print(f"[bold]({i}/{len(loaded)})[/] {spec.name} [{v.name}]")
         release_compiled()
-        run_path, hit = runs.ensure_run(spec, store, console)
-        if hit:
-            console.print(f"  cache hit: {run_path}")
-        run_paths.append(run_path)
+        built = ensure(runs.run_recipe(spec, console), store)
+        if built.cached:
+            console.print(f"  cache hit: {built.path}")
+        run_paths.append(built.path)
     keys = [store.read_manifest(p)["key"] for p in run_paths]
     components = {"kind": "ablation", "budget": budget, "variants": [[v.name, list(v.sets)] for v in variants],
                   "runs": keys, "code": provenance.code_digest(PLOT_SOURCES)}
-    key = content_key(components)
     seeds = sorted({s for p in run_paths for s in store.read_manifest(p).get("seeds", [])})
     colors = ["C0", "C3", "C2", "C1", "C4"]
 
-    def files(out: Path) -> dict:
+    def build(out: Path, store: Store) -> dict:
         panels, it = [], iter(run_paths)
         for path in spec_paths or DEFAULT_ABLATION_SPECS:
             lines = [(v.name, colors[j % len(colors)], figs.read_rows(next(it))) for j, v in enumerate(variants)]
@@ -238,5 +211,5 @@ def ablate(spec_paths: list[str], names: list[str], custom: list[str], budget: s
         atomic_write_text(out / "table.md", "\n".join(_final_table(table)) + "\n")
         return {"final_return": table, "provenance": prov}
 
-    path = _commit(store, key, components, "ablation", budget, seeds, files)
-    return path, json.loads((path / "summary.json").read_text())["final_return"]
+    built = ensure(Recipe(FIGURE_KIND, "ablation", components, build, budget=budget, seeds=tuple(seeds)), store)
+    return built.path, built.summary()["final_return"]

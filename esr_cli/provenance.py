@@ -17,6 +17,7 @@ import hashlib
 import os
 import platform
 import subprocess
+import time
 from functools import cache
 from importlib import metadata
 from pathlib import Path
@@ -185,8 +186,6 @@ def provenance() -> dict:
 def complete_manifest(pending: dict, components: dict, summary: dict, started: float | None = None, **extra) -> dict:
     """The manifest every artifact commits with: what `begin` recorded, its key components,
     when it was made (and how long it took, from `started`), the toolchain and its summary."""
-    import time
-
     manifest = {**pending, "format": 1, "status": "complete", **extra, "key_components": components,
                 "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     if started is not None:

@@ -19,9 +19,10 @@ from typing import Optional
 import numpy as np
 
 from esr_cli import spec as specs, yamlio
+from esr_cli.artifacts import ensure
 from esr_cli.finals import FINAL_FRACTION, final_per_seed, read_rows, series
 from esr_cli.stats import describe, format_summary, probability_of_improvement
-from esr_cli.store import Store, atomic_write_text
+from esr_cli.store import RUN_KIND, Store, atomic_write_text
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
 PAPER_EPOCHS = 10_000
@@ -81,8 +82,6 @@ def _without_train(spec: specs.Spec) -> str:
 
 def index_store(store: Store) -> dict[str, list[Evidence]]:
     """Every training run of the store whose spec still validates, by spec outside `train`."""
-    from esr_cli.runs import RUN_KIND
-
     out: dict[str, list[Evidence]] = {}
     for entry in store.entries():
         if entry.kind != RUN_KIND or not (entry.path / "spec.yaml").is_file():
@@ -305,19 +304,20 @@ def estimator_section(index: dict[str, list[Evidence]], store: Store, console, c
             "seed 0's robot:")
     if not compute:
         return lines + [head, "", "not computed (run `esr paper --report` without `--no-exact`).", ""]
-    from esr_cli import exact_runs
+    from esr_cli import exact_runs  # jax: only when the report computes exact empowerment
 
-    trained, _, _ = exact_runs.ensure_exact(ev.spec, store, None, None, ev.key, 0, console)
-    uniform, uniform_summary, _ = exact_runs.ensure_exact(ev.spec, store, None, None, None, 0, console)
-    _, check, _ = exact_runs.ensure_estimator_figure(trained.name, store, console)
-    trained_summary = json.loads((trained / "summary.json").read_text())
+    trained = ensure(exact_runs.exact_recipe(ev.spec, store, None, None, ev.key, 0, console), store)
+    uniform = ensure(exact_runs.exact_recipe(ev.spec, store, None, None, None, 0, console), store)
+    uniform_summary = uniform.summary()
+    check = ensure(exact_runs.estimator_recipe(trained.path.name, store, console), store).summary()
+    trained_summary = trained.summary()
     return lines + [head, "",
                     "| quantity | value |", "|---|---|",
                     f"| Spearman (ESR's reward, exact MI), all {check['pairs']:,} (state, robot action) pairs | {check['spearman']:.3f} |",
                     f"| the same over the {check['visited_pairs']:,} pairs holding 99% of the trained robot's discounted occupancy | {check['spearman_visited']:.3f} |",
                     f"| the human's exact effective empowerment under the trained robot | {trained_summary['effective_empowerment']:.3f} nats |",
                     f"| the same under a uniform robot | {uniform_summary['effective_empowerment']:.3f} nats |",
-                    "", f"Artifacts: exact `{trained.name[:8]}` (trained), `{uniform.name[:8]}` (uniform); "
+                    "", f"Artifacts: exact `{trained.path.name[:8]}` (trained), `{uniform.path.name[:8]}` (uniform); "
                     "`esr plot estimator` draws the scatter.", ""]
 
 

@@ -1,24 +1,29 @@
-"""Artifacts made from specs: training runs and evaluations (lookup, lock, resume, commit).
+"""Training runs and evaluations as artifact recipes (esr_cli/artifacts.py).
 
-The artifact flow: key -> lookup (hit: done) -> lock -> partial dir (resume) ->
-train -> commit. Evaluations are artifacts too, keyed by their run and settings; they read
-trained runs only and never train silently.
+A run's recipe trains (or resumes from its checkpoint) and requires its BC humans; an
+evaluation's reads a trained run only and never trains silently. Here too: finding a run from
+a spec or key, and loading a trained run's state.
 """
 
 from __future__ import annotations
 
-import json
+import os
 import shutil
-import time
 from pathlib import Path
 
+import jax
 import numpy as np
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from esr_cli import provenance, spec as specs
+from esr_cli import human_runs, plots, provenance, spec as specs, yamlio
+from esr_cli.artifacts import Recipe
+from esr_cli.core import evaluate as ev, loop
+from esr_cli.core.train import make_trainer
 from esr_cli.finals import read_rows
-from esr_cli.store import EVAL_KIND, LockBusy, RUN_KIND, Store, StoreError, atomic_write_text, content_key
+from esr_cli.resources import check_run_fits
+from esr_cli.stats import describe
+from esr_cli.store import EVAL_KIND, HUMAN_KIND, LockBusy, RUN_KIND, Store, StoreError, atomic_write_text, content_key
 
 # Rough upper bound of a checkpoint per seed plus metrics, checked before a run starts.
 MIN_FREE_BYTES_PER_SEED = 32 << 20
@@ -28,10 +33,6 @@ def enable_compile_cache() -> None:
     """Keep compiled XLA programs on disk ($ESR_COMPILE_CACHE, default ~/.cache/esr/jax;
     `off` disables): resuming, evaluating or re-running a spec then skips most compile time.
     Also fixes the matmul precision (provenance.matmul_precision) before anything compiles."""
-    import os
-
-    import jax
-
     provenance.apply_matmul_precision()
     where = os.environ.get("ESR_COMPILE_CACHE", str(Path.home() / ".cache" / "esr" / "jax"))
     if where.lower() in ("", "0", "off", "none"):
@@ -41,10 +42,8 @@ def enable_compile_cache() -> None:
 
 
 def run_key(spec) -> tuple[str, dict]:
-    from esr_cli.human_runs import dependencies
-
     # A stored human (BC) is a dependency: its key is part of the run's key.
-    components = provenance.key_components("run", spec.training_part(), spec.budget, dependencies(spec))
+    components = provenance.key_components("run", spec.training_part(), spec.budget, human_runs.dependencies(spec))
     return content_key(components), components
 
 
@@ -57,11 +56,9 @@ def lineage_key(components: dict) -> str:
     return content_key({**components, "spec": {**spec, "train": train}})
 
 
-def _adopt_shorter_run(store: Store, key: str, components: dict, run_dir: Path, epochs: int, console: Console) -> None:
+def adopt_shorter_run(store: Store, key: str, components: dict, run_dir: Path, epochs: int, console: Console) -> None:
     """Start an empty run directory from the longest run of its lineage that got no further than
     `epochs`: a committed run, or an unfinished one that no process is writing."""
-    from esr_cli.core import loop
-
     if loop.verified_steps(run_dir):
         return  # this run has started already: it resumes from its own checkpoint
     lineage = lineage_key(components)
@@ -92,7 +89,8 @@ def _adopt_shorter_run(store: Store, key: str, components: dict, run_dir: Path, 
 
 def _check_disk(store: Store, spec) -> None:
     need = MIN_FREE_BYTES_PER_SEED * len(spec.train.seeds)
-    free = shutil.disk_usage(store.root).free
+    where = next(p for p in (store.root.absolute(), *store.root.absolute().parents) if p.exists())  # before it is made
+    free = shutil.disk_usage(where).free
     if free < need:
         raise StoreError(f"only {free >> 20} MiB free under {store.root}; this run needs about {need >> 20} MiB for checkpoints")
 
@@ -122,31 +120,20 @@ def _fmt_stats(row: dict, steps_per_s: float) -> str:
     return "  ".join(parts)
 
 
-def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
-    """The committed run for `spec`, training it (or resuming it) if needed. -> (path, cache_hit)."""
+def run_recipe(spec, console: Console) -> Recipe:
+    """The training run of `spec` as an artifact: trained, or resumed from its checkpoint, when
+    the store lacks it; its BC humans (if any) are made first."""
     key, components = run_key(spec)
-    if store.lookup(RUN_KIND, key) is None:  # memory is checked before anything is built or written
-        from esr_cli.resources import check_run_fits
 
+    def check(store: Store):  # memory and disk, before anything is built or written
         check_run_fits(spec)
-
-    def waiting(holder: str):
-        console.print(f"run {key[:12]} is in progress ({holder}); waiting for it to finish")
-
-    def make() -> Path:
-        enable_compile_cache()
         _check_disk(store, spec)
-        from esr_cli.core import loop
 
-        pending = {"kind": RUN_KIND, "name": spec.name, "key": key, "budget": spec.budget, "seeds": list(spec.train.seeds)}
-        # The components are recorded from the start so that a longer run of the same spec can
-        # find this one while it is unfinished (_adopt_shorter_run); the manifest repeats them.
-        run_dir = store.begin(RUN_KIND, key, {**pending, "key_components": components,
-                                              "commit": provenance.git_state()["commit"]})
+    def build(run_dir: Path, store: Store) -> dict:
+        enable_compile_cache()
         atomic_write_text(run_dir / "spec.yaml", specs.to_yaml(spec))
-        _adopt_shorter_run(store, key, components, run_dir, spec.train.epochs, console)
+        adopt_shorter_run(store, key, components, run_dir, spec.train.epochs, console)
         trainer = build_trainer(spec, store)
-        started = time.time()
         with _progress(console) as bar:
             task = bar.add_task(f"{spec.name} [{spec.budget}]", total=spec.train.epochs, stats="compiling...")
 
@@ -159,26 +146,21 @@ def ensure_run(spec, store: Store, console: Console) -> tuple[Path, bool]:
                 bar.update(task, completed=epoch, stats=_fmt_stats(row, steps_per_s))
 
             summary = loop.train(trainer, run_dir, on_chunk=on_chunk, on_start=on_start)
-        rows = read_rows(run_dir)
-        from esr_cli import plots
-
         plots.learning_curve(
-            rows,
+            read_rows(run_dir),
             run_dir / "figures" / "learning_curve.png",
             f"{spec.name} [{spec.method.kind}]",
             {"artifacts": {RUN_KIND: key}, "budget": spec.budget, "seeds": list(spec.train.seeds)},
             warmup_epochs=spec.learner.warmup_epochs,
         )
-        manifest = provenance.complete_manifest(pending, components, summary, started,
-                                                method=spec.method.kind, env=spec.env.kind)
-        return store.commit(RUN_KIND, key, manifest)
+        return summary
 
-    if spec.human.kind == "bc":  # the stored humans this run trains with come first
-        from esr_cli.human_runs import ensure_humans
+    def waiting(holder: str):
+        console.print(f"run {key[:12]} is in progress ({holder}); waiting for it to finish")
 
-        for human_path, human_cached in ensure_humans(spec, store, console):
-            console.print(f"BC human ({'cache hit' if human_cached else 'built'}): {human_path}")
-    return store.get_or_make(RUN_KIND, key, make, on_wait=waiting)
+    return Recipe(RUN_KIND, spec.name, components, build, budget=spec.budget, seeds=tuple(spec.train.seeds),
+                  requires=human_runs.human_recipes(spec, console), check=check,
+                  record={"method": spec.method.kind, "env": spec.env.kind}, summary_file=False, on_wait=waiting)
 
 
 def find_run(target: str, budget: str, sets, store: Store) -> Path:
@@ -216,7 +198,7 @@ def eval_key(run_manifest: dict, episodes: int, partner_key: str | None = None, 
     return content_key(components), components
 
 
-def _eval_partner(spec, partner: str, store: Store, console: Console):
+def _eval_partner(spec, partner: str):
     """(spec with the evaluation's human, that human's key or None for the training partner)."""
     if partner == "training":
         return spec, None
@@ -228,11 +210,8 @@ def _eval_partner(spec, partner: str, store: Store, console: Console):
     if spec.human.adapt:
         raise StoreError("--human proxy: this run's human adapted during training, and its state is part of the run's; "
                          "evaluate it with its training human")
-    from esr_cli.human_runs import dependencies, ensure_humans
-
     proxy_spec = spec.model_copy(update={"human": spec.human.proxy()})
-    ensure_humans(proxy_spec, store, console)
-    keys = dependencies(proxy_spec)["humans"]
+    keys = human_runs.dependencies(proxy_spec)[HUMAN_KIND]
     return proxy_spec, keys if isinstance(keys, str) else content_key({"per_seed_humans": keys})
 
 
@@ -249,27 +228,21 @@ def _eval_seat(spec, seat: int | None):
     return spec.model_copy(update={"env": spec.env.model_copy(update={"robot_seat": seat})}), seat
 
 
-def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Console,
-                partner: str = "training", seat: int | None = None) -> tuple[Path, dict, bool]:
-    """Evaluate a run's final robot with its training human, or with a held-out proxy human
-    (`partner="proxy"`, a BC human cloned from the test split); in its training seat, or in
-    `seat` (Overcooked: 1 plays the robot as agent_1, the flipped evaluation)."""
+def eval_recipe(run_path: Path, store: Store, episodes: int | None, console: Console,
+                partner: str = "training", seat: int | None = None) -> Recipe:
+    """The evaluation of a run's final robot with its training human, or with a held-out proxy
+    human (`partner="proxy"`, a BC human cloned from the test split); in its training seat, or
+    in `seat` (Overcooked: 1 plays the robot as agent_1, the flipped evaluation). Reads the
+    run; never trains."""
     run_manifest = store.read_manifest(run_path)
-    train_spec = run_spec(run_path)
-    spec, new_seat = _eval_seat(train_spec, seat)
-    spec, partner_key = _eval_partner(spec, partner, store, console)
+    spec, new_seat = _eval_seat(run_spec(run_path), seat)
+    spec, partner_key = _eval_partner(spec, partner)
     episodes = episodes or spec.eval.episodes
     key, components = eval_key(run_manifest, episodes, partner_key, new_seat)
 
-    def make() -> Path:
+    def build(eval_dir: Path, store: Store) -> dict:
         enable_compile_cache()
-        from esr_cli import plots
-        from esr_cli.core import evaluate as ev, loop
-
-        pending = {"kind": EVAL_KIND, "name": spec.name, "key": key, "budget": spec.budget, "seeds": list(spec.train.seeds)}
-        eval_dir = store.begin(EVAL_KIND, key, pending)
         trainer = build_trainer(spec, store)
-        started = time.time()
         with console.status(f"evaluating {spec.name}: {episodes} episodes x {len(spec.train.seeds)} seed(s)"):
             state = loop.final_state(trainer, run_path)
             if partner_key is not None and trainer.human.has_state:  # the checkpoint holds the training humans
@@ -278,8 +251,6 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
         summary = {"name": spec.name, "budget": spec.budget, "seeds": list(spec.train.seeds), "episodes": episodes,
                    "run": run_manifest["key"], "human": partner, "human_key": partner_key,
                    "robot_seat": spec.env.robot_seat if spec.env.kind == "overcooked" else None, "results": {}}
-        from esr_cli.stats import describe
-
         for mode, r in results.items():  # per seed: the mean over its episodes
             ret, succ = describe(r["return"].mean(axis=1)), describe(r["success"].mean(axis=1))
             summary["results"][mode] = {
@@ -288,50 +259,36 @@ def ensure_eval(run_path: Path, store: Store, episodes: int | None, console: Con
                 "success_per_seed": [round(v, 4) for v in succ["per_seed"]],
                 "return": ret, "success": succ,
             }
-        atomic_write_text(eval_dir / "summary.json", json.dumps(summary, indent=2))
         # One picture of the robot at work: the first seed's first episode, first policy mode.
         mode = ev.policy_modes(trainer)[0]
         traj = ev.episode_states(results[mode]["states"], 0, 0)
-        frames = [np.asarray(trainer.env.render(_index(traj, t))) for t in range(trainer.env.episode_steps + 1)]
+        frames = [np.asarray(trainer.env.render(index(traj, t))) for t in range(trainer.env.episode_steps + 1)]
         plots.rollout_gif(frames, eval_dir / "rollout.gif")
         prov = {"artifacts": {RUN_KIND: run_manifest["key"], EVAL_KIND: key}, "budget": spec.budget, "seeds": list(spec.train.seeds)}
         plots.learning_curve(
             read_rows(run_path), eval_dir / "learning_curve.png", f"{spec.name} [{spec.method.kind}]", prov,
             warmup_epochs=spec.learner.warmup_epochs,
         )
-        manifest = provenance.complete_manifest(
-            pending, components, {"return": {"mean": summary["results"][mode]["return_mean"]}, **summary}, started
-        )
-        return store.commit(EVAL_KIND, key, manifest)
+        # what `esr ls` shows in its return column: the first policy mode's
+        return {"return": {"mean": summary["results"][mode]["return_mean"]}, **summary}
 
-    path, cached = store.get_or_make(EVAL_KIND, key, make)
-    return path, json.loads((path / "summary.json").read_text()), cached
+    return Recipe(EVAL_KIND, spec.name, components, build, budget=spec.budget, seeds=tuple(spec.train.seeds),
+                  requires=human_runs.human_recipes(spec, console))
 
 
 def build_trainer(spec, store: Store):
     """The spec's Trainer with its stored inputs (a BC human's parameters) loaded from `store`."""
-    from esr_cli.core.train import make_trainer
-
-    params = None
-    if spec.human.kind == "bc":
-        from esr_cli.human_runs import humans_params
-
-        params = humans_params(spec, store)
-    return make_trainer(spec, params)
+    return make_trainer(spec, human_runs.humans_params(spec, store) if spec.human.kind == "bc" else None)
 
 
 def run_spec(run_path: Path):
     """The validated spec a run was trained from (its spec.yaml)."""
-    from esr_cli import yamlio
-
     source = run_path / "spec.yaml"
     return specs.validate(yamlio.read(source), str(source))
 
 
 def load_run(store: Store, ref: str):
     """(run path, its manifest, its trainer, its final TrainState) for a committed training run."""
-    from esr_cli.core import loop
-
     path = store.resolve(ref)
     manifest = store.read_manifest(path)
     if manifest.get("kind") != RUN_KIND:
@@ -342,12 +299,9 @@ def load_run(store: Store, ref: str):
 
 def seed_slice(tree, i: int):
     """One seed's part of a state whose leaves have a leading seed axis."""
-    import jax
-
     return jax.tree.map(lambda x: x[i], tree)
 
 
-def _index(tree, t: int):
-    import jax
-
+def index(tree, t: int):
+    """Step t of a trajectory whose leaves have a leading time axis."""
     return jax.tree.map(lambda x: x[t], tree)

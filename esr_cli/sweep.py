@@ -1,7 +1,7 @@
 """Sweeps: run every training run of a suite, here or on a SLURM cluster (docs/cluster.md).
 
 Executors:
-  local           in this process, one run after another (runs.ensure_run): the default;
+  local           in this process, one run after another (artifacts.ensure of runs.run_recipe): the default;
   slurm           one SLURM job per run, submitted as one job array through submitit;
   submitit-local  the same jobs as `slurm`, started as local processes by submitit (all at
                   once): checks a suite's job path without a cluster.
@@ -29,8 +29,8 @@ from rich.console import Console
 from rich.table import Table
 
 from esr_cli import spec as specs
-from esr_cli.runs import RUN_KIND
-from esr_cli.store import Store, atomic_write_text
+from esr_cli.artifacts import ensure
+from esr_cli.store import RUN_KIND, Store, atomic_write_text
 from esr_cli.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
 
 EXECUTORS = ("local", "slurm", "submitit-local")
@@ -288,11 +288,10 @@ class SweepResult:
 def train_job(spec_path: str, budget: str, sets: list[str], store_root: str) -> str:
     """One job: `esr train spec_path --budget budget --set ...` in-process. -> the artifact path.
     Module-level so that submitit pickles it by reference."""
-    from esr_cli import runs
+    from esr_cli import runs  # jax and the training core load only where a run is made here
 
     spec = specs.load(spec_path, budget, sets)
-    path, _ = runs.ensure_run(spec, Store(store_root), Console(stderr=True))
-    return str(path)
+    return str(ensure(runs.run_recipe(spec, Console(stderr=True)), Store(store_root)).path)
 
 
 def _executor(kind: str, folder: Path, suite: Suite, opts: SlurmOptions):
@@ -341,7 +340,7 @@ def run_suite(
     before = status(suite, store)
     result = SweepResult(suite, [None] * len(suite.runs))
     if executor == "local":
-        # ensure_run waits on a run another process holds, so nothing is skipped but the done.
+        # artifacts.ensure waits on a run another process holds, so nothing is skipped but the done.
         todo = [s for s in before if s.state != "done"]
     else:
         todo = [s for s in before if s.state in ("missing", "failed")]
@@ -363,16 +362,15 @@ def run_suite(
 
 
 def _run_local(todo: list[RunStatus], store: Store, console: Console, result: SweepResult) -> None:
-    from esr_cli import runs
+    from esr_cli import runs  # jax and the training core load only where a run is made here
     from esr_cli.core.loop import Interrupted
-
     from esr_cli.core.train import release_compiled
 
     for i, s in enumerate(todo, 1):
         console.print(f"[bold]({i}/{len(todo)})[/] {s.run.label}")
         release_compiled()  # one spec's programs at a time
         try:
-            runs.ensure_run(s.run.spec, store, console)
+            ensure(runs.run_recipe(s.run.spec, console), store)
             result.submitted.append((s.run, "local"))
         except (Interrupted, KeyboardInterrupt):
             raise  # Ctrl-C ends the sweep; the same command resumes it

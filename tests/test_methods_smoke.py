@@ -1,5 +1,5 @@
 """Every method on every paper gridworld trains end to end at the smoke budget (in-process,
-through the same `ensure_run` as `esr train`), and its metrics are finite where defined."""
+through the same run recipe as `esr train`), and its metrics are finite where defined."""
 
 import json
 from pathlib import Path
@@ -9,6 +9,7 @@ import pytest
 from rich.console import Console
 
 from esr_cli import runs, spec as specs
+from esr_cli.artifacts import ensure
 from esr_cli.store import Store
 
 METHODS = ("esr", "random", "ave", "goal_inference", "iq_learn", "oracle")
@@ -26,7 +27,7 @@ VARIANTS = [("experiments/grid_4x4_3.yaml", ("method.episode_group=4", "method.f
 def test_esr_variants_train_at_smoke(path, sets, smoke_store):
     spec = specs.load(path, "smoke", list(sets))
     assert (spec.method.episode_group, spec.method.future, spec.method.infonce) == (4, "human", "separate")
-    run_path, _ = runs.ensure_run(spec, Store(smoke_store), Console(quiet=True))
+    run_path, _ = ensure(runs.run_recipe(spec, Console(quiet=True)), Store(smoke_store))
     rows = [json.loads(line) for line in (run_path / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == spec.train.epochs
     assert all(np.isfinite(row["repr_loss"]).all() and np.isfinite(row["mi_estimate"]).all() for row in rows)
@@ -36,7 +37,7 @@ def test_esr_variants_train_at_smoke(path, sets, smoke_store):
 @pytest.mark.parametrize("path", SPECS, ids=lambda p: Path(p).stem)
 def test_spec_trains_at_smoke(path, smoke_store):
     spec = specs.load(path, "smoke")
-    run_path, _ = runs.ensure_run(spec, Store(smoke_store), Console(quiet=True))
+    run_path, _ = ensure(runs.run_recipe(spec, Console(quiet=True)), Store(smoke_store))
     manifest = json.loads((run_path / "manifest.json").read_text())
     assert manifest["method"] == spec.method.kind
     rows = [json.loads(line) for line in (run_path / "metrics.jsonl").read_text().splitlines()]

@@ -11,6 +11,7 @@ import pytest
 from rich.console import Console
 
 from esr_cli import human_runs, runs, spec as specs
+from esr_cli.artifacts import ensure
 from esr_cli.humans import overcooked_data as od
 from esr_cli.networks import MLP, conv_net, orthogonal
 from esr_cli.store import Store, StoreError
@@ -29,6 +30,12 @@ def small_data():
     mp.undo()
 
 
+def _evaluate(path, store, episodes, console, partner="training", seat=None):
+    """(evaluation dir, its summary, cache hit) of `esr eval`'s recipe."""
+    built = ensure(runs.eval_recipe(path, store, episodes, console, partner, seat), store)
+    return built.path, built.summary(), built.cached
+
+
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
     return Store(tmp_path_factory.mktemp("oc-store"))
@@ -43,7 +50,7 @@ def console():
 def random_smoke(small_data, store, console):
     """A smoke run of the Random robot with a co-adapting BC human (one compile for both)."""
     spec = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN + ["human.adapt=true", "human.adapt_lr=0.01"])
-    path, cached = runs.ensure_run(spec, store, console)
+    path, cached = ensure(runs.run_recipe(spec, console), store)
     return spec, path, cached
 
 
@@ -67,8 +74,8 @@ def test_human_and_data_artifacts(random_smoke, store, console):
     assert data["obs"].shape == (4 * ROWS, 5, 5, 26) and set(np.unique(data["player"])) == {0, 1}
     assert not store.verify(path) and not store.verify(data_path)
     # Built once: asking again is a cache hit for both.
-    assert human_runs.ensure_human(spec.human, "coord_ring", store, console) == (path, True)
-    assert human_runs.ensure_data("coord_ring", store, console) == (data_path, True)
+    assert ensure(human_runs.human_recipe(spec.human, "coord_ring", console), store) == (path, True)
+    assert ensure(human_runs.data_recipe("coord_ring", console), store) == (data_path, True)
     # The stored parameters load back into the policy the manifest describes.
     params = human_runs.human_params(spec.human, "coord_ring", store)
     logits = MLP(hidden=(64, 64), out=6, out_scale=0.01).apply(params, jnp.zeros((1, 5, 5, 26)))
@@ -82,7 +89,7 @@ def test_run_depends_on_the_human_by_key_and_repeats_as_a_cache_hit(random_smoke
     human_key, _ = human_runs.human_key(spec.human, "coord_ring")
     assert m["key_components"]["dependencies"] == {"humans": human_key}
     assert m["env"] == "overcooked" and m["summary"]["epochs"] == 2
-    assert runs.ensure_run(spec, store, console) == (path, True)
+    assert ensure(runs.run_recipe(spec, console), store) == (path, True)
     # Another human (different cloning settings) is another dependency, hence another run.
     other = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN + ["human.stay_weight=0.2"])
     assert runs.run_key(other)[0] != runs.run_key(spec)[0]
@@ -191,13 +198,13 @@ def test_proxy_human_is_cloned_from_the_held_out_split(random_smoke, store, cons
     assert proxy.split == "test" and not proxy.adapt
     # The training human's key has no split component (keys made before the field stay valid).
     assert "split" not in spec.human.cloning_part("coord_ring") and proxy.cloning_part("coord_ring")["split"] == "test"
-    proxy_path, _ = human_runs.ensure_human(proxy, "coord_ring", store, console)
+    proxy_path, _ = ensure(human_runs.human_recipe(proxy, "coord_ring", console), store)
     assert proxy_path != store.lookup(human_runs.HUMAN_KIND, human_runs.human_key(spec.human, "coord_ring")[0])
     s = json.loads((proxy_path / "manifest.json").read_text())["summary"]
     assert s["split"] == "test" and s["train"]["samples"] == s["test"]["samples"] == 2 * ROWS
     # A run whose human adapted carries that human in its state: no proxy evaluation.
     with pytest.raises(StoreError, match="adapted during training"):
-        runs.ensure_eval(path, store, 2, console, "proxy")
+        _evaluate(path, store, 2, console, "proxy")
 
 
 @pytest.fixture(scope="module")
@@ -205,7 +212,7 @@ def per_seed_run(small_data, store, console):
     """A smoke Random run whose two seeds play with their own clones (one compile serves the
     per-seed, proxy and flipped-seat tests)."""
     spec = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN + ["human.per_seed=true", "train.seeds=2"])
-    path, _ = runs.ensure_run(spec, store, console)
+    path, _ = ensure(runs.run_recipe(spec, console), store)
     return spec, path
 
 
@@ -230,8 +237,8 @@ def test_a_run_with_per_seed_humans(per_seed_run, store):
 
 def test_eval_with_the_proxy_human_and_in_the_flipped_seat(per_seed_run, store, console):
     spec, path = per_seed_run
-    own, own_summary, _ = runs.ensure_eval(path, store, 2, console)
-    proxy, summary, cached = runs.ensure_eval(path, store, 2, console, "proxy")
+    own, own_summary, _ = _evaluate(path, store, 2, console)
+    proxy, summary, cached = _evaluate(path, store, 2, console, "proxy")
     assert not cached and proxy != own and own_summary["human"] == "training" and own_summary["human_key"] is None
     # Per-seed proxies: each seed's clone of the held-out split, all built and named in the key.
     proxies = [human_runs.human_key(h, "coord_ring")[0] for h in spec.human.proxy().clones(spec.train.seeds)]
@@ -239,9 +246,9 @@ def test_eval_with_the_proxy_human_and_in_the_flipped_seat(per_seed_run, store, 
     assert summary["human"] == "proxy" and summary["human_key"] == json.loads((proxy / "manifest.json").read_text())["key_components"]["human"]
     for r in summary["results"].values():
         assert 0 <= r["return_mean"] <= 400 * 20
-    assert runs.ensure_eval(path, store, 2, console, "proxy")[2]  # a cache hit the second time
+    assert _evaluate(path, store, 2, console, "proxy")[2]  # a cache hit the second time
     # The flipped seats: the robot plays agent_1, a separate evaluation; its training seat is the same as none.
-    flipped, fsummary, _ = runs.ensure_eval(path, store, 2, console, "training", 1)
+    flipped, fsummary, _ = _evaluate(path, store, 2, console, "training", 1)
     assert flipped not in (own, proxy) and fsummary["robot_seat"] == 1 and own_summary["robot_seat"] == 0
     assert json.loads((flipped / "manifest.json").read_text())["key_components"]["robot_seat"] == 1
-    assert runs.ensure_eval(path, store, 2, console, "training", 0)[0] == own
+    assert _evaluate(path, store, 2, console, "training", 0)[0] == own

@@ -19,6 +19,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from esr_cli import replay
+from esr_cli.methods.esr import contrastive_accuracy, mutual_information_estimate, same_future
+
 SITUATIONS = ("trapped", "free", "at_goal", "dead")
 EFFECTS = ("trapped", "free", "dead")
 
@@ -42,8 +45,6 @@ def situation(obs: np.ndarray, reward: np.ndarray) -> np.ndarray:
 def reward_by_situation(trainer, state, key, batches: int = 40) -> dict:
     """The method's reward on `batches` critic batches from the run's buffer, by situation:
     {situation: {"n", "mean", "sd"}}. `state` is one seed's TrainState."""
-    from esr_cli import replay
-
     spec = trainer.spec
     sample = jax.jit(lambda k: replay.sample(state.buffer, k, spec.learner.batch_size, trainer.future_gamma))
     reward = jax.jit(lambda b, k: trainer.method.reward(state.method, b, k))
@@ -113,8 +114,6 @@ def representation_check(trainer, state, key, batches: int = 40) -> dict:
       mi_estimate                         mean diagonal logit of phi minus that of phi' (nats)
     When layout_only is near 1 the block layout alone names the episode, phi' solves the batch
     without the human's action, and the MI estimate has no reason to grow (docs/results.md)."""
-    from esr_cli import replay
-
     spec, method = trainer.spec, trainer.method
     params = state.method.params
 
@@ -130,8 +129,6 @@ def representation_check(trainer, state, key, batches: int = 40) -> dict:
 def representation_scores(phi_s, phi_sa, psi, future_obs) -> dict:
     """The scores of `representation_check` on one batch; future_obs [B, S, S, 2] (human plane,
     block plane)."""
-    from esr_cli.methods.esr import contrastive_accuracy, mutual_information_estimate, same_future
-
     same = same_future(future_obs)
     layout = same_future(future_obs[..., 1])
     rows = jnp.arange(psi.shape[0])

@@ -6,14 +6,12 @@ closed over by jitted code. See docs/environments.md.
 
 from __future__ import annotations
 
+from esr_cli.envs import gridworld, overcooked  # jaxmarl itself loads only when an Overcooked env is made
+
 
 def make_env(env_spec):
     if env_spec.kind == "gridworld":
-        from esr_cli.envs import gridworld
-
         return gridworld.make(env_spec)
     if env_spec.kind == "overcooked":
-        from esr_cli.envs import overcooked
-
         return overcooked.make(env_spec)
     raise ValueError(f"unknown env kind {env_spec.kind!r}")

@@ -8,25 +8,24 @@ keeps `hstate` in its training state.
 
 from __future__ import annotations
 
+import jax
+import numpy as np
+
+from esr_cli.humans.bc import BCHuman
+from esr_cli.humans.gridworld import NoisyGreedyHuman
+
 
 def make_human(human_spec, env, params=None, seeds: tuple = ()):
     """`params`: a cloned human's parameters (kind bc), loaded from the store by the caller
     (runs.build_trainer): the models never reach into the store themselves. With
     `human.per_seed`, a list of parameters, one per training seed in `seeds` order."""
     if human_spec.kind == "noisy_greedy":
-        from esr_cli.humans.gridworld import NoisyGreedyHuman
-
         return NoisyGreedyHuman(env=env, noise=float(human_spec.noise))
     if human_spec.kind == "bc":
-        from esr_cli.humans.bc import BCHuman
-
         if params is None:
             raise ValueError("a BC human needs its cloned parameters (runs.build_trainer loads them from the store)")
         per_seed = None
         if human_spec.per_seed:
-            import jax
-            import numpy as np
-
             if len(params) != len(seeds):
                 raise ValueError(f"human.per_seed: {len(params)} clones for {len(seeds)} seeds")
             per_seed = jax.tree.map(lambda *leaves: np.stack(leaves), *params)

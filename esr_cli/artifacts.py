@@ -1,0 +1,88 @@
+"""The one artifact lifecycle: every kind in the store is made by a `Recipe` and `ensure`.
+
+A recipe says what an artifact is (kind, name, the components its key is built from), what
+must exist before it (`requires`: other recipes, such as a run's BC humans), what to check
+before anything is written (`check`), and how to make its files (`build`). `ensure` does the
+rest, the same way for runs, evaluations, human data, BC humans, exact analyses, figures,
+reports and ablations:
+
+  key = content_key(components) -> lookup (a hit is done) -> check -> requires -> lock ->
+  lookup again (another process may have finished it) -> partial directory (kept: a resumed
+  run) -> build -> summary.json -> manifest -> atomic rename.
+
+Recipes are data: building one reads nothing and writes nothing, so a caller can compute a
+key (or compare two) without touching the store.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+from esr_cli import provenance
+from esr_cli.store import KINDS, Store, atomic_write_text, content_key
+
+SUMMARY_FILE = "summary.json"
+
+
+@dataclass(frozen=True)
+class Recipe:
+    kind: str  # one of store.KINDS
+    name: str  # what `esr ls` shows: a spec's name, a figure's
+    components: dict  # everything that decides the artifact's content, and nothing else
+    build: Callable[[Path, Store], dict]  # writes the files into the partial directory; -> summary
+    budget: str | None = None
+    seeds: tuple[int, ...] = ()
+    requires: tuple["Recipe", ...] = ()  # made first (their keys belong in `components`)
+    check: Callable[[Store], None] | None = None  # before anything is written; raises on a problem
+    record: dict = field(default_factory=dict)  # facts for the manifest beside the summary
+    summary_file: bool = True  # also write the summary as summary.json
+    on_wait: Callable[[str], None] | None = None  # told once if another process holds the lock
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"unknown artifact kind {self.kind!r}; kinds: {', '.join(KINDS)}")
+
+    @property
+    def key(self) -> str:
+        return content_key(self.components)
+
+
+class Built(NamedTuple):
+    path: Path
+    cached: bool  # True: it was in the store already
+
+    def summary(self) -> dict:
+        return json.loads((self.path / SUMMARY_FILE).read_text())
+
+
+def ensure(recipe: Recipe, store: Store) -> Built:
+    """The committed artifact of `recipe`, made (or resumed) if the store lacks it."""
+    key = recipe.key
+    hit = store.lookup(recipe.kind, key)
+    if hit:
+        return Built(hit, True)
+    if recipe.check:
+        recipe.check(store)
+    for needed in recipe.requires:
+        ensure(needed, store)
+
+    def make() -> Path:
+        pending = {"kind": recipe.kind, "name": recipe.name, "key": key, "budget": recipe.budget,
+                   "seeds": list(recipe.seeds)}
+        # The key components are in pending.json from the start: an unfinished run can then be
+        # found by a longer run of the same lineage (runs.adopt_shorter_run).
+        out = store.begin(recipe.kind, key, {**pending, "key_components": recipe.components,
+                                             "commit": provenance.git_state()["commit"]})
+        started = time.time()
+        summary = recipe.build(out, store)
+        if recipe.summary_file:
+            atomic_write_text(out / SUMMARY_FILE, json.dumps(summary, indent=2, default=float))
+        manifest = provenance.complete_manifest(pending, recipe.components, summary, started, **recipe.record)
+        return store.commit(recipe.kind, key, manifest)
+
+    path, cached = store.get_or_make(recipe.kind, key, make, on_wait=recipe.on_wait)
+    return Built(path, cached)

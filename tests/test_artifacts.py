@@ -1,0 +1,87 @@
+"""The artifact lifecycle (esr_cli/artifacts.py): one `ensure` for every kind."""
+
+import ast
+import json
+from pathlib import Path
+
+import pytest
+
+from esr_cli import artifacts
+from esr_cli.artifacts import Recipe, ensure
+from esr_cli.store import FIGURE_KIND, MANIFEST, Store, StoreError
+
+PACKAGE = Path(artifacts.__file__).parent
+
+
+def _writer(calls: list, name: str, fail: bool = False):
+    def build(out: Path, store: Store) -> dict:
+        calls.append(name)
+        (out / f"{name}.txt").write_text(name)
+        if fail:
+            raise RuntimeError("killed mid-build")
+        return {"made": name}
+
+    return build
+
+
+def test_made_once_then_a_cache_hit(tmp_path):
+    store, calls = Store(tmp_path / "store"), []
+    recipe = Recipe(FIGURE_KIND, "a", {"kind": "figure", "x": 1}, _writer(calls, "a"), record={"method": "esr"})
+    first = ensure(recipe, store)
+    assert not first.cached and calls == ["a"]
+    assert first.path == store.final_path(FIGURE_KIND, recipe.key)
+    assert ensure(recipe, store) == (first.path, True) and calls == ["a"]
+    manifest = json.loads((first.path / MANIFEST).read_text())
+    assert manifest["key"] == recipe.key and manifest["key_components"] == {"kind": "figure", "x": 1}
+    assert manifest["method"] == "esr" and manifest["summary"] == {"made": "a"} == first.summary()
+    assert set(manifest["files"]) == {"a.txt", "summary.json"} and not store.verify(first.path)
+
+
+def test_requires_come_first_and_a_failed_check_writes_nothing(tmp_path):
+    store, calls = Store(tmp_path / "store"), []
+    base = Recipe(FIGURE_KIND, "base", {"n": "base"}, _writer(calls, "base"))
+    top = Recipe(FIGURE_KIND, "top", {"n": "top", "needs": base.key}, _writer(calls, "top"), requires=(base,))
+    ensure(top, store)
+    assert calls == ["base", "top"] and store.lookup(FIGURE_KIND, base.key)
+
+    def refuse(store):
+        raise StoreError("not enough memory")
+
+    blocked = Recipe(FIGURE_KIND, "blocked", {"n": "blocked"}, _writer(calls, "blocked"), requires=(base,), check=refuse)
+    fresh = Store(tmp_path / "fresh")
+    with pytest.raises(StoreError, match="memory"):
+        ensure(blocked, fresh)
+    assert not fresh.root.exists() and calls == ["base", "top"]
+
+
+def test_a_failed_build_commits_nothing_and_the_next_resumes_its_partial_directory(tmp_path):
+    store, calls = Store(tmp_path / "store"), []
+    components = {"n": "run"}
+    with pytest.raises(RuntimeError):
+        ensure(Recipe(FIGURE_KIND, "run", components, _writer(calls, "run", fail=True)), store)
+    key = Recipe(FIGURE_KIND, "run", components, _writer(calls, "run")).key
+    partial = store.partial_path(FIGURE_KIND, key)
+    assert store.lookup(FIGURE_KIND, key) is None and (partial / "run.txt").exists()
+    assert json.loads((partial / "pending.json").read_text())["key_components"] == components
+
+    def resume(out: Path, store: Store) -> dict:
+        return {"found": (out / "run.txt").read_text()}  # what the interrupted build left
+
+    built = ensure(Recipe(FIGURE_KIND, "run", components, resume), store)
+    assert built.summary() == {"found": "run"} and not partial.exists()
+
+
+def test_unknown_kind_is_refused():
+    with pytest.raises(ValueError, match="unknown artifact kind"):
+        Recipe("models", "x", {}, lambda out, store: {})
+
+
+def test_the_lifecycle_is_written_once():
+    """Only the artifact layer begins and commits artifacts: every kind goes through `ensure`."""
+    writers = set()
+    for f in PACKAGE.rglob("*.py"):
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and \
+                    node.func.attr in ("begin", "commit", "get_or_make"):
+                writers.add(f.name)
+    assert writers == {"artifacts.py"}
