@@ -9,7 +9,7 @@ comma  := ,
 STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 DEMO_SET := --budget quick --set train.epochs=40
 
-.PHONY: install demo test bench sweep paper-figures clean-venv
+.PHONY: install browser demo test bench sweep paper-figures clean-venv
 BUDGET   ?= paper
 EXECUTOR ?= local
 
@@ -31,8 +31,16 @@ demo: install
 	$(BIN)/esr train experiments/grid_2.yaml $(DEMO_SET)
 	$(BIN)/esr eval experiments/grid_2.yaml $(DEMO_SET)
 
+# The browser tests of `esr play` drive the system's headless Chromium and its driver
+# (tests/test_play.py); on Debian or Ubuntu they are installed here when missing.
+browser:
+	@if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; then \
+	  SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+	  $$SUDO apt-get update -q && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -q chromium chromium-driver; \
+	fi
+
 # Compiling dominates the suite and XLA compiles on one thread: one worker per core (xdist).
-test: install
+test: install browser
 	$(BIN)/python -m pytest -n auto
 
 # Train what the paper suite lacks (experiments/suites/paper.yaml), draw all eight figures and

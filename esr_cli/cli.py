@@ -158,21 +158,22 @@ def eval_(
     set_: Optional[List[str]] = SetOpt,
     episodes: Optional[int] = typer.Option(None, "--episodes", "-n", help="episodes per seed and policy (default: spec eval.episodes)"),
     human: str = typer.Option("training", "--human", help="training: the human the robot trained with | proxy: a BC "
-                              "human cloned from the held-out test split of the human data (Overcooked)"),
+                              "human cloned from the held-out test split of the human data | play:KEY,KEY,...: a BC "
+                              "human cloned from played episodes (`esr plays`) (Overcooked)"),
     seat: Optional[int] = typer.Option(None, "--seat", help="Overcooked: the JaxMARL agent the robot plays (default: "
                                        "its training seat; 1 flips the seats)"),
 ):
     """Evaluate a trained robot with its human; writes an evaluation artifact, a GIF and a curve."""
     from esr_cli import runs
 
-    if human not in runs.EVAL_PARTNERS:
-        raise Exit(2, f"--human: unknown partner {human!r}; known: {', '.join(runs.EVAL_PARTNERS)}")
+    if human not in runs.EVAL_PARTNERS and not human.startswith(runs.PLAY_PARTNER):
+        raise Exit(2, f"--human: unknown partner {human!r}; known: {', '.join(runs.EVAL_PARTNERS)}, {runs.PLAY_PARTNER}KEY,...")
     if episodes is not None and episodes < 1:
         raise Exit(2, f"--episodes: must be >= 1 (got {episodes})")
     run_path = runs.find_run(target, budget, set_, STATE.store)
     built = ensure(runs.eval_recipe(run_path, STATE.store, episodes, err, human, seat), STATE.store)
     path, summary, cached = built.path, built.summary(), built.cached
-    partner = "" if human == "training" else f", with the {human} human {summary['human_key'][:8]}"
+    partner = "" if human == "training" else f", with the {human.split(':')[0]} human {summary['human_key'][:8]}"
     if seat is not None and summary.get("robot_seat") is not None:
         partner += f", robot as agent_{summary['robot_seat']}"
     table = Table(title=f"{summary['name']} ({summary['budget']}, {len(summary['seeds'])} seed(s), {summary['episodes']} episodes each{partner})")
@@ -420,6 +421,108 @@ def ls():
         err.print(f"store {STATE.store.root} is empty")
         return
     out.print(table)
+
+
+# ---------------------------------------------------------------- play
+@app.command()
+def play(
+    target: str = typer.Argument(..., help="a trained run (key or path) or a spec; with --robots, the spec only names the environment", show_default=False),
+    budget: str = BudgetOpt,
+    set_: Optional[List[str]] = SetOpt,
+    robots: Optional[str] = typer.Option(None, "--robots", help="comma-separated robots to play with, in a counterbalanced "
+                                         "order under neutral names: run keys, paths or specs, and `random`"),
+    episodes: int = typer.Option(1, "--episodes", "-n", help="episodes in the session"),
+    participant: str = typer.Option("anonymous", "--participant", help="the person's id (logged; decides the order and names of the robots)"),
+    fps: float = typer.Option(6.0, "--fps", help="Overcooked: steps per second (a tick without a key is stay)"),
+    web: bool = typer.Option(False, "--web", help="play in a browser: serve the game on localhost"),
+    port: int = typer.Option(8765, "--port", help="--web: the port on 127.0.0.1"),
+    seed: int = typer.Option(0, "--seed", help="the first episode's environment seed (episode i: seed + i)"),
+    seed_index: int = typer.Option(0, "--seed-index", help="which seed of each trained run acts"),
+):
+    """Play the human's part with trained robots; every episode is logged as a `play` artifact."""
+    from esr_cli.play import session as ps
+
+    if episodes < 1:
+        raise Exit(2, f"--episodes: must be >= 1 (got {episodes})")
+    if not 0.5 <= fps <= 60:
+        raise Exit(2, f"--fps: between 0.5 and 60 (got {fps})")
+    if not 1024 <= port <= 65535:
+        raise Exit(2, f"--port: between 1024 and 65535 (got {port})")
+    if not participant.strip() or len(participant) > 200:
+        raise Exit(2, "--participant: a non-empty id of at most 200 characters")
+    refs = [r.strip() for r in robots.split(",") if r.strip()] if robots else []
+    if robots is not None and not refs:
+        raise Exit(2, "--robots: name at least one robot (a run key, path or spec, or `random`)")
+    if web:
+        from esr_cli.play.web import PortInUse, Web
+
+        try:
+            front = Web(port, err)
+        except PortInUse as e:
+            raise Exit(2, str(e)) from None
+        name = "web"
+    else:
+        from esr_cli.play.terminal import NotATerminal, Terminal
+
+        try:
+            front = Terminal(out)
+        except NotATerminal as e:
+            raise Exit(2, str(e)) from None
+        name = "terminal"
+    spec, opponents = ps.load_opponents(target, refs, budget, set_, seed_index, STATE.store, participant)
+    ps.recover_abandoned(STATE.store, err)
+    with front:
+        played = ps.run_session(spec, opponents, participant, episodes, seed, fps, front, name, STATE.store, err)
+        rows = ps.summary_rows(played)
+        front.finish([f"session over: {len(played)} episode(s) played. Thank you!"])
+    table = Table(title=f"esr play: participant {participant}, {len(played)} of {episodes} episode(s)")
+    for col in ("robot", "key", "episodes (completed)", "return (mean)", "success", "steps (mean)"):
+        table.add_column(col)
+    for r in rows:
+        table.add_row(r["robot_label"], r["robot"][:12], f"{r['episodes']} ({r['completed']})", f"{r['return_mean']:.2f}",
+                      f"{r['success_rate']:.2f}", f"{r['steps_mean']:.1f}")
+    err.print(table)
+    for p in played:
+        out.print(p["path"], soft_wrap=True, highlight=False)
+    if played and not played[-1]["completed"]:
+        raise Exit(130, "the session was ended early; its last episode is kept as incomplete")
+
+
+@app.command()
+def plays(
+    participant: Optional[str] = typer.Option(None, "--participant", help="only this participant's episodes"),
+    session: Optional[str] = typer.Option(None, "--session", help="only this session's episodes"),
+    export: Optional[Path] = typer.Option(None, "--export", help="write the Overcooked episodes shown in overcooked-ai's "
+                                          "human-data schema: .pickle (a pandas DataFrame) or .csv"),
+):
+    """List the played episodes (`esr play`), and export Overcooked ones as human data."""
+    from esr_cli.play import session as ps
+
+    if export is not None and export.suffix not in (".pickle", ".pkl", ".csv"):
+        raise Exit(2, f"--export: {export} should end in .pickle or .csv")
+    found = ps.played_episodes(STATE.store, participant, session)
+    if not found:
+        raise Exit(1, f"no played episodes in {STATE.store.root}" + (" for that selection" if participant or session else ""))
+    table = Table()
+    for col in ("key", "participant", "session", "episode", "robot", "env", "completed", "steps", "return"):
+        table.add_column(col)
+    for key, header, summary in found:
+        env = header["env"]
+        table.add_row(key, header["participant"], header["session"], str(header["episode"]), header["robot"][:12],
+                      env.get("layout", env["kind"]), "yes" if summary["completed"] else "no", str(summary["steps"]),
+                      f"{summary['score']:g}")
+    out.print(table)
+    if export is not None:
+        from esr_cli.play import export as px
+
+        frame, count = px.export_overcooked(STATE.store, [k for k, _, _ in found])
+        if count == 0:
+            raise Exit(2, "--export: none of these episodes is an Overcooked episode")
+        export.parent.mkdir(parents=True, exist_ok=True)
+        tmp = export.with_name(f".{export.name}.tmp")
+        frame.to_csv(tmp, index=False) if export.suffix == ".csv" else frame.to_pickle(tmp)
+        tmp.replace(export)
+        err.print(f"[green]exported[/] {count} Overcooked episode(s), {len(frame)} rows: {export}")
 
 
 @app.command()

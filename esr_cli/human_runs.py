@@ -25,11 +25,12 @@ from rich.console import Console
 from esr_cli import provenance
 from esr_cli.artifacts import Recipe
 from esr_cli.envs.overcooked import Overcooked
-from esr_cli.humans import bc, overcooked_data as od
-from esr_cli.store import DATA_KIND, HUMAN_KIND, Store, StoreError, atomic_write_text, content_key
+from esr_cli.humans import bc, overcooked_data as od, play_data
+from esr_cli.store import DATA_KIND, HUMAN_KIND, PLAY_KIND, Store, StoreError, atomic_write_text, content_key
 
 DATA_SOURCES = ("envs/overcooked.py", "humans/overcooked_data.py")
 BC_SOURCES = DATA_SOURCES + ("humans/bc.py", "networks.py")
+PLAY_DATA_SOURCES = ("envs/overcooked.py", "humans/play_data.py")
 # Rows checked by replaying the recorded joint action when the data artifact is built.
 REPLAY_SAMPLE = 1000
 PARAMS_FILE, POLICY_FILE, DATA_FILE = "params.msgpack", "policy.json", "data.npz"
@@ -54,15 +55,28 @@ def data_key(layout: str) -> tuple[str, dict]:
     return content_key(components), components
 
 
+def play_data_key(episodes: tuple[str, ...], layout: str) -> tuple[str, dict]:
+    components = {
+        "kind": "humandata",
+        "source": "play",
+        "layout": layout,
+        "episodes": list(episodes),
+        "code": provenance.code_digest(PLAY_DATA_SOURCES),
+        "toolchain": provenance.toolchain(),
+    }
+    return content_key(components), components
+
+
 def human_key(human_spec, layout: str) -> tuple[str, dict]:
     part = human_spec.cloning_part(layout)
+    data = play_data_key(human_spec.data, part["layout"]) if human_spec.data else data_key(part["layout"])
     components = {
         "kind": "human",
         "spec": part,
         "code": provenance.code_digest(BC_SOURCES),
         "packages": {"jaxmarl": _version("jaxmarl")},
         "toolchain": provenance.toolchain(),
-        "dependencies": {DATA_KIND: data_key(part["layout"])[0]},
+        "dependencies": {DATA_KIND: data[0]},
     }
     return content_key(components), components
 
@@ -115,6 +129,33 @@ def data_recipe(layout: str, console: Console) -> Recipe:
     return Recipe(DATA_KIND, layout, components, build, summary_file=False)
 
 
+def play_data_recipe(episodes: tuple[str, ...], layout: str, console: Console) -> Recipe:
+    """Played Overcooked episodes (`play` artifacts) as the person's (observation, action) pairs."""
+    key, components = play_data_key(episodes, layout)
+
+    def build(out: Path, store: Store) -> dict:
+        paths = []
+        for episode in episodes:
+            path = store.lookup(PLAY_KIND, episode)
+            if path is None:
+                raise StoreError(f"played episode {episode[:12]} is not in {store.root} (`esr plays` lists them)")
+            paths.append(path)
+        try:
+            data = play_data.convert(paths, layout)
+        except play_data.PlayDataError as e:
+            raise StoreError(str(e)) from None
+        np.savez_compressed(out / DATA_FILE, **data)
+        counts = np.bincount(data["action"], minlength=6)
+        return {
+            "source": "play",
+            "episodes": len(paths),
+            "pairs": {"train": int((~data["test"]).sum()), "test": int(data["test"].sum())},
+            "action_fraction": [round(float(c) / len(data["action"]), 4) for c in counts],
+        }
+
+    return Recipe(DATA_KIND, f"play data {layout}", components, build, summary_file=False)
+
+
 def load_data(path: Path) -> dict[str, np.ndarray]:
     with np.load(Path(path) / DATA_FILE) as f:
         return {k: f[k] for k in f.files}
@@ -124,27 +165,29 @@ def human_recipe(human_spec, layout: str, console: Console) -> Recipe:
     """The BC human of `human_spec` on `layout` (its own layout if it names one)."""
     key, components = human_key(human_spec, layout)
     layout = human_spec.layout or layout
-    data = data_recipe(layout, console)
+    data = play_data_recipe(human_spec.data, layout, console) if human_spec.data else data_recipe(layout, console)
 
     def build(out: Path, store: Store) -> dict:
         pairs = load_data(store.lookup(DATA_KIND, data.key))
         # The split cloned from, and the one held out for its accuracy (test for a proxy human).
         train, test = (pairs["test"], ~pairs["test"]) if human_spec.split == "test" else (~pairs["test"], pairs["test"])
+        if not train.any():
+            raise StoreError(f"the {human_spec.split} split of this human's data is empty: nothing to clone")
         with console.status(f"cloning the human of {layout} from its {human_spec.split} split "
                             f"({int(train.sum())} pairs, {human_spec.epochs} epochs)"):
             params, losses = bc.train_bc(pairs["obs"][train], pairs["action"][train], human_spec, seed=human_spec.seed)
         acc_train = bc.accuracies(params, human_spec.hidden, pairs["obs"][train], pairs["action"][train])
-        acc_test = bc.accuracies(params, human_spec.hidden, pairs["obs"][test], pairs["action"][test])
+        # no test split: a clone of a single played episode
+        acc_test = bc.accuracies(params, human_spec.hidden, pairs["obs"][test], pairs["action"][test]) if test.any() else None
         with console.status(f"BC+BC self-play on {layout}: {human_spec.selfplay_episodes} episodes"):
             returns = bc.selfplay_returns(Overcooked(layout, 400), params, human_spec.hidden, human_spec.selfplay_episodes)
         se = float(returns.std(ddof=1) / np.sqrt(len(returns)))
         (out / PARAMS_FILE).write_bytes(serialization.msgpack_serialize(serialization.to_state_dict(params)))
         atomic_write_text(out / POLICY_FILE, json.dumps({"layout": layout, "hidden": list(human_spec.hidden), "actions": 6,
                                                           "input": "agent's own view, (H, W, 26), urgency channel zeroed"}))
-        console.print(
-            f"BC human {key[:12]} ({layout}): test accuracy {acc_test['accuracy']:.3f}, non-stay "
-            f"{acc_test['non_stay_accuracy']:.3f}; BC+BC self-play {returns.mean():.1f} +- {se:.1f}"
-        )
+        held = "no test split" if acc_test is None else \
+            f"test accuracy {acc_test['accuracy']:.3f}, non-stay {acc_test['non_stay_accuracy']:.3f}"
+        console.print(f"BC human {key[:12]} ({layout}): {held}; BC+BC self-play {returns.mean():.1f} +- {se:.1f}")
         return {
             "layout": layout,
             "split": human_spec.split,

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from pydantic import ValidationError
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -198,21 +199,33 @@ def eval_key(run_manifest: dict, episodes: int, partner_key: str | None = None, 
     return content_key(components), components
 
 
+PLAY_PARTNER = "play:"  # --human play:KEY,KEY,...: a BC human cloned from played episodes
+
+
 def _eval_partner(spec, partner: str):
     """(spec with the evaluation's human, that human's key or None for the training partner)."""
     if partner == "training":
         return spec, None
-    if partner != "proxy":
-        raise StoreError(f"--human: unknown partner {partner!r}; known: {', '.join(EVAL_PARTNERS)}")
+    if partner not in EVAL_PARTNERS and not partner.startswith(PLAY_PARTNER):
+        raise StoreError(f"--human: unknown partner {partner!r}; known: {', '.join(EVAL_PARTNERS)}, {PLAY_PARTNER}KEY,...")
     if spec.human.kind != "bc":
-        raise StoreError("--human proxy is a BC human cloned from the held-out split of the human data: "
-                         f"this run's human is {spec.human.kind!r} (Overcooked runs have one)")
+        raise StoreError(f"--human {partner.split(':')[0]} is a BC human (Overcooked): this run's human is {spec.human.kind!r}")
     if spec.human.adapt:
-        raise StoreError("--human proxy: this run's human adapted during training, and its state is part of the run's; "
-                         "evaluate it with its training human")
-    proxy_spec = spec.model_copy(update={"human": spec.human.proxy()})
-    keys = human_runs.dependencies(proxy_spec)[HUMAN_KIND]
-    return proxy_spec, keys if isinstance(keys, str) else content_key({"per_seed_humans": keys})
+        raise StoreError(f"--human {partner.split(':')[0]}: this run's human adapted during training, and its state is "
+                         "part of the run's; evaluate it with its training human")
+    if partner == "proxy":
+        other = spec.human.proxy()
+    else:
+        episodes = tuple(k.strip() for k in partner[len(PLAY_PARTNER):].split(",") if k.strip())
+        try:  # the same cloning as the training human's (per seed if it was), from the played episodes
+            other = type(spec.human).model_validate({**spec.human.model_dump(), "data": episodes, "split": "train",
+                                                     "adapt": False})
+        except ValidationError as e:
+            msg = e.errors()[0]["msg"].removeprefix("Value error, ")
+            raise StoreError(f"--human {partner[:60]}: {msg}") from None
+    other_spec = spec.model_copy(update={"human": other})
+    keys = human_runs.dependencies(other_spec)[HUMAN_KIND]
+    return other_spec, keys if isinstance(keys, str) else content_key({"per_seed_humans": keys})
 
 
 def _eval_seat(spec, seat: int | None):

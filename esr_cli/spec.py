@@ -120,8 +120,12 @@ class NoisyGreedyHumanSpec(_Model):
     noise: float = Field(0.2, ge=0.0, le=1.0, description="probability of a uniformly random action")
 
 
+MAX_PLAY_EPISODES = 10_000
+
+
 class BCHumanSpec(_Model):
-    """Behavioural cloning on the 2019 human-human trials; a stored artifact of kind humans
+    """Behavioural cloning on the 2019 human-human trials (or on played episodes, `data`); a
+    stored artifact of kind humans
     (docs/overcooked.md). The cloning fields make the artifact's key; the adapt fields act
     only during training."""
 
@@ -138,6 +142,10 @@ class BCHumanSpec(_Model):
         "(`esr eval --human proxy`)",
     )
     selfplay_episodes: int = Field(64, ge=2, description="BC+BC episodes for the recorded self-play return")
+    data: Optional[tuple[str, ...]] = Field(
+        None, description="clone from these played episodes (keys of `play` artifacts, `esr plays`) instead of the "
+        "2019 trials; their last quarter is the test split",
+    )
     per_seed: bool = Field(False, description="clone one human per training seed (cloning seed = human.seed + "
                            "the training seed), so that the seeds' spread includes the human's")
     adapt: bool = Field(False, description="the human keeps learning alongside the robot")
@@ -152,6 +160,20 @@ class BCHumanSpec(_Model):
             raise ValueError("needs at least one layer, every width >= 1")
         return v
 
+    @field_validator("data")
+    @classmethod
+    def _play_keys(cls, v):
+        if v is None:
+            return v
+        if not v or len(v) > MAX_PLAY_EPISODES:
+            raise ValueError(f"between 1 and {MAX_PLAY_EPISODES} played episodes")
+        bad = [k for k in v if not (len(k) == 32 and all(c in "0123456789abcdef" for c in k))]
+        if bad:
+            raise ValueError(f"{bad[0][:40]!r} is not a play artifact's key (32 hex digits, as `esr plays` lists them)")
+        if len(set(v)) != len(v):
+            raise ValueError("an episode is listed twice")
+        return v
+
     def cloning_part(self, layout: str) -> dict:
         """The fields that decide the cloned policy (the human artifact's key)."""
         d = self.model_dump(mode="json")
@@ -159,6 +181,8 @@ class BCHumanSpec(_Model):
         part = {"layout": self.layout or layout, **{k: d[k] for k in keep}}
         if self.split != "train":  # only when set, so that the humans cloned before this field keep their keys
             part["split"] = self.split
+        if self.data is not None:  # likewise
+            part["data"] = list(self.data)
         return part
 
     def proxy(self) -> "BCHumanSpec":

@@ -1,8 +1,7 @@
 """The content-addressed artifact store (docs/store.md).
 
 Layout: <root>/<kind>/<key[:2]>/<key>/ for a committed artifact, <key>.partial/ beside it
-while it is being made, and <key>.lock for the lock. Kinds: runs, evals (more to come:
-humans, figures).
+while it is being made, and <key>.lock for the lock. Kinds: `KINDS` below.
 
 - A key is blake2b over the canonical JSON of its components (validated spec, budget,
   dependency keys, code hash, toolchain); the manifest lists each component, so `esr show`
@@ -33,7 +32,8 @@ from esr_cli import faults
 MANIFEST = "manifest.json"
 # The artifact kinds, each a top-level folder of the store; every module names them from here.
 RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND = "runs", "evals", "exact", "figures", "humandata", "humans"
-KINDS = (RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND)
+PLAY_KIND = "play"  # an episode a person played with a robot (esr play)
+KINDS = (RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND, PLAY_KIND)
 
 
 class StoreError(Exception):

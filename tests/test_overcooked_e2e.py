@@ -252,3 +252,61 @@ def test_eval_with_the_proxy_human_and_in_the_flipped_seat(per_seed_run, store, 
     assert flipped not in (own, proxy) and fsummary["robot_seat"] == 1 and own_summary["robot_seat"] == 0
     assert json.loads((flipped / "manifest.json").read_text())["key_components"]["robot_seat"] == 1
     assert _evaluate(path, store, 2, console, "training", 0)[0] == own
+
+
+class _Keys:
+    """A scripted person for `esr play`'s game loop: a key, then a tick, and so on."""
+
+    draws_text = False
+
+    def __init__(self, keys):
+        self.keys = [k for key in keys for k in (key, None)]
+
+    def ready(self):
+        pass
+
+    def show(self, view):
+        pass
+
+    def key(self, timeout):
+        return self.keys.pop(0) if self.keys else "quit"
+
+    def finish(self, lines):
+        pass
+
+
+def test_a_human_cloned_from_played_episodes_partners_a_robot(per_seed_run, store, console):
+    """The loop closed: episodes played on coord_ring become a BC human's data (its last
+    quarter held out), and `esr eval --human play:...` pairs the robot with that clone."""
+    from esr_cli.envs import make_env
+    from esr_cli.play import session as ps
+    from esr_cli.play.game import Robot
+
+    spec, path = per_seed_run
+    play_spec = spec.model_copy(update={"env": spec.env.model_copy(update={"episode_steps": 30})})
+    env = make_env(play_spec.env)
+    rng = np.random.default_rng(1)
+    keys = []
+    for episode in range(4):
+        presses = [str(k) for k in rng.choice(["up", "down", "left", "right", "space"], 30)]
+        opponent = ps.Opponent("random", "robot A", Robot("random", env))
+        recipe = ps.episode_recipe(play_spec, opponent, "p1", "s1", episode, episode, _Keys(presses), "test", 6.0, "t")
+        keys.append(ensure(recipe, store).path.name)
+    assert all(len(k) == 32 for k in keys)
+    # A spec naming them clones from them: a data artifact of the person's pairs, then the human.
+    clone = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN + [f"human.data={json.dumps(keys)}"])
+    data_key, _ = human_runs.play_data_key(tuple(keys), "coord_ring")
+    assert human_runs.human_key(clone.human, "coord_ring")[1]["dependencies"] == {human_runs.DATA_KIND: data_key}
+    built = ensure(human_runs.human_recipe(clone.human, "coord_ring", console), store)
+    summary = json.loads((built.path / "manifest.json").read_text())["summary"]
+    assert summary["train"]["samples"] == 90 and summary["test"]["samples"] == 30  # 3 episodes cloned, 1 held out
+    data = human_runs.load_data(store.lookup(human_runs.DATA_KIND, data_key))
+    assert data["obs"].shape == (120, 5, 5, 26) and set(np.unique(data["player"])) == {1}
+    # esr eval with that human: another evaluation, naming the clone's key.
+    own, own_summary, _ = _evaluate(path, store, 2, console)
+    other, summary, _ = _evaluate(path, store, 2, console, "play:" + ",".join(keys))
+    assert other != own and summary["human_key"] != own_summary["human_key"]
+    with pytest.raises(StoreError, match="not a play artifact's key"):
+        _evaluate(path, store, 2, console, "play:beef")
+    with pytest.raises(StoreError, match="is not in"):
+        _evaluate(path, store, 2, console, "play:" + "0" * 32)

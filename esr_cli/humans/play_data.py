@@ -1,0 +1,57 @@
+"""Played Overcooked episodes (`esr play`) as human data: the person's (observation, action)
+pairs, in the arrays the 2019 trials convert to (humans/overcooked_data.convert), so that
+esr's BC cloning reads either.
+
+The person's observation is JaxMARL's view of the agent they played (env.observe_human), from
+the state each step was taken from. Held out for the clone's test accuracy: the last quarter
+of the episodes (at least one) when there are two or more; with one episode there is no test
+split.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from esr_cli import spec as specs
+from esr_cli.envs import make_env
+from esr_cli.play.log import read_header, read_states, read_steps
+
+
+class PlayDataError(Exception):
+    """The played episodes cannot be used as this human's data; `str()` says why."""
+
+
+def held_out(episodes: int) -> np.ndarray:
+    """bool[episodes]: which episodes form the test split."""
+    test = np.zeros(episodes, bool)
+    if episodes >= 2:
+        test[episodes - max(1, episodes // 4):] = True
+    return test
+
+
+def convert(paths: list[Path], layout: str) -> dict[str, np.ndarray]:
+    """-> obs uint8[M, H, W, 26], action int8[M], player int8[M] (the seat the person played),
+    test bool[M], game int32[M] (the episode's index in `paths`)."""
+    out = {k: [] for k in ("obs", "action", "player", "test", "game")}
+    test = held_out(len(paths))
+    for i, path in enumerate(paths):
+        header = read_header(path)
+        if header["env"].get("kind") != "overcooked" or header["env"].get("layout") != layout:
+            raise PlayDataError(f"played episode {Path(path).name[:12]} is not an Overcooked episode on {layout}")
+        steps = read_steps(path)
+        if not steps:
+            continue
+        env = make_env(specs.OvercookedEnvSpec.model_validate(header["env"]))
+        states = read_states(path, env)[: len(steps)]
+        stacked = jax.tree.map(lambda *xs: np.stack(xs), *states)
+        out["obs"].append(np.asarray(jax.jit(jax.vmap(env.observe_human))(stacked), np.uint8))
+        out["action"].append(np.array([s["human_action"] for s in steps], np.int8))
+        out["player"].append(np.full(len(steps), 1 - env.robot_seat, np.int8))
+        out["test"].append(np.full(len(steps), test[i]))
+        out["game"].append(np.full(len(steps), i, np.int32))
+    if not out["obs"]:
+        raise PlayDataError("the played episodes have no steps")
+    return {k: np.concatenate(v) for k, v in out.items()}

@@ -1,0 +1,125 @@
+"""The terminal front end of `esr play`: keys from the terminal in cbreak mode, the game drawn
+with rich (colours; works over ssh). The gridworld is drawn as characters, Overcooked as its
+rendered picture in half-block cells (two pixels per character)."""
+
+from __future__ import annotations
+
+import os
+import select
+import sys
+import termios
+import tty
+
+import numpy as np
+from rich.console import Console, Group
+from rich.text import Text
+
+from esr_cli.play.game import QUIT, View
+
+ARROWS = {"A": "up", "B": "down", "C": "right", "D": "left"}
+GRID_STYLE = {"@": "bold rgb(230,150,0)", "X": "bold red", "G": "bold rgb(120,215,10)", "#": "rgb(150,60,235)",
+              ".": "rgb(110,110,110)"}
+PIXEL_STRIDE = 4  # Overcooked's 32-pixel tiles drawn 8 pixels wide
+
+
+class NotATerminal(Exception):
+    pass
+
+
+class Terminal:
+    """`with Terminal(console) as front:` -> ready(), show(View), key(timeout), finish(lines)."""
+
+    draws_text = True  # the gridworld as characters
+
+    def __init__(self, console: Console, stdin=None):
+        self.console = console
+        self.stdin = stdin or sys.stdin
+        try:
+            self.fd = self.stdin.fileno()
+        except (AttributeError, ValueError, OSError):
+            self.fd = -1
+        if self.fd < 0 or not os.isatty(self.fd):
+            raise NotATerminal("esr play needs a terminal for its keys (or --web for a browser)")
+        self.buffer = b""
+
+    def __enter__(self):
+        self.saved = termios.tcgetattr(self.fd)
+        tty.setcbreak(self.fd)
+        self.console.show_cursor(False)
+        return self
+
+    def __exit__(self, *exc):
+        termios.tcsetattr(self.fd, termios.TCSADRAIN, self.saved)
+        self.console.show_cursor(True)
+        return False
+
+    def ready(self) -> None:
+        pass
+
+    def finish(self, lines: list[str]) -> None:
+        self.console.print(Text("  ".join(lines), style="bold green"))
+
+    # ---------------------------------------------------------------- keys
+    def key(self, timeout: float | None):
+        """The next key: a name in game.KEYS, QUIT, an unknown key's text, or None on timeout."""
+        if not self.buffer:
+            ready, _, _ = select.select([self.fd], [], [], timeout)
+            if not ready:
+                return None
+            data = os.read(self.fd, 64)
+            if not data:  # end of input: the terminal went away
+                return QUIT
+            self.buffer += data
+        return self._next_key()
+
+    def _next_key(self):
+        b = self.buffer
+        if b[:1] == b"\x1b":
+            if len(b) >= 3 and b[1:2] in (b"[", b"O"):
+                self.buffer = b[3:]
+                return ARROWS.get(b[2:3].decode(errors="replace"), f"escape sequence {b[:3]!r}")
+            self.buffer = b""
+            return "escape"
+        self.buffer = b[1:]
+        ch = b[:1].decode(errors="replace")
+        if ch == " ":
+            return "space"
+        if ch in ("q", "Q", "\x03", "\x04"):
+            return QUIT
+        return ch if ch.isprintable() else f"control key {ch!r}"
+
+    # ---------------------------------------------------------------- drawing
+    def show(self, view: View) -> None:
+        header = Text.assemble((view.title, "bold"), "   score ", (f"{view.score:g}", "bold"),
+                               "   steps left ", (str(view.steps_left), "bold"))
+        body = grid_text(view.text) if view.text is not None else picture_text(view.frame)
+        legend = Text(view.legend, style="dim")
+        message = Text(view.message, style="bold green" if view.over else "yellow")
+        self.console.file.write("\x1b[H\x1b[2J")
+        self.console.print(Group(header, Text(""), body, Text(""), legend, message))
+        self.console.file.flush()
+
+
+def grid_text(rows: list[str]) -> Text:
+    out = Text()
+    for r, row in enumerate(rows):
+        for c, ch in enumerate(row):
+            out.append(ch + (" " if c < len(row) - 1 else ""), style=GRID_STYLE.get(ch, ""))
+        if r < len(rows) - 1:
+            out.append("\n")
+    return out
+
+
+def picture_text(frame: np.ndarray) -> Text:
+    """An RGB picture as rows of '▀' whose foreground is the upper pixel, background the lower."""
+    img = np.asarray(frame)[::PIXEL_STRIDE, ::PIXEL_STRIDE, :3]
+    if img.shape[0] % 2:
+        img = np.concatenate([img, np.zeros_like(img[:1])], axis=0)
+    out = Text()
+    for r in range(0, img.shape[0], 2):
+        for c in range(img.shape[1]):
+            top, bottom = img[r, c], img[r + 1, c]
+            out.append("▀", style=f"rgb({top[0]},{top[1]},{top[2]}) on rgb({bottom[0]},{bottom[1]},{bottom[2]})")
+        if r + 2 < img.shape[0]:
+            out.append("\n")
+    return out

@@ -1,0 +1,386 @@
+"""`esr play` driven as a person would: the terminal through a pseudo-terminal (keys in,
+screen text out) and the browser through a real headless Chromium. Each plays a gridworld
+episode to the goal and an Overcooked episode, and the logged artifact must match the keys
+sent."""
+
+import json
+import os
+import pty
+import select
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import pytest
+from conftest import ROOT, esr, esr_env
+
+from esr_cli import spec as specs
+from esr_cli.envs import make_env
+from esr_cli.play import session as ps
+from esr_cli.play.game import KEYMAP, QUIT, Game, Robot
+from esr_cli.play.log import state_from_record
+from esr_cli.store import PLAY_KIND, Store
+
+# An open 5 x 5 grid (no blocks) with the random robot: the way to the goal is known in advance.
+GRID = ["experiments/grid_2.yaml", "--set", "env.blocks=0", "--set", "env.start=random", "--robots", "random"]
+COOK = ["experiments/cramped_room_random.yaml", "--set", "env.episode_steps=12", "--robots", "random", "--fps", "8"]
+ARROW = {"up": b"\x1b[A", "down": b"\x1b[B", "right": b"\x1b[C", "left": b"\x1b[D", "space": b" "}
+
+
+def grid_keys(seed: int) -> list[str]:
+    """The keys that walk the human of episode `seed` straight to its goal."""
+    spec = specs.load(ROOT / GRID[0], "paper", [GRID[2], GRID[4]])
+    _, k_reset = jax.random.split(jax.random.PRNGKey(seed))
+    state = make_env(spec.env).reset(k_reset)
+    (hr, hc), (gr, gc) = state.human.tolist(), state.goal.tolist()
+    keys = ["down" if gr > hr else "up"] * abs(gr - hr) + ["right" if gc > hc else "left"] * abs(gc - hc)
+    assert keys, "the human starts on its goal: pick another seed"
+    return keys
+
+
+def played(store: Path) -> list[Path]:
+    return sorted(e.path for e in Store(store).entries() if e.kind == PLAY_KIND and e.status == "complete")
+
+
+def is_subsequence(part: list, whole: list) -> bool:
+    it = iter(whole)
+    return all(x in it for x in part)
+
+
+def logged_steps(path: Path) -> list[dict]:
+    return [json.loads(line) for line in (path / "steps.jsonl").read_text().splitlines()]
+
+
+# ---------------------------------------------------------------- the pieces
+def test_latin_square_is_balanced():
+    for n in (2, 3, 4, 5):
+        rows = ps.latin_square(n)
+        assert all(sorted(r) == list(range(n)) for r in rows)
+        assert all(sorted(col) == sorted(list(range(n)) * (len(rows) // n)) for col in zip(*rows))
+        pairs = [(r[i], r[i + 1]) for r in rows for i in range(n - 1)]
+        counts = {p: pairs.count(p) for p in set(pairs)}
+        assert len(counts) == n * (n - 1) and len(set(counts.values())) == 1  # every ordered pair equally often
+    order = ps.episode_order(3, 6, "p7")
+    assert sorted(order) == [0, 0, 1, 1, 2, 2] and order == ps.episode_order(3, 6, "p7")
+    assert len({tuple(ps.episode_order(3, 3, f"p{i}")) for i in range(40)}) == 6  # all rows are used
+    assert sorted(ps.robot_labels(3, "p7")) == ["robot A", "robot B", "robot C"]
+
+
+class Scripted:
+    """A front end that presses the given keys (None: let a tick pass)."""
+
+    draws_text = True
+
+    def ready(self):
+        pass
+
+    def finish(self, lines):
+        pass
+
+    def __init__(self, keys):
+        self.keys, self.views = list(keys), []
+
+    def show(self, view):
+        self.views.append(view)
+
+    def key(self, timeout):
+        return self.keys.pop(0) if self.keys else QUIT
+
+
+def test_front_ends_meet_the_interface():
+    from esr_cli.play.game import FrontEnd
+    from esr_cli.play.terminal import Terminal
+    from esr_cli.play.web import Web
+
+    for cls in (Terminal, Web, Scripted):
+        assert all(callable(getattr(cls, m, None)) for m in ("ready", "show", "key", "finish")), cls
+        assert isinstance(cls.draws_text, bool)
+    assert isinstance(Scripted([]), FrontEnd)
+
+
+def test_the_game_loop_logs_every_key_and_plays_out_a_finished_gridworld():
+    spec = specs.load(ROOT / GRID[0], "paper", [GRID[2], GRID[4]])
+    env = make_env(spec.env)
+    keys = grid_keys(3)
+    front, steps = Scripted(["x"] + keys), []
+    game = Game("gridworld", Robot("random", env), 3)
+    from esr_cli.play.game import play_episode
+
+    assert play_episode(game, front, 6.0, "t", steps.append)
+    assert [s.key for s in steps[: len(keys)]] == keys and all(s.key is None for s in steps[len(keys):])
+    assert [s.human_action for s in steps[: len(keys)]] == [KEYMAP["gridworld"][k] for k in keys]
+    assert len(steps) == env.episode_steps and game.score == env.episode_steps - len(keys) + 1
+    assert "unknown key 'x'" in front.views[1].message and front.views[-1].over
+
+
+# ---------------------------------------------------------------- the terminal
+class Pty:
+    def __init__(self, args, store):
+        self.fd, child = pty.openpty()  # the real CLI with a pseudo-terminal as its terminal
+        self.proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli", *args], cwd=ROOT, stdin=child, stdout=child,
+                                     stderr=child, env=esr_env(store, COLUMNS="100", LINES="40"), start_new_session=True)
+        os.close(child)
+        self.pid, self.screen = self.proc.pid, b""
+
+    def read_until(self, pattern: bytes, timeout=120) -> bytes:
+        deadline = time.time() + timeout
+        while pattern not in self.screen:
+            if time.time() > deadline:
+                raise AssertionError(f"no {pattern!r} on the screen after {timeout} s:\n{self.screen[-2000:]!r}")
+            ready, _, _ = select.select([self.fd], [], [], 0.5)
+            if ready:
+                try:
+                    self.screen += os.read(self.fd, 65536)
+                except OSError:
+                    break
+        return self.screen
+
+    def send(self, data: bytes) -> None:
+        os.write(self.fd, data)
+
+    def wait(self, timeout=120) -> int:
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            try:
+                self.screen += os.read(self.fd, 65536) if select.select([self.fd], [], [], 0.2)[0] else b""
+            except OSError:
+                pass
+            if self.proc.poll() is not None:
+                return self.proc.returncode
+        self.proc.kill()
+        raise AssertionError(f"esr play did not end:\n{self.screen[-2000:]!r}")
+
+
+def test_terminal_gridworld_to_the_goal(tmp_path):
+    keys = grid_keys(0)
+    term = Pty(["play", *GRID, "--participant", "p1"], tmp_path)
+    term.read_until(b"steps left")
+    term.read_until(b"@")
+    assert b"your goal" in term.screen
+    for k in keys:
+        term.send(ARROW[k])
+        time.sleep(0.05)
+    assert term.wait() == 0
+    assert b"session over" in term.screen
+    (path,) = played(tmp_path)
+    steps = logged_steps(path)
+    assert [s["key"] for s in steps if s["key"] is not None] == keys
+    assert [s["human_action"] for s in steps[: len(keys)]] == [KEYMAP["gridworld"][k] for k in keys]
+    summary = json.loads((path / "summary.json").read_text())
+    assert summary["completed"] and summary["success"] and summary["participant"] == "p1"
+    assert summary["score"] == 50 - len(keys) + 1 and all(s["reaction_s"] >= 0 for s in steps[: len(keys)])
+
+
+def test_terminal_overcooked_ticks_and_logs_the_keys(tmp_path):
+    term = Pty(["play", *COOK, "--participant", "p2"], tmp_path)
+    term.read_until(b"steps left", timeout=240)
+    sent = ["up", "space", "left"]
+    for k in sent:
+        term.send(ARROW[k])
+        time.sleep(0.3)
+    assert term.wait(timeout=240) == 0
+    (path,) = played(tmp_path)
+    steps = logged_steps(path)
+    assert len(steps) == 12
+    logged = [s["key"] for s in steps if s["key"] is not None]
+    # A key acts on the next tick; of keys pressed within one tick the latest counts.
+    assert len(logged) >= 2 and is_subsequence(logged, sent)
+    assert all(s["human_action"] == KEYMAP["overcooked"][s["key"]] for s in steps if s["key"])
+    assert all(s["human_action"] == 4 for s in steps if s["key"] is None)  # stay
+
+
+def test_terminal_quit_keeps_the_episode_as_incomplete(tmp_path):
+    term = Pty(["play", *GRID, "--participant", "p3", "--episodes", "2"], tmp_path)
+    term.read_until(b"steps left")
+    term.send(b"z")
+    term.read_until(b"unknown key 'z'")
+    term.send(ARROW["up"] if grid_keys(0)[0] != "up" else ARROW["down"])
+    time.sleep(0.3)
+    term.send(b"q")
+    assert term.wait() == 130
+    (path,) = played(tmp_path)
+    summary = json.loads((path / "summary.json").read_text())
+    assert not summary["completed"] and summary["steps"] == 1
+
+
+def test_bad_input_is_one_line_and_writes_nothing(tmp_path):
+    for args, message in [
+        (["play", "deadbeef", "--web"], "no artifact with key 'deadbeef'"),
+        (["play", "experiments/grid_2.yaml", "--set", "train.seeds=7", "--web"], "is not trained"),
+        (["play", "experiments/grid_2.yaml", "--robots", ",", "--web"], "--robots: name at least one robot"),
+        (["play", "experiments/grid_2.yaml", "--robots", "random"], "needs a terminal"),
+    ]:
+        proc = esr(*args, store=tmp_path / "store", check=False, timeout=120)
+        assert proc.returncode == 2 and message in proc.stderr, (args, proc.stderr)
+        assert len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "store" / PLAY_KIND).exists()
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        proc = esr("play", *GRID, "--web", "--port", str(port), store=tmp_path / "store", check=False, timeout=120)
+    assert proc.returncode == 2 and f"port {port}" in proc.stderr and "not free" in proc.stderr
+
+
+def test_an_episode_left_by_a_killed_process_is_kept_as_incomplete(tmp_path):
+    keys = grid_keys(0)
+    term = Pty(["play", *GRID, "--participant", "p4"], tmp_path)
+    term.read_until(b"steps left")
+    term.send(ARROW[keys[0]])
+    deadline = time.time() + 60
+    while not list((tmp_path / PLAY_KIND).rglob("steps.jsonl")) or \
+            not next((tmp_path / PLAY_KIND).rglob("steps.jsonl")).read_text():
+        assert time.time() < deadline
+        time.sleep(0.1)
+    os.kill(term.pid, signal.SIGKILL)
+    term.wait()
+    assert not played(tmp_path)
+    again = Pty(["play", *GRID, "--participant", "p4"], tmp_path)
+    again.read_until(b"kept as incomplete")
+    again.read_until(b"steps left")
+    again.send(b"q")
+    assert again.wait() == 130
+    recovered = [p for p in played(tmp_path) if json.loads((p / "manifest.json").read_text()).get("recovered")]
+    (path,) = recovered
+    summary = json.loads((path / "summary.json").read_text())
+    assert not summary["completed"] and summary["steps"] == 1 and logged_steps(path)[0]["key"] == keys[0]
+
+
+# ---------------------------------------------------------------- the browser
+CHROMIUM, DRIVER = shutil.which("chromium"), shutil.which("chromedriver")
+
+
+@pytest.fixture(scope="module")
+def browser():
+    assert CHROMIUM and DRIVER, "the browser tests need Chromium and its driver (Debian: chromium chromium-driver; .ci/run installs them)"
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--window-size=900,700"):
+        options.add_argument(arg)
+    driver = webdriver.Chrome(service=Service(DRIVER), options=options)
+    yield driver
+    driver.quit()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def serve(args, store, port):
+    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli", "play", *args, "--web", "--port", str(port)], cwd=ROOT,
+                            env=esr_env(store), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 240
+    while True:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1).close()
+            return proc
+        except OSError:
+            assert proc.poll() is None, proc.communicate()
+            assert time.time() < deadline, "the play server did not start"
+            time.sleep(0.2)
+
+
+def wait_for(driver, script, timeout=120):
+    deadline = time.time() + timeout
+    while not driver.execute_script(script):
+        assert time.time() < deadline, f"timed out waiting for {script}"
+        time.sleep(0.1)
+
+
+def press(driver, key):
+    from selenium.webdriver.common.keys import Keys
+
+    names = {"up": Keys.ARROW_UP, "down": Keys.ARROW_DOWN, "left": Keys.ARROW_LEFT, "right": Keys.ARROW_RIGHT, "space": Keys.SPACE}
+    driver.find_element("tag name", "body").send_keys(names.get(key, key))
+
+
+def test_browser_gridworld_to_the_goal(browser, tmp_path):
+    keys, port = grid_keys(0), free_port()
+    proc = serve([*GRID, "--participant", "w1"], tmp_path, port)
+    browser.get(f"http://127.0.0.1:{port}/")
+    wait_for(browser, "return document.body.dataset.stepsLeft === '50'")
+    assert browser.execute_script("return document.getElementById('frame').naturalWidth") > 0
+    for i, k in enumerate(keys):
+        press(browser, k)
+        wait_for(browser, f"return document.body.dataset.stepsLeft !== '{50 - i}'")
+    wait_for(browser, "return document.body.dataset.finished === 'true'")
+    out, errs = proc.communicate(timeout=60)
+    assert proc.returncode == 0, errs
+    (path,) = played(tmp_path)
+    steps = logged_steps(path)
+    assert [s["key"] for s in steps if s["key"] is not None] == keys
+    summary = json.loads((path / "summary.json").read_text())
+    assert summary["completed"] and summary["score"] == 50 - len(keys) + 1
+    assert json.loads((path / "episode.json").read_text())["front_end"] == "web"
+
+
+def test_browser_overcooked_and_a_closed_tab(browser, tmp_path):
+    port = free_port()
+    proc = serve([*COOK, "--participant", "w2", "--episodes", "2"], tmp_path, port)
+    browser.get(f"http://127.0.0.1:{port}/")
+    wait_for(browser, "return document.body.dataset.stepsLeft !== ''", timeout=240)
+    for k in ("up", "space"):
+        press(browser, k)
+        time.sleep(0.3)
+    wait_for(browser, "return document.body.dataset.over === 'true'", timeout=120)  # the first episode ends
+    wait_for(browser, "return document.body.dataset.over === 'false'", timeout=120)  # the second begins
+    browser.get("about:blank")  # the tab leaves: the second episode ends there
+    proc.communicate(timeout=120)
+    assert proc.returncode == 130
+    first, second = sorted(played(tmp_path), key=lambda p: json.loads((p / "summary.json").read_text())["episode"])
+    steps = logged_steps(first)
+    assert len(steps) == 12 and is_subsequence([s["key"] for s in steps if s["key"]], ["up", "space"])
+    assert json.loads((first / "summary.json").read_text())["completed"]
+    assert not json.loads((second / "summary.json").read_text())["completed"]
+
+
+# ---------------------------------------------------------------- the data it leaves
+def test_overcooked_episodes_export_to_the_human_data_schema_and_replay(tmp_path):
+    """A played Overcooked episode, exported as overcooked-ai rows, converts back to the logged
+    JaxMARL states, and each row's joint action steps its state to its next state."""
+    import numpy as np
+
+    from esr_cli.artifacts import ensure
+    from esr_cli.humans import overcooked_data as od
+    from esr_cli.play import export
+
+    spec = specs.load(ROOT / COOK[0], "paper", ["env.episode_steps=40"])
+    env = make_env(spec.env)
+    rng = np.random.default_rng(0)
+    script = [k for _ in range(40) for k in (str(rng.choice(["up", "down", "left", "right", "space"])), None)]
+    opponent = ps.Opponent("random", "robot A", Robot("random", env))
+    store = Store(tmp_path)
+    built = ensure(ps.episode_recipe(spec, opponent, "p9", "s1", 0, 5, Scripted(script), "test", 8.0, "t"), store)
+    summary = built.summary()
+    assert summary["completed"] and summary["steps"] == 40 and summary["keys"] == 40
+    frame = export.trajectory_frame([built.path], env)
+    assert list(frame.columns) == list(export.COLUMNS) and len(frame) == 40
+    assert frame["player_1_is_human"].all() and frame["layout_name"].eq("cramped_room").all()
+    logged = [state_from_record(env, s["state"]) for s in logged_steps(built.path)]
+    back = od.to_jaxmarl(env, list(frame["state"]))
+    for field in ("agent_pos", "agent_dir_idx", "agent_inv", "maze_map"):
+        want = np.stack([np.asarray(getattr(s, field)) for s in logged])
+        np.testing.assert_array_equal(np.asarray(getattr(back, field)), want, err_msg=field)
+    nxt = od.to_jaxmarl(env, list(frame["next_state"]))
+    actions = np.array([od.parse_joint_action(t) for t in frame["joint_action"]], np.int32)
+    stepped, _ = jax.jit(jax.vmap(env.step_joint))(back, actions[:, 0], actions[:, 1])
+    for field in ("agent_pos", "agent_dir_idx", "agent_inv", "maze_map"):
+        np.testing.assert_array_equal(np.asarray(getattr(stepped, field)), np.asarray(getattr(nxt, field)), err_msg=field)
+    # The CLI lists it and writes the same rows as a DataFrame that pandas reads back.
+    proc = esr("plays", "--participant", "p9", "--export", str(tmp_path / "out" / "p9.pickle"), store=tmp_path, COLUMNS="300")
+    assert built.path.name in proc.stdout and "exported 1 Overcooked episode(s), 40 rows" in proc.stderr
+    import pandas as pd
+
+    again = pd.read_pickle(tmp_path / "out" / "p9.pickle")
+    assert list(again["joint_action"]) == list(frame["joint_action"])
+    assert esr("plays", "--participant", "nobody", store=tmp_path, check=False).returncode == 1
