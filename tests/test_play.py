@@ -326,7 +326,10 @@ def test_browser_gridworld_to_the_goal(browser, tmp_path):
 
 def test_browser_overcooked_and_a_closed_tab(browser, tmp_path):
     port = free_port()
-    proc = serve([*COOK, "--participant", "w2", "--episodes", "2"], tmp_path, port)
+    # 40 ticks at 8 fps: the second episode lasts 5 s, time enough for the tab to leave it
+    # even on a loaded machine (with 12 ticks it could end first).
+    cook = [a.replace("episode_steps=12", "episode_steps=40") for a in COOK]
+    proc = serve([*cook, "--participant", "w2", "--episodes", "2"], tmp_path, port)
     browser.get(f"http://127.0.0.1:{port}/")
     wait_for(browser, "return document.body.dataset.stepsLeft !== ''", timeout=240)
     for k in ("up", "space"):
@@ -334,12 +337,12 @@ def test_browser_overcooked_and_a_closed_tab(browser, tmp_path):
         time.sleep(0.3)
     wait_for(browser, "return document.body.dataset.over === 'true'", timeout=120)  # the first episode ends
     wait_for(browser, "return document.body.dataset.over === 'false'", timeout=120)  # the second begins
-    browser.get("about:blank")  # the tab leaves: the second episode ends there
+    browser.get("about:blank")  # the tab leaves (the page may stay in the back-forward cache)
     proc.communicate(timeout=120)
     assert proc.returncode == 130
     first, second = sorted(played(tmp_path), key=lambda p: json.loads((p / "summary.json").read_text())["episode"])
     steps = logged_steps(first)
-    assert len(steps) == 12 and is_subsequence([s["key"] for s in steps if s["key"]], ["up", "space"])
+    assert len(steps) == 40 and is_subsequence([s["key"] for s in steps if s["key"]], ["up", "space"])
     assert json.loads((first / "summary.json").read_text())["completed"]
     assert not json.loads((second / "summary.json").read_text())["completed"]
 

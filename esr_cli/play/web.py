@@ -62,6 +62,9 @@ ws.onmessage = (event) => {
   document.body.dataset.over = m.over ? "true" : "false";
   if (m.finished) { document.body.dataset.finished = "true"; }
 };
+// Leaving the page must end the episode even where the browser keeps the page alive in its
+// back-forward cache (which would keep the socket open): close the socket on the way out.
+window.addEventListener("pagehide", () => ws.close());
 ws.onclose = () => { document.body.dataset.connected = "closed"; $("message").textContent += "  (the game has ended; you can close this tab)"; };
 document.addEventListener("keydown", (e) => {
   if (IGNORED.includes(e.key) || ws.readyState !== WebSocket.OPEN) return;
