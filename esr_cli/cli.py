@@ -165,6 +165,7 @@ def eval_(
 ):
     """Evaluate a trained robot with its human; writes an evaluation artifact, a GIF and a curve."""
     from esr_cli import runs
+    from esr_cli.stats import format_summary  # scipy: +0.9 s, only where a table needs it
 
     if human not in runs.EVAL_PARTNERS and not human.startswith(runs.PLAY_PARTNER):
         raise Exit(2, f"--human: unknown partner {human!r}; known: {', '.join(runs.EVAL_PARTNERS)}, {runs.PLAY_PARTNER}KEY,...")
@@ -177,10 +178,10 @@ def eval_(
     if seat is not None and summary.get("robot_seat") is not None:
         partner += f", robot as agent_{summary['robot_seat']}"
     table = Table(title=f"{summary['name']} ({summary['budget']}, {len(summary['seeds'])} seed(s), {summary['episodes']} episodes each{partner})")
-    for col in ("policy", "return (mean ± SE)", "success (mean ± SE)"):
+    for col in ("policy", "return (mean ± SE; IQM [95% CI] across seeds)", "success"):
         table.add_column(col)
     for mode, r in summary["results"].items():
-        table.add_row(mode, f"{r['return_mean']:.2f} ± {r['return_se']:.2f}", f"{r['success_mean']:.3f} ± {r['success_se']:.3f}")
+        table.add_row(mode, format_summary(r["return"]), format_summary(r["success"], 3))
     err.print(table)
     err.print(f"[green]{'cache hit' if cached else 'evaluated'}[/]: {path}")
     for name in ("rollout.gif", "learning_curve.png"):

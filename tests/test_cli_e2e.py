@@ -60,6 +60,7 @@ def test_eval_writes_summary_gif_and_curve(smoke_run):
     for r in summary["results"].values():
         assert 0 <= r["success_mean"] <= 1 and 0 <= r["return_mean"] <= 50
     assert (path / "rollout.gif").stat().st_size > 500 and (path / "learning_curve.png").exists()
+    assert "(1 seed)" in proc.stderr and "± 0.00" not in proc.stderr  # one seed claims no spread
     again = esr("eval", run_path.name, store=store)
     assert "cache hit" in again.stderr and again.stdout.strip() == str(path)
 
