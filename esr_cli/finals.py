@@ -7,27 +7,18 @@ paper's learning curves end. Reading only; nothing here trains.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
+
+from esr_cli.jsonl import read_jsonl
 
 FINAL_FRACTION = 0.1
 
 
 def read_rows(run_path: Path) -> list[dict]:
-    """A run's metrics.jsonl, one dict per epoch; [] where there is none yet. A line cut short
-    by a kill ends the reading: everything after it is untrusted."""
-    path = Path(run_path) / "metrics.jsonl"
-    if not path.exists():
-        return []
-    rows = []
-    for line in path.read_text().splitlines():
-        try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError:
-            break
-    return rows
+    """A run's metrics.jsonl, one dict per epoch (a line cut short by a kill ends it)."""
+    return read_jsonl(Path(run_path) / "metrics.jsonl")
 
 
 def series(rows: list[dict], name: str) -> tuple[np.ndarray, np.ndarray]:

@@ -16,6 +16,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from esr_cli.jsonl import read_jsonl
+
 STEPS_FILE, EPISODE_FILE, FINAL_STATE_FILE = "steps.jsonl", "episode.json", "final_state.json"
 
 
@@ -40,16 +42,7 @@ def read_header(path: Path) -> dict:
 
 def read_steps(path: Path) -> list[dict]:
     """An episode's steps; a last line cut short by a crash is dropped."""
-    steps = []
-    source = Path(path) / STEPS_FILE
-    if not source.exists():
-        return steps
-    for line in source.read_text().splitlines():
-        try:
-            steps.append(json.loads(line))
-        except json.JSONDecodeError:
-            break
-    return steps
+    return read_jsonl(Path(path) / STEPS_FILE)
 
 
 def read_states(path: Path, env) -> list:
