@@ -123,6 +123,18 @@ class NoisyGreedyHumanSpec(_Model):
 MAX_PLAY_EPISODES = 10_000
 
 
+# Cloning settings whose human, paired with the Random robot, scores closest to the published
+# Random column (quick budget, 3 seeds; every candidate tried is in docs/overcooked.md). Only the
+# layouts the paper reports have one.
+HUMAN_PRESETS = {
+    "paper_random": {
+        "cramped_room": {"stay_weight": 0.05, "hidden": (64, 64), "epochs": 60},
+        "coord_ring": {"stay_weight": 1.0, "hidden": (64, 64), "epochs": 60},
+        "asymm_advantages": {"stay_weight": 0.1, "hidden": (128, 128), "epochs": 200},
+    },
+}
+
+
 class BCHumanSpec(_Model):
     """Behavioural cloning on the 2019 human-human trials (or on played episodes, `data`); a
     stored artifact of kind humans
@@ -145,6 +157,10 @@ class BCHumanSpec(_Model):
     data: Optional[tuple[str, ...]] = Field(
         None, description="clone from these played episodes (keys of `play` artifacts, `esr plays`) instead of the "
         "2019 trials; their last quarter is the test split",
+    )
+    preset: Optional[Literal[tuple(HUMAN_PRESETS)]] = Field(
+        None, description="named cloning settings for the layout, replacing hidden, stay_weight and epochs "
+        "(paper_random: the human whose Random-robot score is closest to the paper's; docs/overcooked.md)",
     )
     per_seed: bool = Field(False, description="clone one human per training seed (cloning seed = human.seed + "
                            "the training seed), so that the seeds' spread includes the human's")
@@ -380,6 +396,21 @@ class Spec(_Model):
                 raise ValueError(f"unknown budget {name!r}; known: {', '.join(BUDGETS)}")
         return v
 
+    @model_validator(mode="before")
+    @classmethod
+    def _human_preset(cls, data):
+        """A BC human's `preset` sets its cloning fields for the layout before validation."""
+        human = data.get("human") if isinstance(data, dict) else None
+        if not isinstance(human, dict) or human.get("kind") != "bc" or human.get("preset") not in HUMAN_PRESETS:
+            return data  # no preset, or an unknown one: the field's own check names it
+        env = data.get("env") if isinstance(data.get("env"), dict) else {}
+        layout = human.get("layout") or env.get("layout")
+        settings = HUMAN_PRESETS[human["preset"]]
+        if layout not in settings:
+            raise ValueError(f"human.preset={human['preset']!r} is defined for {', '.join(settings)} (the layouts the "
+                             f"paper reports a Random score for), not {layout!r}")
+        return {**data, "human": {**human, **settings[layout]}}
+
     @model_validator(mode="after")
     def _cross_checks(self):
         if self.human.kind == "bc" and self.env.kind != "overcooked":
@@ -421,6 +452,9 @@ class Spec(_Model):
     def training_part(self) -> dict:
         """The fields that determine a training run (the artifact key's spec component)."""
         d = self.model_dump(mode="json")
+        # A preset is a name for the values it sets: the run is keyed by the values, so the same
+        # human written out field by field is the same run (and runs from before the field keep their keys).
+        d["human"].pop("preset", None)
         return {k: d[k] for k in ("env", "human", "method", "network", "learner", "train")}
 
 

@@ -160,3 +160,22 @@ def test_quick_budget_warms_up_and_learns_representations_faster():
     assert specs.load("experiments/grid_2.yaml", "paper").method.repr_lr == 1e-4  # the paper as written
     random_quick = specs.load("experiments/grid_2_random.yaml", "quick")  # no representations: skipped
     assert random_quick.learner.warmup_epochs == 20 and not hasattr(random_quick.method, "repr_lr")
+
+
+def test_a_human_preset_sets_the_layouts_cloning_fields_and_keys_by_value():
+    named = specs.load(Path("experiments/coord_ring_random.yaml"), "quick", ["human.preset=paper_random"])
+    assert (named.human.stay_weight, named.human.hidden, named.human.epochs) == (1.0, (64, 64), 60)
+    asymm = specs.load(Path("experiments/asymm_advantages.yaml"), "quick", ["human.preset=paper_random"])
+    assert (asymm.human.stay_weight, asymm.human.hidden, asymm.human.epochs) == (0.1, (128, 128), 200)
+    # the preset replaces the file's own stay_weight: 0.1; written out by hand it is the same run
+    by_hand = specs.load(Path("experiments/coord_ring_random.yaml"), "quick", ["human.stay_weight=1.0"])
+    assert named.training_part() == by_hand.training_part()
+    plain = specs.load(Path("experiments/coord_ring_random.yaml"), "quick")
+    assert "preset" not in plain.training_part()["human"]  # runs from before the field keep their keys
+
+
+def test_a_human_preset_is_refused_where_it_has_no_settings():
+    with pytest.raises(specs.SpecError, match=r"human.preset='paper_random' is defined for cramped_room.*not 'forced_coord'"):
+        specs.load(Path("experiments/forced_coord_random.yaml"), "quick", ["human.preset=paper_random"])
+    with pytest.raises(specs.SpecError, match=r"human.preset: Input should be 'paper_random'"):
+        specs.load(Path("experiments/cramped_room.yaml"), "quick", ["human.preset=closest"])
