@@ -553,6 +553,39 @@ def verify(ref: Optional[str] = typer.Argument(None, help="artifact key or path 
         raise Exit(1, f"{bad} of {len(paths)} artifact(s) failed verification")
 
 
+# ---------------------------------------------------------------- export / import
+@app.command("export")
+def export_(
+    ref: str = typer.Argument(..., help="artifact key, key prefix or directory; an unfinished run too", show_default=False),
+    out_file: Optional[Path] = typer.Option(None, "--out", "-o", help="archive to write (default: ./KEY8.tar.gz)"),
+):
+    """Write one artifact to a single file, to carry to another store (`esr import`). An
+    unfinished run travels with its newest verified checkpoint and continues where imported."""
+    from esr_cli.transfer import export
+
+    moved = export(STATE.store, ref, out_file)
+    err.print(f"[green]exported[/] {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files)")
+    out.print(str(moved.path), soft_wrap=True, highlight=False)
+
+
+@app.command("import")
+def import_(archives: List[Path] = typer.Argument(..., help="archives written by `esr export`", show_default=False)):
+    """Put artifacts exported from another store into this one, each checked and then added in
+    one step; an unfinished run continues with the command that started it."""
+    from esr_cli.transfer import import_archive
+
+    missing = [str(a) for a in archives if not a.is_file()]
+    if missing:
+        raise Exit(2, f"no archive {', '.join(missing)}")
+    for archive in archives:
+        moved = import_archive(STATE.store, archive)
+        if moved.files == 0:
+            err.print(f"{moved.kind} {moved.key[:12]} is already in the store: nothing to import")
+        else:
+            err.print(f"[green]imported[/] {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files)")
+        out.print(str(moved.path), soft_wrap=True, highlight=False)
+
+
 # ---------------------------------------------------------------- entry point
 GLOBAL_FLAGS, GLOBAL_VALUED = ("--debug",), ("--store",)
 

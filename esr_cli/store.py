@@ -71,7 +71,7 @@ def atomic_write_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def _fsync_dir(path: Path) -> None:
+def fsync_dir(path: Path) -> None:
     try:
         fd = os.open(path, os.O_RDONLY)
     except OSError:
@@ -223,13 +223,13 @@ class Store:
                 files[f.relative_to(partial).as_posix()] = digest_file(f)
         manifest = {**manifest, "files": files}
         atomic_write_text(partial / MANIFEST, json.dumps(manifest, indent=2, sort_keys=True))
-        _fsync_dir(partial)
+        fsync_dir(partial)
         faults.reached("before_rename")
         if final.exists():  # a committed copy already exists (should not happen under the lock)
             shutil.rmtree(partial)
             return final
         os.rename(partial, final)
-        _fsync_dir(final.parent)
+        fsync_dir(final.parent)
         return final
 
     # ---------------------------------------------------------------- checking

@@ -1,0 +1,229 @@
+"""Moving artifacts between stores as one file: `esr export` and `esr import` (docs/store.md).
+
+An archive is a gzipped tar of one artifact's directory, named as the store names it
+(`<kind>/<key[:2]>/<key>` for a committed artifact, `<key>.partial` for an unfinished run), so
+`tar -xzf ARCHIVE -C STORE` would also put it back. Long runs outlive the machine that started
+them this way: an unfinished run travels with its newest verified checkpoint and continues
+wherever it is imported (from a checkout of the commit its pending.json names).
+
+Importing treats the archive as untrusted: members must stay inside that one directory and be
+plain files or folders, sizes are bounded, a committed artifact must match its manifest, and
+the artifact appears in the store by one rename, or not at all.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import tarfile
+import tempfile
+import zlib
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+
+from esr_cli.store import KINDS, MANIFEST, RUN_KIND, Store, StoreError, fsync_dir
+
+PARTIAL = ".partial"
+CHECKPOINT_DIR = "checkpoints"
+KEY_RE = re.compile(r"[0-9a-f]{32}")
+# Far above any real artifact (a 20-seed Overcooked checkpoint is tens of MiB), low enough that
+# a hostile archive cannot fill a disk or exhaust the inode table.
+MAX_MEMBERS, MAX_BYTES = 100_000, 16 << 30
+SNAPSHOT_TRIES = 5
+
+
+@dataclass(frozen=True)
+class Moved:
+    kind: str
+    key: str
+    status: str  # complete | partial
+    files: int
+    path: Path  # the archive written (export) or the artifact's directory (import)
+
+
+# ---------------------------------------------------------------- export
+def export(store: Store, ref: str, out: Path | None = None) -> Moved:
+    """Archive the artifact `ref` (key, unique key prefix or path; committed, or an unfinished
+    run) into `out` (default: ./<key[:8]>.tar.gz). A running run may keep writing meanwhile."""
+    kind, key, src, status = _find(store, ref)
+    out = Path(out) if out is not None else Path(f"{key[:8]}.tar.gz")
+    if out.is_dir():
+        raise StoreError(f"{out} is a directory: give the archive's file name")
+    arcroot = PurePosixPath(kind, key[:2], src.name)
+    with tempfile.TemporaryDirectory(prefix=".export-", dir=store.root) as tmp:
+        stage = Path(tmp) / src.name
+        if status == "complete":
+            shutil.copytree(src, stage)
+            problems = store.verify(stage)
+            if problems:
+                raise StoreError(f"{kind} {key[:12]} fails its manifest ({problems[0]}); `esr verify {key[:12]}` lists every problem")
+        else:
+            _snapshot_partial(src, stage)
+        files = sorted(p for p in stage.rglob("*") if p.is_file())
+        part = out.with_name(f".{out.name}.part")
+        try:
+            with tarfile.open(part, "w:gz") as tar:
+                for f in files:
+                    tar.add(f, arcname=str(arcroot / f.relative_to(stage).as_posix()), recursive=False)
+            part.replace(out)
+        except BaseException:
+            part.unlink(missing_ok=True)
+            raise
+    return Moved(kind, key, status, len(files), out)
+
+
+def _find(store: Store, ref: str) -> tuple[str, str, Path, str]:
+    """(kind, key, directory, status) of a committed artifact or an unfinished one."""
+    p = Path(ref)
+    if p.is_dir() and p.parent.parent.name in KINDS:
+        name = p.name[: -len(PARTIAL)] if p.name.endswith(PARTIAL) else p.name
+        if KEY_RE.fullmatch(name) and ((p / MANIFEST).is_file() or p.name.endswith(PARTIAL)):
+            return p.parent.parent.name, name, p, "partial" if p.name.endswith(PARTIAL) else "complete"
+    if not re.fullmatch(r"[0-9a-f]{4,32}", ref):
+        raise StoreError(f"no artifact {ref!r}: give a key (at least 4 hex digits) or an artifact's directory")
+    hits = [e for e in store.entries() if e.key.startswith(ref)]
+    complete = [e for e in hits if e.status == "complete"]
+    hits = complete or hits  # an artifact both committed and restarted: the committed one
+    if not hits:
+        raise StoreError(f"no artifact with key {ref!r} in store {store.root}")
+    if len(hits) > 1:
+        raise StoreError(f"key prefix {ref!r} is ambiguous: {', '.join(f'{e.kind}/{e.key[:12]}' for e in hits)}")
+    e = hits[0]
+    if e.status == "partial" and e.kind != RUN_KIND:
+        raise StoreError(f"{e.kind} {e.key[:12]} is unfinished, and only a run resumes: finish it or remove {e.path}")
+    return e.kind, e.key, e.path, e.status
+
+
+def _snapshot_partial(src: Path, stage: Path) -> None:
+    """Copy an unfinished run with only its newest verified checkpoint. The run may be saving a
+    newer one meanwhile (and deleting the oldest), so a copy that changed under it is retried."""
+    from esr_cli.core.loop import verified_steps
+
+    for _ in range(SNAPSHOT_TRIES):
+        shutil.rmtree(stage, ignore_errors=True)
+        steps = verified_steps(src)
+        if not steps:
+            raise StoreError(f"{src} has no verified checkpoint yet: nothing that could resume")
+        step = steps[0]
+        try:
+            shutil.copytree(src, stage, ignore=_keep_checkpoint(src, step))
+        except (FileNotFoundError, shutil.Error):
+            continue  # a checkpoint was removed while it was copied
+        if verified_steps(stage) == [step]:
+            return
+    raise StoreError(f"{src} kept changing while it was copied ({SNAPSHOT_TRIES} tries); try again")
+
+
+def _keep_checkpoint(src: Path, step: int):
+    ckpt = src / CHECKPOINT_DIR
+
+    def ignore(directory: str, names: list[str]) -> list[str]:
+        if Path(directory) == ckpt:
+            return [n for n in names if n != str(step)]
+        return [n for n in names if n.startswith(".") or n.endswith(".tmp")]  # a write in progress
+
+    return ignore
+
+
+# ---------------------------------------------------------------- import
+def import_archive(store: Store, archive: Path) -> Moved:
+    """Put the artifact in `archive` into the store: atomically, after checking every member."""
+    archive = Path(archive)
+    if not archive.is_file():
+        raise StoreError(f"no archive {archive}")
+    try:
+        tar = tarfile.open(archive, "r:*")
+    except (tarfile.TarError, OSError, EOFError) as e:
+        raise StoreError(f"{archive} is not a tar archive ({_first_line(e)})") from None
+    store.ensure_writable()
+    with tar:
+        try:
+            kind, dirname, members = _checked_members(tar, archive)
+        except (tarfile.TarError, OSError, EOFError, zlib.error) as e:
+            raise StoreError(f"{archive} could not be read to the end ({_first_line(e)})") from None
+        key = dirname[: -len(PARTIAL)] if dirname.endswith(PARTIAL) else dirname
+        status = "partial" if dirname.endswith(PARTIAL) else "complete"
+        final, partial = store.final_path(kind, key), store.partial_path(kind, key)
+        if store.lookup(kind, key):  # already here: like a cache hit, nothing to do
+            return Moved(kind, key, "complete", 0, final)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix=".import-", dir=final.parent) as tmp:
+            try:
+                tar.extractall(tmp, members=members, filter="data")
+            except (tarfile.TarError, OSError, EOFError, zlib.error) as e:
+                raise StoreError(f"{archive} could not be read to the end ({_first_line(e)})") from None
+            stage = Path(tmp) / kind / key[:2] / dirname
+            _check_contents(store, stage, kind, key, status, archive)
+            with store.lock(kind, key, wait=False):
+                if store.lookup(kind, key):
+                    return Moved(kind, key, "complete", 0, final)
+                if partial.exists():
+                    raise StoreError(f"{kind} {key[:12]} is already unfinished in store {store.root} ({partial}); "
+                                     "remove that directory first to replace it with the archive's")
+                target = final if status == "complete" else partial
+                stage.rename(target)
+                fsync_dir(target.parent)
+    files = sum(1 for p in target.rglob("*") if p.is_file())
+    return Moved(kind, key, status, files, target)
+
+
+def _first_line(e: Exception) -> str:
+    return (str(e).splitlines() or [type(e).__name__])[0][:200]
+
+
+def _checked_members(tar: tarfile.TarFile, archive: Path) -> tuple[str, str, list[tarfile.TarInfo]]:
+    """The archive's members, all plain files or folders inside one `<kind>/<kk>/<key>[.partial]`."""
+    members, total, top = [], 0, None
+    for m in tar:
+        if len(members) >= MAX_MEMBERS:
+            raise StoreError(f"{archive} has more than {MAX_MEMBERS:,} members: not an esr artifact")
+        path = PurePosixPath(m.name)
+        if path.is_absolute() or ".." in path.parts:
+            raise StoreError(f"{archive}: member {m.name!r} points outside the artifact")
+        if not (m.isfile() or m.isdir()):
+            raise StoreError(f"{archive}: member {m.name!r} is not a plain file or folder (links and devices are refused)")
+        parts = [p for p in path.parts if p != "."]
+        if len(parts) < 3 or (len(parts) == 3 and not m.isdir()):
+            if m.isdir() and len(parts) < 3:
+                continue  # the folders above the artifact (kind/, kind/kk/)
+            raise StoreError(f"{archive}: member {m.name!r} is not inside an artifact directory <kind>/<kk>/<key>")
+        head = tuple(parts[:3])
+        if top is None:
+            top = head
+        elif head != top:
+            raise StoreError(f"{archive} holds more than one artifact ({'/'.join(top)} and {'/'.join(head)}): export one per archive")
+        total += max(m.size, 0)
+        if total > MAX_BYTES:
+            raise StoreError(f"{archive} unpacks to more than {MAX_BYTES >> 30} GiB: not an esr artifact")
+        members.append(m)
+    if top is None:
+        raise StoreError(f"{archive} holds no artifact")
+    kind, shard, dirname = top
+    key = dirname[: -len(PARTIAL)] if dirname.endswith(PARTIAL) else dirname
+    if kind not in KINDS or not KEY_RE.fullmatch(key) or shard != key[:2]:
+        raise StoreError(f"{archive}: {'/'.join(top)} is not an esr artifact directory (<kind>/<key[:2]>/<key>, kind one of {', '.join(KINDS)})")
+    if dirname.endswith(PARTIAL) and kind != RUN_KIND:
+        raise StoreError(f"{archive}: an unfinished {kind} artifact cannot resume; only unfinished runs can be imported")
+    return kind, dirname, members
+
+
+def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str, archive: Path) -> None:
+    if not stage.is_dir():
+        raise StoreError(f"{archive} holds no files for {kind} {key[:12]}")
+    if status == "complete":
+        if not (stage / MANIFEST).is_file():
+            raise StoreError(f"{archive}: {kind} {key[:12]} has no {MANIFEST}, so it is not a finished artifact "
+                             "(an unfinished run's directory ends in .partial); nothing imported")
+        try:
+            problems = store.verify(stage)
+        except (StoreError, AttributeError, TypeError):  # a manifest that is not a JSON object of files
+            raise StoreError(f"{archive}: the {MANIFEST} of {kind} {key[:12]} cannot be read; nothing imported") from None
+        if problems:
+            raise StoreError(f"{archive}: {kind} {key[:12]} fails its manifest ({problems[0]}); nothing imported")
+        return
+    from esr_cli.core.loop import verified_steps
+
+    if not (stage / "pending.json").is_file():
+        raise StoreError(f"{archive}: unfinished run {key[:12]} has no pending.json; nothing imported")
+    if not verified_steps(stage):
+        raise StoreError(f"{archive}: unfinished run {key[:12]} has no checkpoint matching its recorded digests; nothing imported")

@@ -1,0 +1,141 @@
+"""`esr export` / `esr import`: an artifact, finished or not, moves between stores as one file,
+and a hostile archive changes nothing (esr_cli/transfer.py)."""
+
+import io
+import shutil
+import signal
+import tarfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import esr
+from esr_cli.store import Store, StoreError
+from esr_cli.transfer import import_archive
+from test_reliability import SMOKE, final_arrays, partials
+
+KEY = "0123456789abcdef0123456789abcdef"
+
+
+def test_a_finished_run_moves_to_another_store(smoke_run, tmp_path):
+    store, path, _ = smoke_run
+    archive = tmp_path / "run.tar.gz"
+    exported = esr("export", path.name[:8], "--out", str(archive), store=store)
+    assert Path(exported.stdout.strip()) == archive and archive.is_file()
+
+    other = tmp_path / "other"
+    imported = esr("import", str(archive), store=other)
+    copy = Path(imported.stdout.strip())
+    assert copy == other / "runs" / path.name[:2] / path.name
+    assert esr("verify", store=other).returncode == 0
+    assert (copy / "metrics.jsonl").read_bytes() == (path / "metrics.jsonl").read_bytes()
+    again = esr("import", str(archive), store=other)  # already there: success, nothing changes
+    assert "already in the store" in again.stderr and Path(again.stdout.strip()) == copy
+
+
+def test_an_unfinished_run_moves_and_resumes_to_the_uninterrupted_result(smoke_run, tmp_path):
+    _, reference, _ = smoke_run
+    here = tmp_path / "here"
+    assert esr(*SMOKE, store=here, check=False, ESR_FAULT="after_checkpoint@1").returncode == -signal.SIGKILL
+    (part,) = partials(here)
+    archive = tmp_path / "partial.tar.gz"
+    esr("export", part.name[:8], "--out", str(archive), store=here)
+    names = tarfile.open(archive).getnames()
+    assert all(n.startswith(f"runs/{part.name[:2]}/{part.name}/") for n in names)
+
+    there = tmp_path / "there"
+    esr("import", str(archive), store=there)
+    assert [p.name for p in partials(there)] == [part.name]
+    resumed = esr(*SMOKE, store=there)
+    assert "resuming" in resumed.stderr
+    path = Path(resumed.stdout.strip())
+    assert path.name == reference.name
+    assert (path / "metrics.jsonl").read_text() == (reference / "metrics.jsonl").read_text()
+    for a, b in zip(final_arrays(path), final_arrays(reference)):
+        np.testing.assert_array_equal(a, b)
+
+
+def _archive(tmp_path, members, name="bad.tar.gz"):
+    """A gzipped tar of (name, bytes | None for a folder | ('symlink', target))."""
+    path = tmp_path / name
+    with tarfile.open(path, "w:gz") as tar:
+        for member, data in members:
+            info = tarfile.TarInfo(member)
+            if data is None:
+                info.type = tarfile.DIRTYPE
+                tar.addfile(info)
+            elif isinstance(data, tuple):
+                info.type, info.linkname = tarfile.SYMTYPE, data[1]
+                tar.addfile(info)
+            else:
+                info.size = len(data)
+                tar.addfile(info, io.BytesIO(data))
+    return path
+
+
+RUN_DIR = f"runs/{KEY[:2]}/{KEY}"
+
+
+@pytest.mark.parametrize(
+    "members, message",
+    [
+        ([(f"{RUN_DIR}/../../../../evil", b"x")], "points outside the artifact"),
+        ([("/etc/evil", b"x")], "points outside the artifact"),
+        ([(f"{RUN_DIR}/manifest.json", ("symlink", "/etc/passwd"))], "not a plain file or folder"),
+        ([(f"{RUN_DIR}/manifest.json", b"{}"), (f"runs/ab/{'ab' + KEY[2:]}/manifest.json", b"{}")], "more than one artifact"),
+        ([("runs/evil.txt", b"x")], "not inside an artifact directory"),
+        ([(f"models/{KEY[:2]}/{KEY}/manifest.json", b"{}")], "not an esr artifact directory"),
+        ([(f"runs/zz/{KEY}/manifest.json", b"{}")], "not an esr artifact directory"),
+        ([(f"evals/{KEY[:2]}/{KEY}.partial/pending.json", b"{}")], "only unfinished runs"),
+        ([(f"{RUN_DIR}/metrics.jsonl", b"{}\n")], "has no manifest.json"),
+        ([(f"{RUN_DIR}/manifest.json", b"[1, 2")], "cannot be read"),
+        ([(f"{RUN_DIR}/manifest.json", b"[1, 2]")], "cannot be read"),
+        ([(f"{RUN_DIR}/manifest.json", b'{"files": {"metrics.jsonl": "00"}}')], "fails its manifest"),
+        ([(f"{RUN_DIR}.partial/metrics.jsonl", b"{}\n")], "no pending.json"),
+        ([(f"{RUN_DIR}.partial/pending.json", b"{}")], "no checkpoint matching"),
+        ([], "holds no artifact"),
+    ],
+)
+def test_a_bad_archive_is_refused_and_changes_nothing(tmp_path, members, message):
+    store = Store(tmp_path / "store")
+    with pytest.raises(StoreError, match=message):
+        import_archive(store, _archive(tmp_path, members))
+    left = [p for p in (tmp_path / "store").rglob("*") if p.is_file() and not p.name.endswith(".lock")]
+    assert left == [] and not (tmp_path / "evil").exists()
+
+
+def test_a_tampered_finished_run_is_refused(smoke_run, tmp_path):
+    store, path, _ = smoke_run
+    copy = tmp_path / "copy" / "runs" / path.name[:2] / path.name
+    shutil.copytree(path, copy)
+    (copy / "metrics.jsonl").write_text("{}\n")
+    archive = tmp_path / "tampered.tar.gz"
+    with tarfile.open(archive, "w:gz") as tar:
+        tar.add(copy, arcname=f"runs/{path.name[:2]}/{path.name}")
+    proc = esr("import", str(archive), store=tmp_path / "other", check=False)
+    assert proc.returncode == 2
+    assert "changed file metrics.jsonl" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "other" / "runs" / path.name[:2] / path.name).exists()
+
+
+@pytest.mark.parametrize("content", [b"not an archive at all", None])
+def test_an_unreadable_archive_is_one_line(smoke_run, tmp_path, content):
+    store, path, _ = smoke_run
+    archive = tmp_path / "broken.tar.gz"
+    if content is None:  # a real export cut short
+        esr("export", path.name[:8], "--out", str(archive), store=store)
+        archive.write_bytes(archive.read_bytes()[: archive.stat().st_size // 2])
+    else:
+        archive.write_bytes(content)
+    proc = esr("import", str(archive), store=tmp_path / "other", check=False)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and str(archive) in proc.stderr
+    assert not list((tmp_path / "other").glob("runs/*/*"))
+
+
+def test_export_names_a_missing_artifact(tmp_path):
+    proc = esr("export", "beef", store=tmp_path / "empty", check=False)
+    assert proc.returncode == 2 and "no artifact with key 'beef'" in proc.stderr
+    proc = esr("import", str(tmp_path / "nowhere.tar.gz"), store=tmp_path / "empty", check=False)
+    assert proc.returncode == 2 and "no archive" in proc.stderr
