@@ -220,9 +220,10 @@ HumanSpec = Annotated[Union[NoisyGreedyHumanSpec, BCHumanSpec], Field(discrimina
 class ESRMethodSpec(_Model):
     kind: Literal["esr"]
     repr_dim: int = Field(32, ge=1)
-    reward: Literal["dot", "simplified"] = Field(
+    reward: Literal["dot", "simplified", "simplified_normalized"] = Field(
         "dot", description="dot: (phi - phi')^T psi(g); simplified: exp(|phi|^2 / 2d) (phi - phi')^T phi, "
-        "no future state (docs/estimators.md)",
+        "no future state (the paper's appendix); simplified_normalized: (phi - phi')^T phi, the same with "
+        "its partition function divided out (docs/estimators.md)",
     )
     infonce: Literal["stacked", "separate"] = "stacked"
     episode_group: int = Field(

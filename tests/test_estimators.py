@@ -208,6 +208,8 @@ def test_simplified_reward_by_hand():
     got = np.asarray(simplified_reward(jnp.asarray(phi_s), jnp.asarray(phi_sa)))
     # d = 2: exp(|phi|^2 / 4) (phi - phi') . phi
     np.testing.assert_allclose(got, [np.exp(1.0) * 4.0, 0.0, 0.0], rtol=1e-6)
+    normalized = np.asarray(simplified_reward(jnp.asarray(phi_s), jnp.asarray(phi_sa), normalized=True))
+    np.testing.assert_allclose(normalized, [4.0, 0.0, 0.0], rtol=1e-6)  # (phi - phi') . phi alone
 
 
 def test_simplified_reward_is_the_dot_reward_averaged_over_gaussian_futures():
@@ -223,10 +225,33 @@ def test_simplified_reward_is_the_dot_reward_averaged_over_gaussian_futures():
     monte_carlo = np.mean(weights * (psi @ (phi_sa - phi_s)))
     got = float(simplified_reward(jnp.asarray(phi_s[None], jnp.float32), jnp.asarray(phi_sa[None], jnp.float32))[0])
     assert got == pytest.approx(monte_carlo, rel=0.02)
+    # Normalized: the same average under the model's own p(g | s, aR, aH) = p(g) exp(f) / Z, i.e.
+    # the main reward's expectation over the futures the representations predict.
+    self_normalized = monte_carlo / np.mean(weights)
+    normalized = simplified_reward(jnp.asarray(phi_s[None], jnp.float32), jnp.asarray(phi_sa[None], jnp.float32), True)
+    assert float(normalized[0]) == pytest.approx(self_normalized, rel=0.02)
 
 
-def test_simplified_reward_needs_no_future_and_the_table_agrees():
-    esr, env = _esr(reward="simplified")
+def test_the_papers_simplified_reward_overflows_where_the_normalized_one_stays_small():
+    """Representations as long as a grid_2 run's become within two epochs (there the paper's
+    reward averaged 2.5e13 after one epoch and 2.7e32 after two): the paper's factor
+    exp(|phi|^2 / 2d) multiplies the normalized reward, and the critic's squared error overflows."""
+    from esr_cli.methods.esr import simplified_reward
+
+    d = 32
+    phi_sa = jnp.full((1, d), np.sqrt(90.0), jnp.float32)  # |phi|^2 / 2d = 45
+    phi_s = phi_sa * 0.9
+    paper = np.asarray(simplified_reward(phi_s, phi_sa))
+    normalized = np.asarray(simplified_reward(phi_s, phi_sa, normalized=True))
+    assert float(normalized[0]) == pytest.approx(0.1 * 90.0 * d, rel=1e-5)
+    assert float(paper[0]) == pytest.approx(np.exp(45.0) * float(normalized[0]), rel=1e-4)
+    with np.errstate(over="ignore"):
+        assert not np.isfinite(paper * paper).any() and np.isfinite(normalized * normalized).all()
+
+
+@pytest.mark.parametrize("reward", ["simplified", "simplified_normalized"])
+def test_simplified_reward_needs_no_future_and_the_table_agrees(reward):
+    esr, env = _esr(reward=reward)
     rng = np.random.default_rng(1)
     states = [_state(rng.integers(0, 5, 2), rng.integers(0, 5, (2, 2))) for _ in range(4)]
     obs = jnp.stack([env.observe(s) for s in states])
@@ -242,7 +267,8 @@ def test_simplified_reward_needs_no_future_and_the_table_agrees():
     np.testing.assert_array_equal(a, b)  # the future state plays no part
     from esr_cli.methods.esr import simplified_reward
 
-    np.testing.assert_allclose(a, simplified_reward(*esr.represent_phi(state.params, obs, ar, ah)), rtol=1e-6)
+    want = simplified_reward(*esr.represent_phi(state.params, obs, ar, ah), normalized=reward == "simplified_normalized")
+    np.testing.assert_allclose(a, want, rtol=1e-6)
     # The runner's reward table (every stored transition represented once) gives the same values.
     buf = replay.add(replay.init(2, 2, obs.shape[1:], obs.dtype), replay.Episodes(
         obs=jnp.stack([obs[:3], obs[1:]]), robot_action=ar.reshape(2, 2), human_action=ah.reshape(2, 2),

@@ -91,17 +91,22 @@ def empowerment_reward(phi_s, phi_sa, psi) -> jax.Array:
     return jnp.sum((phi_sa - phi_s) * psi, axis=-1)
 
 
-def simplified_reward(phi_s, phi_sa) -> jax.Array:
-    """The reward without a future state: r = exp(|phi|^2 / 2d) (phi - phi')^T phi, per example.
+def simplified_reward(phi_s, phi_sa, normalized: bool = False) -> jax.Array:
+    """The reward without a future state, per example: the paper's appendix form
+    r = exp(|phi|^2 / 2d) (phi - phi')^T phi, or with normalized=True r = (phi - phi')^T phi.
 
     If the future representations are standard normal on the logit scale (psi / sqrt(d) ~
-    N(0, I), since logits are phi . psi / d), then the expectation of the main reward over
-    g ~ p(g | s, aR, aH), E_g[(phi - phi')^T psi(g)] = E_{p(g)}[exp(phi . psi / d) (phi - phi')^T psi],
-    is this value times a constant (docs/estimators.md). The exponent is capped at 80 so that
-    float32 cannot overflow."""
+    N(0, I), since logits are phi . psi / d), then E_{p(g)}[exp(phi . psi / d) (phi - phi')^T psi]
+    is the paper's form, and exp(|phi|^2 / 2d) = E_{p(g)}[exp(phi . psi / d)] is the partition
+    function that a density ratio learned only up to a factor of (s, aR, aH) leaves in it.
+    Dividing it out gives the normalized form: the main reward's expectation over the model's
+    own p(g | s, aR, aH) (docs/estimators.md). The exponent is capped at 80 so that float32
+    cannot overflow in the reward itself."""
+    gain = jnp.sum((phi_sa - phi_s) * phi_sa, axis=-1)
+    if normalized:
+        return gain
     d = phi_sa.shape[-1]
-    scale = jnp.exp(jnp.minimum(jnp.sum(phi_sa * phi_sa, axis=-1) / (2 * d), 80.0))
-    return scale * jnp.sum((phi_sa - phi_s) * phi_sa, axis=-1)
+    return jnp.exp(jnp.minimum(jnp.sum(phi_sa * phi_sa, axis=-1) / (2 * d), 80.0)) * gain
 
 
 class RewardTable(NamedTuple):
@@ -269,10 +274,10 @@ class ESR(NamedTuple):
         return ESRState(params=params, opt_state=opt_state), metrics
 
     def reward(self, state: ESRState, batch, key):
-        if self.spec.reward == "simplified":
+        if self.spec.reward != "dot":
             human = self.human_input(state.params, batch.obs, batch.human_action, batch.next_obs)
             phi_s, phi_sa = self.represent_phi(state.params, batch.obs, batch.robot_action, human)
-            return jax.lax.stop_gradient(simplified_reward(phi_s, phi_sa))
+            return jax.lax.stop_gradient(simplified_reward(phi_s, phi_sa, self.spec.reward == "simplified_normalized"))
         phi_s, phi_sa, psi = self.represent_batch(state.params, batch)
         return jax.lax.stop_gradient(empowerment_reward(phi_s, phi_sa, psi))
 
@@ -292,8 +297,9 @@ class ESR(NamedTuple):
 
     def reward_from_table(self, table: RewardTable, idx) -> jax.Array:
         """The reward of the batch at buffer index `idx` (core/buffer.Index)."""
-        if self.spec.reward == "simplified":
-            return simplified_reward(table.phi_s[idx.episode, idx.t], table.phi_sa[idx.episode, idx.t])
+        if self.spec.reward != "dot":
+            return simplified_reward(table.phi_s[idx.episode, idx.t], table.phi_sa[idx.episode, idx.t],
+                                     self.spec.reward == "simplified_normalized")
         return empowerment_reward(
             table.phi_s[idx.episode, idx.t], table.phi_sa[idx.episode, idx.t], table.psi[idx.episode, idx.future]
         )
