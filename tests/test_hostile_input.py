@@ -43,7 +43,7 @@ def test_alias_bomb_is_refused_at_once_in_little_memory(tmp_path):
     elapsed = time.perf_counter() - t0
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
-    assert elapsed < 1.0 and peak < 200 * 2**20
+    assert elapsed < 5.0 and peak < 200 * 2**20  # a blow-up takes minutes; a loaded machine, seconds
 
 
 def test_alias_bomb_through_the_cli_writes_nothing(tmp_path):
@@ -90,7 +90,7 @@ def test_huge_seed_count_is_refused_before_it_is_built(tmp_path):
     t0 = time.perf_counter()
     with pytest.raises(specs.SpecError, match="train.seeds: 1,000,000,000 seeds: at most 1,024"):
         specs.load(write(tmp_path, VALID), "paper", ["train.seeds=1000000000"])
-    assert time.perf_counter() - t0 < 1.0
+    assert time.perf_counter() - t0 < 5.0
     with pytest.raises(specs.SpecError, match="environment steps"):
         specs.load(write(tmp_path, VALID), "paper", ["train.epochs=10000000", "train.num_envs=100000"])
 
@@ -197,7 +197,7 @@ def test_fuzzed_specs_are_a_clean_spec_or_a_one_line_error(tmp_path, text):
             specs.load(p, budget)
         except specs.SpecError as e:
             assert "\n" not in str(e) and str(e).startswith(str(p))
-    assert time.perf_counter() - t0 < 2.0
+    assert time.perf_counter() - t0 < 10.0
 
 
 def test_published_ave_on_overcooked_validates():

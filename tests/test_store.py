@@ -98,11 +98,9 @@ def test_lock_without_waiting_reports_a_busy_artifact_at_once(tmp_path):
     store = Store(tmp_path)
     key = "ab" * 16
     holder = hold_lock(tmp_path, key)
-    t0 = time.time()
     with pytest.raises(LockBusy, match="being written by another process"):
-        with store.lock("runs", key, wait=False):
+        with store.lock("runs", key, wait=False, on_wait=lambda h: pytest.fail("waited for the holder")):
             pass
-    assert time.time() - t0 < 1.0
     holder.wait()
     with store.lock("runs", key, wait=False):  # free again once the holder is gone
         pass
@@ -117,10 +115,8 @@ def test_lock_of_a_dead_process_is_free(tmp_path):
     ), str(tmp_path), key])
     p.wait()
     assert store.lock_path("runs", key).exists()
-    t0 = time.time()
     with store.lock("runs", key, on_wait=lambda h: pytest.fail("waited on a dead process")):
         pass
-    assert time.time() - t0 < 1.0
 
 
 def test_code_digest_follows_what_the_training_path_imports(tmp_path, monkeypatch):
