@@ -141,10 +141,11 @@ def seeds_phrase(counts) -> str:
 
 
 def panels_figure(panels: list[tuple[str, list[tuple[str, str, list[dict]]]]], title: str, ylabel: str,
-                  warmup_epochs: int = 0, budget: str | None = None):
+                  warmup_epochs: int = 0, budget: str | None = None, legend_each: bool = False):
     """One panel per entry (title, [(label, colour, metric rows)]): return vs epoch, mean ± 1 SE
     over seeds; epochs 1..warmup_epochs (a uniform robot) shaded. The title gains
-    "[budget, how seeds aggregate]".
+    "[budget, how seeds aggregate]". legend_each: a legend in every panel (when panels hold
+    different lines), else one beside the last.
     -> (figure, {panel: {label: {mean, se, seeds}}}) with each line's final return."""
     _style()
     width = 3.25 * len(panels) + 0.5 + (1.7 if len(panels) < 3 else 0.0)  # room for the legend beside few panels
@@ -160,8 +161,11 @@ def panels_figure(panels: list[tuple[str, list[tuple[str, str, list[dict]]]]], t
         ax.set_title(panel)
         ax.set_xlabel("epoch")
         ax.grid(alpha=0.3)
+        if legend_each:
+            ax.legend(fontsize=7, loc="best")
     axes[0][0].set_ylabel(ylabel)
-    axes[0][-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    if not legend_each:
+        axes[0][-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     counts = [row["seeds"] for lines in table.values() for row in lines.values()]
     title = f"{title}  [{budget + ' budget, ' if budget else ''}{seeds_phrase(counts)}]"
     fig.suptitle(textwrap.fill(title, int(width * 12)), fontsize=10)

@@ -253,29 +253,38 @@ def continue_command(ev: Evidence, store: Store) -> str:
     return f"esr --store {store.root} train {ev.path / 'spec.yaml'} --budget {ev.budget}"
 
 
+MIN_CURVE_EPOCHS = 500
+
+
 def learning_curves(findings: list[Finding], out_png: Path, title: str) -> Optional[Path]:
-    """Return curves of every run behind a gridworld or Overcooked claim with at least 1,000
-    epochs: one panel per environment, a line per run."""
+    """Return curves of every run behind a gridworld or Overcooked claim with at least
+    MIN_CURVE_EPOCHS epochs: one panel per environment (gridworlds by N), a line per run, each
+    method in one colour in every panel."""
     from esr_cli import figures as figs
 
     runs: dict[str, Evidence] = {}
     for f in findings:
         for ev in [f.a, f.b] + [v[1] for v in f.variants]:
-            if ev is not None and ev.epochs_done >= 1000:
+            if ev is not None and ev.epochs_done >= MIN_CURVE_EPOCHS:
                 runs[ev.key] = ev
     if not runs:
         return None
+
+    def panel_order(e: Evidence):
+        return (e.spec.env.kind, getattr(e.spec.env, "blocks", 0), figs.env_title(e.spec), e.spec.method.kind, e.key)
+
     groups: dict[str, list] = {}
-    for ev in sorted(runs.values(), key=lambda e: (figs.env_title(e.spec), e.spec.method.kind, e.key)):
+    colours: dict[str, str] = {}
+    for ev in sorted(runs.values(), key=panel_order):
         variant = []
         if ev.spec.learner.warmup_epochs:
             variant.append(f"warm-up {ev.spec.learner.warmup_epochs}")
         if getattr(ev.spec.method, "variant", None) == "original":
             variant.append("published")
-        label = figs.METHOD_LABELS.get(ev.spec.method.kind, ev.spec.method.kind) + (f" ({', '.join(variant)})" if variant else "")
-        label += f" [{ev.epochs_done:,}]"
-        groups.setdefault(figs.env_title(ev.spec), []).append((label, f"C{len(groups.get(figs.env_title(ev.spec), []))}", ev.rows))
-    fig, _ = figs.panels_figure(list(groups.items()), title, "return")
+        name = figs.METHOD_LABELS.get(ev.spec.method.kind, ev.spec.method.kind) + (f" ({', '.join(variant)})" if variant else "")
+        colour = colours.setdefault(name, f"C{len(colours)}")
+        groups.setdefault(figs.env_title(ev.spec), []).append((f"{name} [{ev.epochs_done:,}]", colour, ev.rows))
+    fig, _ = figs.panels_figure(list(groups.items()), title, "return", legend_each=True)
     out_png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out_png, dpi=110)
     import matplotlib.pyplot as plt
@@ -368,7 +377,7 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
             lines.append(f"- `{ev.key[:8]}` {ev.spec.name}: {ev.describe_length()}; `{continue_command(ev, store)}`")
         lines.append("")
     img = out.parent / "img" / "reproduction_curves.png"
-    if learning_curves(findings, img, "Runs of at least 1,000 epochs behind the report (epochs done in brackets)"):
+    if learning_curves(findings, img, f"Runs of at least {MIN_CURVE_EPOCHS:,} epochs behind the report (epochs done in brackets)"):
         lines += ["## Learning curves", "", f"![learning curves](img/{img.name})", ""]
     lines += estimator_section(index, store, console, exact)
     out.parent.mkdir(parents=True, exist_ok=True)
