@@ -24,7 +24,6 @@ from pathlib import Path, PurePosixPath
 from esr_cli.store import KINDS, MANIFEST, RUN_KIND, Store, StoreError, fsync_dir
 
 PARTIAL = ".partial"
-CHECKPOINT_DIR = "checkpoints"
 KEY_RE = re.compile(r"[0-9a-f]{32}")
 # Far above any real artifact (a 20-seed Overcooked checkpoint is tens of MiB), low enough that
 # a hostile archive cannot fill a disk or exhaust the inode table.
@@ -97,7 +96,7 @@ def _find(store: Store, ref: str) -> tuple[str, str, Path, str]:
 def _snapshot_partial(src: Path, stage: Path) -> None:
     """Copy an unfinished run with only its newest verified checkpoint. The run may be saving a
     newer one meanwhile (and deleting the oldest), so a copy that changed under it is retried."""
-    from esr_cli.core.loop import verified_steps
+    from esr_cli.core.loop import CHECKPOINT_DIR, verified_steps
 
     for _ in range(SNAPSHOT_TRIES):
         shutil.rmtree(stage, ignore_errors=True)
@@ -106,7 +105,7 @@ def _snapshot_partial(src: Path, stage: Path) -> None:
             raise StoreError(f"{src} has no verified checkpoint yet: nothing that could resume")
         step = steps[0]
         try:
-            shutil.copytree(src, stage, ignore=_keep_checkpoint(src, step))
+            shutil.copytree(src, stage, ignore=_keep_checkpoint(src / CHECKPOINT_DIR, step))
         except (FileNotFoundError, shutil.Error):
             continue  # a checkpoint was removed while it was copied
         if verified_steps(stage) == [step]:
@@ -114,9 +113,7 @@ def _snapshot_partial(src: Path, stage: Path) -> None:
     raise StoreError(f"{src} kept changing while it was copied ({SNAPSHOT_TRIES} tries); try again")
 
 
-def _keep_checkpoint(src: Path, step: int):
-    ckpt = src / CHECKPOINT_DIR
-
+def _keep_checkpoint(ckpt: Path, step: int):
     def ignore(directory: str, names: list[str]) -> list[str]:
         if Path(directory) == ckpt:
             return [n for n in names if n != str(step)]
