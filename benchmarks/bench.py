@@ -179,6 +179,14 @@ def _seed_batch(text: str):
     return None if text == "all" else int(text)
 
 
+def _write(path: str, results: dict) -> None:
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(results, indent=2))
+    tmp.replace(out)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 5, 20])
@@ -196,10 +204,12 @@ def main() -> None:
         print(json.dumps(measure(path, int(n), int(epochs), _seed_batch(batch))))
         return
 
-    import jax
-
-    peak = matmul_peak_gflops()
+    # The parent touches no device until the children are done: on a GPU, jax would otherwise
+    # take most of its memory for itself and the children would run out.
     rows = []
+    header = (f"{'configuration':28} {'seeds':>5} {'compile s':>9} {'s/epoch':>8} {'10k ep h':>8} {'steps/s':>9} {'updates/s':>9} "
+              f"{'GFLOP/ep':>8} {'GFLOP/s':>8} {'host MiB':>8} {'dev MiB':>8} device")
+    print(header, flush=True)
     for name in args.configs:
         path = CONFIGS[name]
         for n in args.seeds:
@@ -211,7 +221,20 @@ def main() -> None:
             if proc.returncode != 0:
                 print(proc.stderr, file=sys.stderr)
                 raise SystemExit(f"benchmark of {name} with {n} seeds failed")
-            rows.append({"name": name, **json.loads(proc.stdout.strip().splitlines()[-1])})
+            r = {"name": name, **json.loads(proc.stdout.strip().splitlines()[-1])}
+            rows.append(r)
+            dev = "" if r.get("device_peak_mib") is None else f"{r['device_peak_mib']:,}"
+            # Each row as soon as it is measured, on stdout and in --out: a run cut short keeps them.
+            print(
+                f"{r['name']:28} {r['seeds']:>5} {r['compile_s']:>9.1f} {r['s_per_epoch']:>8.3f} {r['paper_run_hours']:>8.2f} "
+                f"{r['env_steps_per_s']:>9,} {r['updates_per_s']:>9.1f} {r['gflop_per_epoch']:>8.1f} {r['gflops']:>8.1f} "
+                f"{r['peak_rss_mib']:>8} {dev:>8} {r['device']}", flush=True
+            )
+            _write(args.out, {"machine": None, "results": rows})
+
+    import jax
+
+    peak = matmul_peak_gflops()
     machine = {
         "cpu": platform.processor() or platform.machine(),
         "cores": os.cpu_count(),
@@ -221,24 +244,14 @@ def main() -> None:
         "matmul_peak_gflops": round(peak, 1),
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
     }
-    header = (f"{'configuration':28} {'seeds':>5} {'compile s':>9} {'s/epoch':>8} {'10k ep h':>8} {'steps/s':>9} {'updates/s':>9} "
-              f"{'GFLOP/ep':>8} {'GFLOP/s':>8} {'% peak':>6} {'host MiB':>8} {'dev MiB':>8}")
-    print(f"device: {machine['device']}")
     print(f"machine: {machine}")
-    print(header)
     for r in rows:
-        dev = "" if r.get("device_peak_mib") is None else f"{r['device_peak_mib']:,}"
-        print(
-            f"{r['name']:28} {r['seeds']:>5} {r['compile_s']:>9.1f} {r['s_per_epoch']:>8.3f} {r['paper_run_hours']:>8.2f} "
-            f"{r['env_steps_per_s']:>9,} {r['updates_per_s']:>9.1f} {r['gflop_per_epoch']:>8.1f} {r['gflops']:>8.1f} "
-            f"{100 * r['gflops'] / peak:>6.1f} {r['peak_rss_mib']:>8} {dev:>8}"
-        )
+        print(f"{r['name']:28} {r['seeds']:>5}: {100 * r['gflops'] / peak:.1f}% of the matmul peak")
     one = next((r for r in rows if r["seeds"] == 1), rows[0])
     for r in rows:
         if r["seeds"] > 1 and r["name"] == one["name"]:
             print(f"{r['seeds']} seeds: {r['s_per_epoch'] / one['s_per_epoch']:.2f}x the 1-seed time per epoch ({r['seeds']}x would be no gain from vmap)")
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps({"machine": machine, "results": rows}, indent=2))
+    _write(args.out, {"machine": machine, "results": rows})
     print(f"wrote {args.out}")
     print(f"headline on {machine['device']}: gridworld paper config, {one['seeds']} seed: {one['s_per_epoch']:.2f} s per epoch "
           f"({one['gflops']:.0f} GFLOP/s, matmul peak {peak:.0f})")
