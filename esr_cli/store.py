@@ -20,6 +20,7 @@ import fcntl
 import hashlib
 import json
 import os
+import re
 import shutil
 import time
 from contextlib import contextmanager
@@ -82,6 +83,16 @@ def fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+PARTIAL_SUFFIX = ".partial"  # an unfinished artifact's directory: <key>.partial
+
+
+def parse_dirname(name: str) -> tuple[str, str]:
+    """(key, status) of an artifact directory's name: `<key>` is committed, `<key>.partial` unfinished."""
+    if name.endswith(PARTIAL_SUFFIX):
+        return name[: -len(PARTIAL_SUFFIX)], "partial"
+    return name, "complete"
+
+
 @dataclass(frozen=True)
 class Entry:
     kind: str
@@ -100,7 +111,7 @@ class Store:
         return self.root / kind / key[:2] / key
 
     def partial_path(self, kind: str, key: str) -> Path:
-        return self.root / kind / key[:2] / f"{key}.partial"
+        return self.root / kind / key[:2] / f"{key}{PARTIAL_SUFFIX}"
 
     def lock_path(self, kind: str, key: str) -> Path:
         return self.root / kind / key[:2] / f"{key}.lock"
@@ -138,24 +149,32 @@ class Store:
                 for d in sorted(shard.iterdir()):
                     if not d.is_dir():
                         continue
-                    if d.name.endswith(".partial"):
-                        yield Entry(kind, d.name[: -len(".partial")], d, "partial", _try_json(d / "pending.json"))
+                    key, status = parse_dirname(d.name)
+                    if status == "partial":
+                        yield Entry(kind, key, d, "partial", _try_json(d / "pending.json"))
                     elif (d / MANIFEST).is_file():
                         yield Entry(kind, d.name, d, "complete", _try_json(d / MANIFEST))
 
     def resolve(self, ref: str) -> Path:
         """A committed artifact from a key, a unique key prefix (>= 4 chars) or a path."""
+        return self.find(ref).path
+
+    def find(self, ref: str, include_partial: bool = False) -> Entry:
+        """The artifact a key, a unique key prefix (>= 4 hex digits) or a directory names; with
+        include_partial, an unfinished one too (where a key is both, the committed one)."""
         p = Path(ref)
-        if (p / MANIFEST).is_file():
-            return p
-        if len(ref) < 4 or not all(c in "0123456789abcdef" for c in ref):
+        key, status = parse_dirname(p.name)
+        if (p / MANIFEST).is_file() or (include_partial and status == "partial" and p.is_dir()):
+            return Entry(p.parent.parent.name, key, p, status, None)
+        if not re.fullmatch(r"[0-9a-f]{4,32}", ref):
             raise StoreError(f"no artifact {ref!r}: give a path to an artifact directory or a key (at least 4 hex digits)")
-        hits = [e for e in self.entries() if e.status == "complete" and e.key.startswith(ref)]
+        hits = [e for e in self.entries() if e.key.startswith(ref) and (include_partial or e.status == "complete")]
+        hits = [e for e in hits if e.status == "complete"] or hits
         if not hits:
             raise StoreError(f"no artifact with key {ref!r} in store {self.root}")
         if len(hits) > 1:
-            raise StoreError(f"key prefix {ref!r} is ambiguous: {', '.join(e.key[:12] for e in hits)}")
-        return hits[0].path
+            raise StoreError(f"key prefix {ref!r} is ambiguous: {', '.join(f'{e.kind}/{e.key[:12]}' for e in hits)}")
+        return hits[0]
 
     # ---------------------------------------------------------------- writing
     @contextmanager

@@ -21,9 +21,8 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
-from esr_cli.store import KINDS, MANIFEST, RUN_KIND, Store, StoreError, fsync_dir
+from esr_cli.store import KINDS, MANIFEST, RUN_KIND, Store, StoreError, fsync_dir, parse_dirname
 
-PARTIAL = ".partial"
 KEY_RE = re.compile(r"[0-9a-f]{32}")
 # Far above any real artifact (a 20-seed Overcooked checkpoint is tens of MiB), low enough that
 # a hostile archive cannot fill a disk or exhaust the inode table.
@@ -72,22 +71,10 @@ def export(store: Store, ref: str, out: Path | None = None) -> Moved:
 
 
 def _find(store: Store, ref: str) -> tuple[str, str, Path, str]:
-    """(kind, key, directory, status) of a committed artifact or an unfinished one."""
-    p = Path(ref)
-    if p.is_dir() and p.parent.parent.name in KINDS:
-        name = p.name[: -len(PARTIAL)] if p.name.endswith(PARTIAL) else p.name
-        if KEY_RE.fullmatch(name) and ((p / MANIFEST).is_file() or p.name.endswith(PARTIAL)):
-            return p.parent.parent.name, name, p, "partial" if p.name.endswith(PARTIAL) else "complete"
-    if not re.fullmatch(r"[0-9a-f]{4,32}", ref):
-        raise StoreError(f"no artifact {ref!r}: give a key (at least 4 hex digits) or an artifact's directory")
-    hits = [e for e in store.entries() if e.key.startswith(ref)]
-    complete = [e for e in hits if e.status == "complete"]
-    hits = complete or hits  # an artifact both committed and restarted: the committed one
-    if not hits:
-        raise StoreError(f"no artifact with key {ref!r} in store {store.root}")
-    if len(hits) > 1:
-        raise StoreError(f"key prefix {ref!r} is ambiguous: {', '.join(f'{e.kind}/{e.key[:12]}' for e in hits)}")
-    e = hits[0]
+    """(kind, key, directory, status) of a committed artifact or an unfinished run."""
+    e = store.find(ref, include_partial=True)
+    if e.kind not in KINDS or not KEY_RE.fullmatch(e.key):
+        raise StoreError(f"{ref} is not an artifact's directory in a store (<kind>/<kk>/<key>)")
     if e.status == "partial" and e.kind != RUN_KIND:
         raise StoreError(f"{e.kind} {e.key[:12]} is unfinished, and only a run resumes: finish it or remove {e.path}")
     return e.kind, e.key, e.path, e.status
@@ -138,8 +125,7 @@ def import_archive(store: Store, archive: Path) -> Moved:
             kind, dirname, members = _checked_members(tar, archive)
         except (tarfile.TarError, OSError, EOFError, zlib.error) as e:
             raise StoreError(f"{archive} could not be read to the end ({_first_line(e)})") from None
-        key = dirname[: -len(PARTIAL)] if dirname.endswith(PARTIAL) else dirname
-        status = "partial" if dirname.endswith(PARTIAL) else "complete"
+        key, status = parse_dirname(dirname)
         final, partial = store.final_path(kind, key), store.partial_path(kind, key)
         if store.lookup(kind, key):  # already here: like a cache hit, nothing to do
             return Moved(kind, key, "complete", 0, final)
@@ -196,10 +182,10 @@ def _checked_members(tar: tarfile.TarFile, archive: Path) -> tuple[str, str, lis
     if top is None:
         raise StoreError(f"{archive} holds no artifact")
     kind, shard, dirname = top
-    key = dirname[: -len(PARTIAL)] if dirname.endswith(PARTIAL) else dirname
+    key, status = parse_dirname(dirname)
     if kind not in KINDS or not KEY_RE.fullmatch(key) or shard != key[:2]:
         raise StoreError(f"{archive}: {'/'.join(top)} is not an esr artifact directory (<kind>/<key[:2]>/<key>, kind one of {', '.join(KINDS)})")
-    if dirname.endswith(PARTIAL) and kind != RUN_KIND:
+    if status == "partial" and kind != RUN_KIND:
         raise StoreError(f"{archive}: an unfinished {kind} artifact cannot resume; only unfinished runs can be imported")
     return kind, dirname, members
 

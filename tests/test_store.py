@@ -59,6 +59,23 @@ def test_resolve_errors(tmp_path):
         store.resolve("not-a-key")
 
 
+def test_find_names_unfinished_artifacts_only_when_asked(tmp_path):
+    store = Store(tmp_path)
+    unfinished = "cd" * 16
+    partial = store.begin("runs", unfinished, {"name": "x", "key": unfinished})
+    with pytest.raises(StoreError, match="no artifact with key"):
+        store.resolve(unfinished[:6])
+    e = store.find(unfinished[:6], include_partial=True)
+    assert (e.kind, e.key, e.path, e.status) == ("runs", unfinished, partial, "partial")
+    assert store.find(str(partial), include_partial=True).status == "partial"
+    with pytest.raises(StoreError, match="no artifact"):
+        store.find(str(partial))
+    # a key both committed and begun again: the committed artifact is the one meant
+    done = make_artifact(store, unfinished)
+    store.begin("runs", unfinished, {"name": "x", "key": unfinished})
+    assert store.find(unfinished[:6], include_partial=True).path == done
+
+
 def test_unwritable_store(tmp_path):
     blocker = tmp_path / "a-file"
     blocker.write_text("")  # a store root below a plain file can never be created (root or not)
