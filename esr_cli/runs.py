@@ -15,6 +15,7 @@ import jax
 import numpy as np
 from pydantic import ValidationError
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from esr_cli import human_runs, plots, provenance, spec as specs, yamlio
@@ -136,7 +137,7 @@ def run_recipe(spec, console: Console) -> Recipe:
         adopt_shorter_run(store, key, components, run_dir, spec.train.epochs, console)
         trainer = build_trainer(spec, store)
         with _progress(console) as bar:
-            task = bar.add_task(f"{spec.name} [{spec.budget}]", total=spec.train.epochs, stats="compiling...")
+            task = bar.add_task(escape(f"{spec.name} [{spec.budget}]"), total=spec.train.epochs, stats="compiling...")
 
             def on_start(epoch, total):
                 if epoch:
@@ -144,7 +145,10 @@ def run_recipe(spec, console: Console) -> Recipe:
                 bar.update(task, completed=epoch)
 
             def on_chunk(epoch, total, row, steps_per_s):
-                bar.update(task, completed=epoch, stats=_fmt_stats(row, steps_per_s))
+                stats = _fmt_stats(row, steps_per_s)
+                bar.update(task, completed=epoch, stats=stats)
+                if not console.is_terminal:  # a log file: the bar is drawn only at the end, so a line per chunk
+                    console.print(f"{spec.name} [{spec.budget}] epoch {epoch:,}/{total:,}  {stats}", markup=False, highlight=False)
 
             summary = loop.train(trainer, run_dir, on_chunk=on_chunk, on_start=on_start)
         plots.learning_curve(

@@ -23,6 +23,8 @@ def test_train_commits_a_complete_artifact(smoke_run):
     assert (path / "figures" / "learning_curve.png").stat().st_size > 1000
     assert (path / "spec.yaml").exists() and list((path / "checkpoints").iterdir())
     assert not list(path.parent.glob("*.partial"))
+    # stderr is not a terminal here: a plain line per chunk (1 epoch at smoke) for a log file
+    assert "grid_2 [smoke] epoch 1/2  ret" in proc.stderr and "grid_2 [smoke] epoch 2/2  ret" in proc.stderr
 
 
 def test_repeat_is_a_cache_hit_that_trains_nothing(smoke_run):
