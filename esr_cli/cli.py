@@ -54,6 +54,10 @@ def main_options(
 
     STATE.store = Store(store or os.environ.get("ESR_STORE") or "artifacts")
     STATE.debug = debug
+    # Several esr processes may share one GPU (runs side by side, a sweep's local jobs, which
+    # inherit this): by default JAX takes 75% of the device for the first and the next fails.
+    # esr's programs need a few hundred MiB; setting the variable yourself overrides this.
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     try:
         matmul_precision()  # a bad setting stops every command before any work
     except ValueError as e:

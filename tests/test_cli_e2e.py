@@ -106,3 +106,18 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path):
     a, b = loop.final_state(trainer, whole), loop.final_state(trainer, cut)
     for x, y in zip(__import__("jax").tree.leaves(a), __import__("jax").tree.leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_runs_can_share_a_gpu_unless_the_user_says_otherwise(tmp_path, monkeypatch):
+    """JAX's default takes 75% of a GPU for the first process; esr's commands turn that off
+    (so runs side by side fit), and leave a value the user set alone."""
+    import os
+
+    from esr_cli.cli import main
+
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE", raising=False)
+    assert main(["--store", str(tmp_path), "ls"]) == 0
+    assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
+    monkeypatch.setenv("XLA_PYTHON_CLIENT_PREALLOCATE", "true")
+    assert main(["--store", str(tmp_path), "ls"]) == 0
+    assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "true"
