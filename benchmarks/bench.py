@@ -209,7 +209,6 @@ def main() -> None:
     rows = []
     header = (f"{'configuration':28} {'seeds':>5} {'compile s':>9} {'s/epoch':>8} {'10k ep h':>8} {'steps/s':>9} {'updates/s':>9} "
               f"{'GFLOP/ep':>8} {'GFLOP/s':>8} {'host MiB':>8} {'dev MiB':>8} device")
-    print(header, flush=True)
     for name in args.configs:
         path = CONFIGS[name]
         for n in args.seeds:
@@ -223,6 +222,8 @@ def main() -> None:
                 raise SystemExit(f"benchmark of {name} with {n} seeds failed")
             r = {"name": name, **json.loads(proc.stdout.strip().splitlines()[-1])}
             rows.append(r)
+            if len(rows) == 1:  # the device as the first child saw it, before any figure
+                print(f"device: {r['device']}\n{header}", flush=True)
             dev = "" if r.get("device_peak_mib") is None else f"{r['device_peak_mib']:,}"
             # Each row as soon as it is measured, on stdout and in --out: a run cut short keeps them.
             print(

@@ -136,8 +136,9 @@ def run_recipe(spec, console: Console) -> Recipe:
         atomic_write_text(run_dir / "spec.yaml", specs.to_yaml(spec))
         adopt_shorter_run(store, key, components, run_dir, spec.train.epochs, console)
         trainer = build_trainer(spec, store)
+        label = f"{spec.name} [{spec.budget}]"
         with _progress(console) as bar:
-            task = bar.add_task(escape(f"{spec.name} [{spec.budget}]"), total=spec.train.epochs, stats="compiling...")
+            task = bar.add_task(escape(label), total=spec.train.epochs, stats="compiling...")
 
             def on_start(epoch, total):
                 if epoch:
@@ -148,7 +149,7 @@ def run_recipe(spec, console: Console) -> Recipe:
                 stats = _fmt_stats(row, steps_per_s)
                 bar.update(task, completed=epoch, stats=stats)
                 if not console.is_terminal:  # a log file: the bar is drawn only at the end, so a line per chunk
-                    console.print(f"{spec.name} [{spec.budget}] epoch {epoch:,}/{total:,}  {stats}", markup=False, highlight=False)
+                    console.print(f"{label} epoch {epoch:,}/{total:,}  {stats}", markup=False, highlight=False)
 
             summary = loop.train(trainer, run_dir, on_chunk=on_chunk, on_start=on_start)
         plots.learning_curve(

@@ -153,7 +153,7 @@ class Store:
                     if status == "partial":
                         yield Entry(kind, key, d, "partial", _try_json(d / "pending.json"))
                     elif (d / MANIFEST).is_file():
-                        yield Entry(kind, d.name, d, "complete", _try_json(d / MANIFEST))
+                        yield Entry(kind, key, d, "complete", _try_json(d / MANIFEST))
 
     def resolve(self, ref: str) -> Path:
         """A committed artifact from a key, a unique key prefix (>= 4 chars) or a path."""
