@@ -70,8 +70,9 @@ class SlurmOptions(_Model):
     additional: dict[str, Any] = Field(default_factory=dict, description="extra sbatch options, e.g. {constraint: a100}")
 
 
-class EntryModel(_Model):
-    spec: str = Field(..., min_length=1)
+class _Overrides(_Model):
+    """`set` (fixed overrides) and `grid` (overrides to cross), at a suite's top or on one entry."""
+
     set: dict[str, Any] = Field(default_factory=dict)
     grid: dict[str, list[Any]] = Field(default_factory=dict)
 
@@ -86,11 +87,13 @@ class EntryModel(_Model):
         return _check_grid(v) if isinstance(v, dict) else v
 
 
-class SuiteModel(_Model):
+class EntryModel(_Overrides):
+    spec: str = Field(..., min_length=1)
+
+
+class SuiteModel(_Overrides):
     name: Optional[str] = Field(None, min_length=1, pattern=r"^[A-Za-z0-9_.\-]+$")
     specs: tuple[EntryModel, ...] = Field(..., min_length=1)
-    set: dict[str, Any] = Field(default_factory=dict)
-    grid: dict[str, list[Any]] = Field(default_factory=dict)
     slurm: SlurmOptions = SlurmOptions()
 
     @field_validator("specs", mode="before")
@@ -99,16 +102,6 @@ class SuiteModel(_Model):
         if isinstance(v, list):
             return [{"spec": e} if isinstance(e, str) else e for e in v]
         return v
-
-    @field_validator("set")
-    @classmethod
-    def _set_keys(cls, v):
-        return _check_key_paths(v)
-
-    @field_validator("grid", mode="before")
-    @classmethod
-    def _grid_lists(cls, v):
-        return _check_grid(v) if isinstance(v, dict) else v
 
 
 @dataclass(frozen=True)
