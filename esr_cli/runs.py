@@ -107,6 +107,7 @@ def _progress(console: Console) -> Progress:
         TimeRemainingColumn(),
         console=console,
         transient=False,
+        disable=not console.is_terminal,  # a log file gets a plain line per chunk instead (run_recipe)
     )
 
 
@@ -148,7 +149,7 @@ def run_recipe(spec, console: Console) -> Recipe:
             def on_chunk(epoch, total, row, steps_per_s):
                 stats = _fmt_stats(row, steps_per_s)
                 bar.update(task, completed=epoch, stats=stats)
-                if not console.is_terminal:  # a log file: the bar is drawn only at the end, so a line per chunk
+                if not console.is_terminal:  # a log file: no bar, a line per chunk
                     console.print(f"{label} epoch {epoch:,}/{total:,}  {stats}", markup=False, highlight=False)
 
             summary = loop.train(trainer, run_dir, on_chunk=on_chunk, on_start=on_start)
