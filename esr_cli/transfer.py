@@ -47,6 +47,10 @@ def export(store: Store, ref: str, out: Path | None = None) -> Moved:
     out = Path(out) if out is not None else Path(f"{key[:8]}.tar.gz")
     if out.is_dir():
         raise StoreError(f"{out} is a directory: give the archive's file name")
+    if out.exists() and not out.is_file():  # a device or pipe would be renamed over, not written to
+        raise StoreError(f"{out} exists and is not a regular file: give the archive's file name")
+    if not out.parent.is_dir():
+        raise StoreError(f"no directory {out.parent} to write {out.name} into")
     arcroot = PurePosixPath(kind, key[:2], src.name)
     with tempfile.TemporaryDirectory(prefix=".export-", dir=store.root) as tmp:
         stage = Path(tmp) / src.name

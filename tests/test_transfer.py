@@ -2,6 +2,7 @@
 and a hostile archive changes nothing (esr_cli/transfer.py)."""
 
 import io
+import os
 import shutil
 import signal
 import tarfile
@@ -139,3 +140,13 @@ def test_export_names_a_missing_artifact(tmp_path):
     assert proc.returncode == 2 and "no artifact with key 'beef'" in proc.stderr
     proc = esr("import", str(tmp_path / "nowhere.tar.gz"), store=tmp_path / "empty", check=False)
     assert proc.returncode == 2 and "no archive" in proc.stderr
+
+
+def test_export_refuses_a_target_that_is_not_a_file_before_any_work(smoke_run, tmp_path):
+    store, path, _ = smoke_run
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)
+    for target, message in ((pipe, "not a regular file"), (tmp_path / "no" / "x.tar.gz", "no directory")):
+        proc = esr("export", path.name[:8], "--out", str(target), store=store, check=False)
+        assert proc.returncode == 2 and message in proc.stderr and "Traceback" not in proc.stderr
+    assert pipe.exists() and not pipe.is_file() and not (tmp_path / "no").exists()
