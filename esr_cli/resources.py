@@ -3,13 +3,18 @@
 
   replay buffers  seeds x (buffer episodes x (steps + 1) x observation bytes + 12 bytes a step)
   rollouts        environments x (steps + 1) x (observation bytes x 5 + 64) per seed in flight
-  working copies  x2 on both (a chunk's input and output state, XLA's temporaries)
+  networks        seeds x 20 copies of the largest network's parameters (the critic, its target,
+                  ESR's encoders, optimiser moments and gradients), and per seed in flight:
+                  batch x 8 copies of one input's activations, ESR's batch x batch logits x 4
+                  and its representation table (buffer x 3 x repr_dim floats), AvE's
+                  batch x rollouts x (length + 1) observations x 2
+  working copies  x2 on all (a chunk's input and output state, XLA's temporaries)
   runtime         1.5 GiB (JAX, compiled programs, the human model)
 
 On the CPU every seed's state lives in host memory and seeds run one after another; on an
 accelerator the state lives there and all seeds run at once. Measured peaks (docs/performance.md)
-sit below this estimate: cramped room with 20 seeds peaked at 5.3 GiB against 5.7 estimated,
-the 20-seed gridworld at 1.35 GiB against 1.5.
+sit below this estimate: cramped room with 20 seeds peaked at 5.3 GiB against 5.95 estimated,
+the 20-seed gridworld at 1.35 GiB against 1.94.
 """
 
 from __future__ import annotations
@@ -25,22 +30,62 @@ class ResourceError(Exception):
     """A run that cannot fit this machine; `str()` says the estimate and the field to lower."""
 
 
+PARAMETER_COPIES, ACTIVATION_COPIES = 20, 8
+
+
 @dataclass(frozen=True)
 class Estimate:
     buffers: int
     rollouts: int
+    networks: int = 0
 
     @property
     def total(self) -> int:
-        return 2 * (self.buffers + self.rollouts) + RUNTIME_BYTES
+        return 2 * (self.buffers + self.rollouts + self.networks) + RUNTIME_BYTES
 
     @property
     def field_to_lower(self) -> str:
-        return "learner.buffer_size or train.seeds" if self.buffers >= self.rollouts else "train.num_envs"
+        largest = max(self.buffers, self.rollouts, self.networks)
+        if largest == self.buffers:
+            return "learner.buffer_size or train.seeds"
+        if largest == self.rollouts:
+            return "train.num_envs"
+        return "the network's widths (network.*, method.repr_dim, AvE's rollouts) or learner.batch_size"
 
 
-def observation_bytes(spec) -> int:
-    """Bytes of one observation, from the environment's shapes alone (nothing runs)."""
+def _network_floats(network_spec, obs_shape: tuple, out: int) -> tuple[int, int]:
+    """(parameters, activations of one input) of the network `networks.conv_net` builds."""
+    cells = obs_shape[0] * obs_shape[1]
+    if network_spec.kind == "mlp":
+        widths = (cells * obs_shape[2], *network_spec.mlp_layers, out)
+        return sum((a + 1) * b for a, b in zip(widths, widths[1:])), sum(widths)
+    params, acts, channels = 0, 0, obs_shape[2]
+    for c in network_spec.conv_channels:  # im2col patches (9 x inputs) and the outputs, per cell
+        params += 9 * channels * c + c
+        acts += cells * (9 * channels + c)
+        channels = c
+    flat = cells * channels
+    params += (flat + 1) * network_spec.hidden + (network_spec.hidden + 1) * out
+    return params, acts + flat + network_spec.hidden + out
+
+
+def network_bytes(spec, obs_shape: tuple, obs_bytes: int, seeds_at_once: int, num_actions: int) -> int:
+    method = spec.method
+    repr_dim = method.repr_dim if method.kind == "esr" else 0
+    params, acts = _network_floats(spec.network, obs_shape, max(num_actions, repr_dim))
+    batch = spec.learner.batch_size
+    floats = batch * acts * ACTIVATION_COPIES
+    if method.kind == "esr":
+        floats += 4 * batch * batch + 3 * spec.learner.buffer_size * repr_dim
+    in_flight = 4 * floats
+    if method.kind == "ave":
+        in_flight += 2 * batch * method.num_rollouts * (method.rollout_length + 1) * obs_bytes
+    return 4 * len(spec.train.seeds) * PARAMETER_COPIES * params + seeds_at_once * in_flight
+
+
+def observation(spec):
+    """(shape, bytes) of one observation and the robot's action count, from the environment's
+    shapes alone (nothing runs)."""
     import jax
     import numpy as np
 
@@ -48,16 +93,22 @@ def observation_bytes(spec) -> int:
 
     env = make_env(spec.env)
     shape = jax.eval_shape(lambda k: env.observe(env.reset(k)), jax.random.PRNGKey(0))
-    return int(np.prod(shape.shape)) * shape.dtype.itemsize
+    return tuple(shape.shape), int(np.prod(shape.shape)) * shape.dtype.itemsize, env.num_robot_actions
 
 
-def estimate(spec, obs_bytes: int, seeds_at_once: int) -> Estimate:
+def observation_bytes(spec) -> int:
+    return observation(spec)[1]
+
+
+def estimate(spec, obs_bytes: int, seeds_at_once: int, obs_shape: tuple | None = None, num_actions: int = 0) -> Estimate:
+    """`obs_shape` (and `num_actions`) add the networks' share; without them it is left out."""
     steps = spec.env.episode_steps
     seeds = len(spec.train.seeds)
     episodes = max(1, spec.learner.buffer_size // steps)
     buffers = seeds * episodes * ((steps + 1) * obs_bytes + 12 * steps)
     rollouts = seeds_at_once * spec.train.num_envs * (steps + 1) * (5 * obs_bytes + 64)
-    return Estimate(buffers, rollouts)
+    networks = network_bytes(spec, obs_shape, obs_bytes, seeds_at_once, num_actions) if obs_shape else 0
+    return Estimate(buffers, rollouts, networks)
 
 
 def available_host_bytes() -> int | None:
@@ -93,13 +144,14 @@ def check_run_fits(spec) -> Estimate:
 
     on_cpu = jax.default_backend() == "cpu"
     seeds_at_once = default_seed_batch() or len(spec.train.seeds)
-    est = estimate(spec, observation_bytes(spec), seeds_at_once)
+    shape, obs_bytes, num_actions = observation(spec)
+    est = estimate(spec, obs_bytes, seeds_at_once, shape, num_actions)
     have = available_host_bytes() if on_cpu else available_device_bytes()
     where = "host memory" if on_cpu else "accelerator memory"
     if have is not None and est.total > have:
         raise ResourceError(
             f"{spec.name} needs about {est.total / GIB:,.1f} GiB of {where} (replay buffers {est.buffers / GIB:,.2f} GiB, "
-            f"rollouts {est.rollouts / GIB:,.2f} GiB, doubled for working copies, plus 1.5 GiB) but {have / GIB:,.1f} GiB "
+            f"rollouts {est.rollouts / GIB:,.2f} GiB, networks {est.networks / GIB:,.2f} GiB, doubled for working copies, plus 1.5 GiB) but {have / GIB:,.1f} GiB "
             f"are available: lower {est.field_to_lower}"
         )
     return est

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union, get_args
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, Strict, ValidationError, field_validator, model_validator
 
 from esr_cli import yamlio
 
@@ -56,6 +56,9 @@ DEFAULT_BUDGETS: dict[str, dict[str, Any]] = {
 
 
 MAX_SEEDS = 1024
+MAX_SEED = 2**31 - 1  # seeds become int32 PRNG keys
+# Network sizes: far above any real run, low enough that the memory check sees the rest.
+MAX_WIDTH, MAX_LAYERS = 1 << 14, 16
 # Upper bounds on sizes that alone could hang or exhaust a machine; far above any real run.
 MAX_EPOCHS, MAX_ENVS, MAX_UPDATES, MAX_ENV_STEPS = 10_000_000, 1 << 20, 1_000_000, 10**12
 
@@ -70,6 +73,34 @@ class SpecError(Exception):
         super().__init__(f"{where}{key}{problem}")
 
 
+def _a_number(what: str):
+    """YAML's `true` and quoted text are not numbers, even where Python would convert them:
+    `epochs: true` or `seeds: ["3"]` is a mistake to name, not a 1 or a 3 to guess."""
+
+    def check(value):
+        if isinstance(value, bool):
+            raise ValueError(f"expected {what}, got the boolean {str(value).lower()}")
+        if isinstance(value, str):
+            raise ValueError(f"expected {what}, got the text {value[:40]!r} (write it without quotes)")
+        return value
+
+    return BeforeValidator(check)
+
+
+Int = Annotated[int, _a_number("an integer")]
+Float = Annotated[float, _a_number("a number")]
+Bool = Annotated[bool, Strict()]  # true/false only, not 1 or "yes"
+Width = Annotated[int, _a_number("an integer"), Field(ge=1, le=MAX_WIDTH)]
+
+
+def _widths(widths: tuple, what: str, allow_empty: bool) -> tuple:
+    if not widths and not allow_empty:
+        raise ValueError(f"needs at least one {what}")
+    if len(widths) > MAX_LAYERS:
+        raise ValueError(f"{len(widths)} {what}s: at most {MAX_LAYERS}")
+    return widths
+
+
 class _Model(BaseModel):
     # allow_inf_nan=False: `.inf` or `.nan` in any float field is refused by name
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -78,11 +109,11 @@ class _Model(BaseModel):
 # ---------------------------------------------------------------- environments
 class GridworldEnvSpec(_Model):
     kind: Literal["gridworld"]
-    size: int = Field(5, ge=3, le=16, description="grid side length")
-    blocks: int = Field(2, ge=0, description="number of movable blocks")
+    size: Int = Field(5, ge=3, le=16, description="grid side length")
+    blocks: Int = Field(2, ge=0, description="number of movable blocks")
     start: Literal["corner", "corner_hard", "center", "random"] = "corner"
-    episode_steps: int = Field(50, ge=1, le=10_000)
-    goal_visible: bool = Field(False, description="add a goal plane to the robot's observation (the Oracle)")
+    episode_steps: Int = Field(50, ge=1, le=10_000)
+    goal_visible: Bool = Field(False, description="add a goal plane to the robot's observation (the Oracle)")
 
     @model_validator(mode="after")
     def _fits(self):
@@ -106,7 +137,7 @@ class OvercookedEnvSpec(_Model):
 
     kind: Literal["overcooked"]
     layout: Literal[OVERCOOKED_LAYOUTS]
-    episode_steps: int = Field(400, ge=1, le=10_000)
+    episode_steps: Int = Field(400, ge=1, le=10_000)
     robot_seat: Literal[0, 1] = Field(0, description="JaxMARL's agent the robot plays (1: the flipped seats; "
                                       "`esr eval --seat 1`)")
 
@@ -117,7 +148,7 @@ EnvSpec = Annotated[Union[GridworldEnvSpec, OvercookedEnvSpec], Field(discrimina
 # ---------------------------------------------------------------- human models
 class NoisyGreedyHumanSpec(_Model):
     kind: Literal["noisy_greedy"]
-    noise: float = Field(0.2, ge=0.0, le=1.0, description="probability of a uniformly random action")
+    noise: Float = Field(0.2, ge=0.0, le=1.0, description="probability of a uniformly random action")
 
 
 MAX_PLAY_EPISODES = 10_000
@@ -143,17 +174,17 @@ class BCHumanSpec(_Model):
 
     kind: Literal["bc"]
     layout: Optional[Literal[OVERCOOKED_LAYOUTS]] = Field(None, description="the data's layout; default: env.layout")
-    hidden: tuple[int, ...] = Field((64, 64), description="MLP widths (tanh, orthogonal init)")
-    stay_weight: float = Field(0.1, gt=0.0, le=1.0, description="cross-entropy weight of 'stay' samples")
-    epochs: int = Field(60, ge=1)
-    lr: float = Field(1e-3, gt=0.0)
-    batch_size: int = Field(256, ge=1)
-    seed: int = Field(0, ge=0)
+    hidden: tuple[Width, ...] = Field((64, 64), description="MLP widths (tanh, orthogonal init)")
+    stay_weight: Float = Field(0.1, gt=0.0, le=1.0, description="cross-entropy weight of 'stay' samples")
+    epochs: Int = Field(60, ge=1, le=1_000_000)
+    lr: Float = Field(1e-3, gt=0.0)
+    batch_size: Int = Field(256, ge=1, le=1 << 20)
+    seed: Int = Field(0, ge=0, le=MAX_SEED)
     split: Literal["train", "test"] = Field(
         "train", description="which split of the human data to clone: test gives a held-out proxy human "
         "(`esr eval --human proxy`)",
     )
-    selfplay_episodes: int = Field(64, ge=2, description="BC+BC episodes for the recorded self-play return")
+    selfplay_episodes: Int = Field(64, ge=2, le=100_000, description="BC+BC episodes for the recorded self-play return")
     data: Optional[tuple[str, ...]] = Field(
         None, description="clone from these played episodes (keys of `play` artifacts, `esr plays`) instead of the "
         "2019 trials; their last quarter is the test split",
@@ -162,19 +193,17 @@ class BCHumanSpec(_Model):
         None, description="named cloning settings for the layout, replacing hidden, stay_weight and epochs "
         "(paper_random: the human whose Random-robot score is closest to the paper's; docs/overcooked.md)",
     )
-    per_seed: bool = Field(False, description="clone one human per training seed (cloning seed = human.seed + "
+    per_seed: Bool = Field(False, description="clone one human per training seed (cloning seed = human.seed + "
                            "the training seed), so that the seeds' spread includes the human's")
-    adapt: bool = Field(False, description="the human keeps learning alongside the robot")
-    adapt_lr: float = Field(1e-4, gt=0.0)
-    adapt_kl: float = Field(1.0, ge=0.0, description="weight of KL(pi_BC || pi) in the human's loss")
-    adapt_gamma: float = Field(0.99, ge=0.0, le=1.0, description="the human's discount for reward-to-go")
+    adapt: Bool = Field(False, description="the human keeps learning alongside the robot")
+    adapt_lr: Float = Field(1e-4, gt=0.0)
+    adapt_kl: Float = Field(1.0, ge=0.0, description="weight of KL(pi_BC || pi) in the human's loss")
+    adapt_gamma: Float = Field(0.99, ge=0.0, le=1.0, description="the human's discount for reward-to-go")
 
     @field_validator("hidden")
     @classmethod
-    def _widths(cls, v):
-        if not v or any(h < 1 for h in v):
-            raise ValueError("needs at least one layer, every width >= 1")
-        return v
+    def _layers(cls, v):
+        return _widths(v, "layer", allow_empty=False)
 
     @field_validator("data")
     @classmethod
@@ -219,14 +248,14 @@ HumanSpec = Annotated[Union[NoisyGreedyHumanSpec, BCHumanSpec], Field(discrimina
 # ---------------------------------------------------------------- methods
 class ESRMethodSpec(_Model):
     kind: Literal["esr"]
-    repr_dim: int = Field(32, ge=1)
+    repr_dim: Int = Field(32, ge=1, le=MAX_WIDTH)
     reward: Literal["dot", "simplified", "simplified_normalized"] = Field(
         "dot", description="dot: (phi - phi')^T psi(g); simplified: exp(|phi|^2 / 2d) (phi - phi')^T phi, "
         "no future state (the paper's appendix); simplified_normalized: (phi - phi')^T phi, the same with "
         "its partition function divided out (docs/estimators.md)",
     )
     infonce: Literal["stacked", "separate"] = "stacked"
-    episode_group: int = Field(
+    episode_group: Int = Field(
         1, ge=1, le=1 << 20,
         description="transitions drawn from each sampled episode in a representation batch: 1 (the paper) "
         "draws them independently; k > 1 gives every anchor k - 1 negatives from its own episode (docs/estimators.md)",
@@ -238,7 +267,7 @@ class ESRMethodSpec(_Model):
         "observed", description="inferred: phi never reads the human's action; it gets the code of a latent-action "
         "model trained on observations alone (docs/estimators.md)",
     )
-    inferred_codes: int = Field(8, ge=2, le=64, description="human_action: inferred: the latent code's size")
+    inferred_codes: Int = Field(8, ge=2, le=64, description="human_action: inferred: the latent code's size")
     pairing: Literal["aligned", "original"] = Field(
         "aligned", description="original: every update pairs o_{t+1} with a_t, as the published Overcooked code "
         "(docs/choices.md); aligned: o_t with a_t, as the paper's equations",
@@ -247,10 +276,10 @@ class ESRMethodSpec(_Model):
         "broadcast", description="how actions enter phi: one-hot planes over the grid, or appended once to the "
         "flattened observation (the published Overcooked code; needs network.kind: mlp)",
     )
-    condition_on_robot_action: bool = True
-    future_gamma: float = Field(0.9, ge=0.0, lt=1.0, description="future-state horizon: K ~ Geom(1 - future_gamma)")
-    repr_lr: float = Field(1e-4, gt=0.0)
-    repr_updates_per_epoch: int = Field(100, ge=0, le=MAX_UPDATES)
+    condition_on_robot_action: Bool = True
+    future_gamma: Float = Field(0.9, ge=0.0, lt=1.0, description="future-state horizon: K ~ Geom(1 - future_gamma)")
+    repr_lr: Float = Field(1e-4, gt=0.0)
+    repr_updates_per_epoch: Int = Field(100, ge=0, le=MAX_UPDATES)
 
 
 class RandomMethodSpec(_Model):
@@ -262,8 +291,8 @@ class AvEMethodSpec(_Model):
     position after random human rollouts from the current state (docs/baselines.md)."""
 
     kind: Literal["ave"]
-    num_rollouts: int = Field(20, ge=2, description="M rollouts per state")
-    rollout_length: int = Field(5, ge=1, description="L random human actions per rollout")
+    num_rollouts: Int = Field(20, ge=2, le=10_000, description="M rollouts per state")
+    rollout_length: Int = Field(5, ge=1, le=10_000, description="L random human actions per rollout")
     variant: Literal["fixed", "original"] = Field(
         "fixed", description="original: the published code's action sampling and features (docs/baselines.md)"
     )
@@ -281,11 +310,11 @@ class IQLearnMethodSpec(_Model):
     from the human's transitions; the robot is rewarded with r = Q(s, aH) - gamma V(s')."""
 
     kind: Literal["iq_learn"]
-    gamma: float = Field(0.9, ge=0.0, lt=1.0, description="the human's discount in the inverse soft-Q objective")
-    alpha: float = Field(1.0, gt=0.0, description="the human's soft-max temperature: V = alpha logsumexp(Q / alpha)")
-    chi2: float = Field(0.5, ge=0.0, description="weight of the chi-squared regulariser on the recovered reward")
-    lr: float = Field(1e-4, gt=0.0)
-    updates_per_epoch: int = Field(100, ge=0, le=MAX_UPDATES)
+    gamma: Float = Field(0.9, ge=0.0, lt=1.0, description="the human's discount in the inverse soft-Q objective")
+    alpha: Float = Field(1.0, gt=0.0, description="the human's soft-max temperature: V = alpha logsumexp(Q / alpha)")
+    chi2: Float = Field(0.5, ge=0.0, description="weight of the chi-squared regulariser on the recovered reward")
+    lr: Float = Field(1e-4, gt=0.0)
+    updates_per_epoch: Int = Field(100, ge=0, le=MAX_UPDATES)
 
 
 class OracleMethodSpec(_Model):
@@ -309,42 +338,40 @@ MethodSpec = Annotated[Union[METHOD_SPECS], Field(discriminator="kind")]
 # ---------------------------------------------------------------- shared parts
 class NetworkSpec(_Model):
     kind: Literal["conv", "mlp"] = Field("conv", description="conv: the gridworld conv net; mlp: flattened input, tanh")
-    mlp_layers: tuple[int, ...] = Field((64, 64), description="MLP widths (kind mlp)")
-    conv_channels: tuple[int, ...] = Field((16, 32), description="3x3 SAME convolutions, SiLU")
-    hidden: int = Field(100, ge=1)
+    mlp_layers: tuple[Width, ...] = Field((64, 64), description="MLP widths (kind mlp)")
+    conv_channels: tuple[Width, ...] = Field((16, 32), description="3x3 SAME convolutions, SiLU")
+    hidden: Int = Field(100, ge=1, le=MAX_WIDTH)
 
-    @field_validator("conv_channels")
+    @field_validator("mlp_layers", "conv_channels")
     @classmethod
-    def _positive(cls, v):
-        if any(c < 1 for c in v):
-            raise ValueError("every channel count must be >= 1")
-        return v
+    def _layers(cls, v):
+        return _widths(v, "layer", allow_empty=True)  # none: a linear map of the flattened input
 
 
 class LearnerSpec(_Model):
-    gamma: float = Field(0.9, ge=0.0, lt=1.0, description="critic discount")
-    lr: float = Field(1e-3, gt=0.0)
-    tau: float = Field(0.005, gt=0.0, le=1.0)
-    target_entropy: float = Field(0.6, ge=0.0)
-    dual_lr: float = Field(0.1, ge=0.0)
+    gamma: Float = Field(0.9, ge=0.0, lt=1.0, description="critic discount")
+    lr: Float = Field(1e-3, gt=0.0)
+    tau: Float = Field(0.005, gt=0.0, le=1.0)
+    target_entropy: Float = Field(0.6, ge=0.0)
+    dual_lr: Float = Field(0.1, ge=0.0)
     dual: Literal["squared", "linear"] = Field(
         "squared", description="beta's dual step: squared (original) or linear (SAC-style, on log beta)"
     )
-    initial_beta: float = Field(1.0, ge=1e-3, le=100.0)
-    updates_per_epoch: int = Field(100, ge=0, le=MAX_UPDATES)
-    dual_updates_per_epoch: int = Field(100, ge=0, le=MAX_UPDATES)
-    batch_size: int = Field(256, ge=2, le=1 << 20)
-    buffer_size: int = Field(15_000, ge=1, le=10**12, description="transitions held in the replay buffer (memory is checked before a run)")
-    warmup_epochs: int = Field(
-        0, ge=0, description="epochs in which the robot acts uniformly at random while every update runs"
+    initial_beta: Float = Field(1.0, ge=1e-3, le=100.0)
+    updates_per_epoch: Int = Field(100, ge=0, le=MAX_UPDATES)
+    dual_updates_per_epoch: Int = Field(100, ge=0, le=MAX_UPDATES)
+    batch_size: Int = Field(256, ge=2, le=1 << 20)
+    buffer_size: Int = Field(15_000, ge=1, le=10**12, description="transitions held in the replay buffer (memory is checked before a run)")
+    warmup_epochs: Int = Field(
+        0, ge=0, le=MAX_EPOCHS, description="epochs in which the robot acts uniformly at random while every update runs"
     )
 
 
 class TrainSpec(_Model):
-    epochs: int = Field(10_000, ge=1, le=MAX_EPOCHS)
-    num_envs: int = Field(100, ge=1, le=MAX_ENVS)
-    seeds: tuple[int, ...] = Field((0, 1, 2, 3, 4), description="a list of seeds, or a count n meaning 0..n-1")
-    chunk_epochs: int = Field(50, ge=1, description="epochs per compiled chunk (progress/checkpoint interval)")
+    epochs: Int = Field(10_000, ge=1, le=MAX_EPOCHS)
+    num_envs: Int = Field(100, ge=1, le=MAX_ENVS)
+    seeds: tuple[Int, ...] = Field((0, 1, 2, 3, 4), description="a list of seeds, or a count n meaning 0..n-1")
+    chunk_epochs: Int = Field(50, ge=1, le=MAX_EPOCHS, description="epochs per compiled chunk (progress/checkpoint interval)")
 
     @field_validator("seeds", mode="before")
     @classmethod
@@ -368,13 +395,13 @@ class TrainSpec(_Model):
             raise ValueError("at least one seed is needed")
         if len(set(v)) != len(v):
             raise ValueError("seeds must be distinct")
-        if any(s < 0 for s in v):
-            raise ValueError("seeds must be >= 0")
+        if any(s < 0 or s > MAX_SEED for s in v):
+            raise ValueError(f"seeds must be between 0 and {MAX_SEED:,}")
         return v
 
 
 class EvalSpec(_Model):
-    episodes: int = Field(100, ge=1, le=1_000_000, description="evaluation episodes per seed and policy")
+    episodes: Int = Field(100, ge=1, le=1_000_000, description="evaluation episodes per seed and policy")
 
 
 class Spec(_Model):
@@ -418,6 +445,9 @@ class Spec(_Model):
             raise ValueError("human.kind=bc is cloned from Overcooked play: it needs env.kind: overcooked")
         if self.human.kind == "noisy_greedy" and self.env.kind != "gridworld":
             raise ValueError("human.kind=noisy_greedy walks to a gridworld goal: it needs env.kind: gridworld")
+        if self.human.kind == "bc" and self.human.per_seed and self.human.seed + max(self.train.seeds) > MAX_SEED:
+            raise ValueError(f"human.per_seed clones with seed human.seed + training seed, which passes {MAX_SEED:,} "
+                             f"for human.seed={self.human.seed} and seed {max(self.train.seeds)}")
         if self.human.kind == "bc" and self.human.per_seed and self.human.adapt:
             raise ValueError("human.per_seed with human.adapt is not supported: an adapting human's pull back "
                              "to its clone assumes one clone")
@@ -508,28 +538,13 @@ def parse_override(text: str) -> tuple[str, Any]:
 MAX_OVERRIDE_CHARS = 10_000
 
 
-def _coerce_yaml_numbers(tree: Any) -> Any:
-    """PyYAML reads `1e-4` (no dot) as a string; turn such strings back into floats."""
-    if isinstance(tree, dict):
-        return {k: _coerce_yaml_numbers(v) for k, v in tree.items()}
-    if isinstance(tree, list):
-        return [_coerce_yaml_numbers(v) for v in tree]
-    if isinstance(tree, str):
-        try:
-            if any(c in tree.lower() for c in "e.") and tree.strip() == tree:
-                return float(tree)
-        except ValueError:
-            return tree
-    return tree
-
-
 def _format_loc(loc: tuple) -> str:
     out = []
-    for part in loc:
+    for i, part in enumerate(loc):
         if isinstance(part, int):
             out.append(f"[{part}]")
-        elif any(part in kinds for kinds in KIND_MODELS.values()) or "[" in str(part):
-            continue  # pydantic's discriminated-union tags are not user key paths
+        elif (i == 1 and loc[0] in KIND_MODELS and part in KIND_MODELS[loc[0]]) or "[" in str(part):
+            continue  # pydantic's discriminated-union tags (`method.esr.x`) are not user key paths
         else:
             out.append(("." if out else "") + str(part))
     return "".join(out)
@@ -573,8 +588,15 @@ def validate(raw: dict, source: str = "") -> Spec:
                 msg += f"; did you mean `{close[0]}`?"
         elif msg.startswith("Value error, "):
             msg = msg[len("Value error, ") :]
-        if err["type"] == "union_tag_invalid" or err["type"] == "union_tag_not_found":
-            msg = msg.replace("Input tag", "kind")
+        section = KIND_MODELS.get(str(err["loc"][0]) if err["loc"] else "", {})
+        if err["type"] == "union_tag_not_found":
+            msg = f"needs a `kind`: one of {', '.join(section)}"
+        elif err["type"] == "union_tag_invalid":
+            msg = f"kind {err.get('ctx', {}).get('tag')!r} is not one of {', '.join(section)}"
+        elif err["type"] in ("model_attributes_type", "dict_type"):
+            msg = f"expected a section (a mapping of keys), got {type(err['input']).__name__} {str(err['input'])[:40]!r}"
+        elif err["type"] == "bool_type":
+            msg = "expected true or false"
         more = f" (and {len(e.errors()) - 1} more problem(s))" if len(e.errors()) > 1 else ""
         raise SpecError(source, path, msg + more) from None
 
@@ -617,13 +639,16 @@ def _read_yaml(path: str | Path) -> dict:
         raise SpecError(source, "", str(e)) from None
     if not isinstance(raw, dict):
         raise SpecError(source, "", "the top level must be a mapping of sections")
-    return _coerce_yaml_numbers(raw)
+    return raw
 
 
 def resolve(raw: dict, budget: str = "paper", overrides: list[str] | tuple[str, ...] = (), source: str = "") -> Spec:
     """Apply budget then overrides to a raw spec tree and validate it."""
     if budget not in BUDGETS:
         raise SpecError(source, "--budget", f"unknown budget {budget!r}; known: {', '.join(BUDGETS)}")
+    if "budget" in raw:
+        raise SpecError(source, "budget", "a run's budget is chosen with --budget, not in the spec file "
+                        "(the file's `budgets:` section says what each budget changes)")
     # The file as written must be valid on its own: a budget must not hide a bad value.
     validate({**copy.deepcopy(raw), "budget": "paper"}, source)
     tree = copy.deepcopy(raw)
@@ -641,13 +666,53 @@ def resolve(raw: dict, budget: str = "paper", overrides: list[str] | tuple[str, 
             _set_path(tree, str(dotted), value, source)
     for text in overrides:
         dotted, value = parse_override(text)
+        if dotted.split(".")[0] in ("budget", "budgets"):
+            raise SpecError("--set", dotted, "choose a budget with --budget")
         _set_path(tree, dotted, value, "--set")
     tree["budget"] = budget
     return validate(tree, source)
 
 
+def _chain(path: str | Path) -> list[tuple[Path, dict]]:
+    """The files of an `extends:` chain with their own keys, the given file first."""
+    out, p = [], Path(path)
+    while len(out) < 64:
+        raw = _read_yaml(p)
+        out.append((p, raw))
+        parent = raw.get("extends")
+        if not isinstance(parent, str) or not parent:
+            break
+        p = (p.parent / parent).resolve()
+        if any(p == q.resolve() for q, _ in out):
+            break
+    return out
+
+
+def _defines(tree: dict, dotted: str) -> bool:
+    node: Any = tree
+    for part in dotted.replace("[", ".[").split("."):
+        if part.startswith("["):
+            break  # a list is written in one file as a whole
+        if not isinstance(node, dict) or part not in node:
+            return False
+        node = node[part]
+    return True
+
+
 def load(path: str | Path, budget: str = "paper", overrides: list[str] | tuple[str, ...] = ()) -> Spec:
-    return resolve(load_raw(path), budget, overrides, source=str(path))
+    raw = load_raw(path)
+    try:
+        return resolve(raw, budget, overrides, source=str(path))
+    except SpecError as e:
+        if e.source != str(path) or not e.path:
+            raise
+        # A bad value from a file this one extends: name the file that wrote it.
+        for file, own in _chain(path):
+            if _defines(own, e.path):
+                if file != Path(path):
+                    raise SpecError(f"{file} (extended by {path})", e.path, e.problem) from None
+                break
+        raise
 
 
 def to_yaml(spec: Spec) -> str:

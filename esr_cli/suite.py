@@ -181,7 +181,7 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
         raw = yamlio.read(p)  # bounded: size limit, no aliases, no duplicate keys
     except yamlio.YamlInputError as e:
         raise SuiteError(source, "", str(e)) from None
-    model = _validate(specs._coerce_yaml_numbers(raw), source)
+    model = _validate(raw, source)
 
     from esr_cli import runs  # the run key needs jax (toolchain); import only when expanding
 

@@ -203,3 +203,92 @@ def test_fuzzed_specs_are_a_clean_spec_or_a_one_line_error(tmp_path, text):
 def test_published_ave_on_overcooked_validates():
     spec = specs.load(ROOT / "experiments/cramped_room_ave.yaml", "smoke", ["method.variant=original"])
     assert spec.method.variant == "original"  # tests/test_baselines.py checks what it computes
+
+
+# ---------------------------------------------------------------- types, bounds, blame
+@pytest.mark.parametrize("override, message", [
+    ("train.epochs=true", r"train.epochs: expected an integer, got the boolean true"),
+    ('train.seeds=["3"]', r"train.seeds\[0\]: expected an integer, got the text '3'"),
+    ("method.repr_lr=false", r"method.repr_lr: expected a number, got the boolean false"),
+    ("env.goal_visible=1", r"env.goal_visible: expected true or false"),
+    ("train.seeds=[4294967296]", r"train.seeds: seeds must be between 0 and 2,147,483,647"),
+    ("network.mlp_layers=[-5]", r"network.mlp_layers\[0\]: Input should be greater than or equal to 1"),
+    ("network.conv_channels=[0]", r"network.conv_channels\[0\]: Input should be greater than or equal to 1"),
+    ("network.hidden=1000000", r"network.hidden: Input should be less than or equal to 16384"),
+    ("network.mlp_layers=[8,8,8,8,8,8,8,8,8,8,8,8,8,8,8,8,8]", r"network.mlp_layers: Value error, 17 layers: at most 16|17 layers: at most 16"),
+    ("method.repr_dim=100000", r"method.repr_dim: Input should be less than or equal to 16384"),
+    ("budget=quick", r"--set: budget: choose a budget with --budget"),
+])
+def test_a_value_of_the_wrong_type_or_size_is_named(tmp_path, override, message):
+    with pytest.raises(specs.SpecError, match=message):
+        specs.load(write(tmp_path, VALID), "paper", [override])
+
+
+def test_whole_floats_still_count_as_integers(tmp_path):
+    spec = specs.load(write(tmp_path, VALID), "paper", ["learner.buffer_size=2e4", "train.epochs=1e3"])
+    assert spec.learner.buffer_size == 20_000 and spec.train.epochs == 1000
+    with pytest.raises(specs.SpecError, match="train.epochs: Input should be a valid integer, got a number with a fractional part"):
+        specs.load(write(tmp_path, VALID), "paper", ["train.epochs=5.5"])
+
+
+def test_text_that_looks_like_a_number_stays_text(tmp_path):
+    assert specs.load(write(tmp_path, VALID.replace("name: t", 'name: "1.5"'))).name == "1.5"
+
+
+def test_unknown_top_level_keys_are_named_even_when_they_spell_a_kind(tmp_path):
+    for key in ("random", "esr", "gridworld"):
+        with pytest.raises(specs.SpecError, match=rf"s.yaml: {key}: unknown key"):
+            specs.load(write(tmp_path, VALID + f"{key}: 3\n"))
+
+
+def test_missing_or_unknown_kind_lists_the_kinds(tmp_path):
+    with pytest.raises(specs.SpecError, match=r"env: needs a `kind`: one of gridworld, overcooked$"):
+        specs.load(write(tmp_path, VALID.replace("{kind: gridworld, blocks: 2}", "{}")))
+    with pytest.raises(specs.SpecError, match=r"method: kind 'esrr' is not one of esr, random, ave"):
+        specs.load(write(tmp_path, VALID.replace("{kind: esr}", "{kind: esrr}")))
+    with pytest.raises(specs.SpecError, match=r"env: expected a section \(a mapping of keys\), got str 'gridworld'"):
+        specs.load(write(tmp_path, VALID.replace("{kind: gridworld, blocks: 2}", "gridworld")))
+
+
+def test_a_budget_in_the_file_is_refused(tmp_path):
+    with pytest.raises(specs.SpecError, match=r"s.yaml: budget: a run's budget is chosen with --budget"):
+        specs.load(write(tmp_path, VALID + "budget: quick\n"), "quick")
+
+
+def test_a_bad_value_from_an_extended_file_names_that_file(tmp_path):
+    write(tmp_path, VALID.replace("{kind: esr}", "{kind: esr, repr_dim: -1}"), "a.yaml")
+    write(tmp_path, "extends: a.yaml\nname: b\n", "b.yaml")
+    c = write(tmp_path, "extends: b.yaml\ntrain: {epochs: 3}\n", "c.yaml")
+    with pytest.raises(specs.SpecError) as e:
+        specs.load(c)
+    assert str(e.value).startswith(f"{tmp_path / 'a.yaml'} (extended by {c}): method.repr_dim:")
+    d = write(tmp_path, "extends: b.yaml\nmethod: {repr_dim: 0}\n", "d.yaml")
+    with pytest.raises(specs.SpecError, match=rf"^{d}: method.repr_dim:"):
+        specs.load(d)
+
+
+@pytest.mark.parametrize("kind, params", [("conv", dict(conv_channels=(16, 32), hidden=100)),
+                                          ("conv", dict(conv_channels=(), hidden=7)),
+                                          ("mlp", dict(mlp_layers=(64, 3)))])
+def test_network_size_estimate_counts_the_real_parameters(kind, params):
+    """resources' parameter count is the flax network's, computed without building it."""
+    import jax
+    import numpy as np
+
+    from esr_cli.networks import conv_net
+
+    net_spec = specs.NetworkSpec(kind=kind, **params)
+    obs = np.zeros((1, 5, 4, 3), np.uint8)
+    shapes = jax.eval_shape(conv_net(net_spec, 32).init, jax.random.PRNGKey(0), obs)
+    real = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(shapes))
+    assert resources._network_floats(net_spec, (5, 4, 3), 32)[0] == real
+
+
+def test_networks_too_wide_for_memory_are_refused_before_any_work(tmp_path):
+    t0 = time.perf_counter()
+    proc = esr("train", "experiments/grid_5.yaml", "--set", "network.hidden=16384",
+               "--set", "network.conv_channels=[16384,16384,16384]", store=tmp_path / "store", check=False)
+    assert proc.returncode == 2, proc.stderr
+    assert "too large for this machine" in proc.stderr and "lower the network's widths" in proc.stderr
+    assert not (tmp_path / "store" / "runs").exists()
+    assert time.perf_counter() - t0 < 60
