@@ -110,10 +110,19 @@ def sweep(
 
     if executor not in sw.EXECUTORS:
         raise Exit(2, f"--executor: unknown executor {executor!r}; known: {', '.join(sw.EXECUTORS)}")
+    overrides = {"partition": partition, "time_min": time_min, "gpus": gpus, "cpus": cpus, "mem_gb": mem_gb}
+    try:
+        sw.slurm_options(sw.SlurmOptions(), overrides, "")  # before the suite's runs are built
+    except sw.SuiteError as e:
+        raise Exit(2, str(e)) from None
     try:
         suite = sw.load_suite(suite_file, budget)
         if show_results:
             metrics = tuple(dict.fromkeys(metric)) if metric else sw.DEFAULT_RESULT_METRICS
+            try:
+                sw.check_metrics(suite, STATE.store, metrics)
+            except sw.SuiteError as e:
+                raise Exit(2, str(e)) from None
             rows = sw.results(suite, STATE.store, metrics)
             if as_json:
                 out.print_json(json.dumps(rows))
@@ -138,8 +147,7 @@ def sweep(
             else:
                 out.print(sw.status_table(suite, rows))
             return
-        result = sw.run_suite(suite, budget, executor, STATE.store, err, wait,
-                              {"partition": partition, "time_min": time_min, "gpus": gpus, "cpus": cpus, "mem_gb": mem_gb})
+        result = sw.run_suite(suite, budget, executor, STATE.store, err, wait, overrides)
     except sw.SuiteError as e:
         raise Exit(2, f"bad suite: {e}") from None
     except sw.SweepError as e:
@@ -155,11 +163,17 @@ def sweep(
 
 
 # ---------------------------------------------------------------- eval
+def _max_eval_episodes() -> int:
+    """eval.episodes' upper bound in the spec: --episodes replaces it, so it obeys the same."""
+    return next(m.le for m in specs.EvalSpec.model_fields["episodes"].metadata if getattr(m, "le", None) is not None)
+
+
 @app.command("eval")
 def eval_(
     target: str = typer.Argument(..., help="a spec file or a training-run artifact (key or path)", show_default=False),
-    budget: str = BudgetOpt,
-    set_: Optional[List[str]] = SetOpt,
+    budget: str = typer.Option("paper", "--budget", "-b", help="paper | quick | smoke (a spec file target only)"),
+    set_: Optional[List[str]] = typer.Option(None, "--set", "-s", help="override a spec field: key.path=value "
+                                             "(repeatable; a spec file target only)"),
     episodes: Optional[int] = typer.Option(None, "--episodes", "-n", help="episodes per seed and policy (default: spec eval.episodes)"),
     human: str = typer.Option("training", "--human", help="training: the human the robot trained with | proxy: a BC "
                               "human cloned from the held-out test split of the human data | play:KEY,KEY,...: a BC "
@@ -173,8 +187,15 @@ def eval_(
 
     if human not in runs.EVAL_PARTNERS and not human.startswith(runs.PLAY_PARTNER):
         raise Exit(2, f"--human: unknown partner {human!r}; known: {', '.join(runs.EVAL_PARTNERS)}, {runs.PLAY_PARTNER}KEY,...")
-    if episodes is not None and episodes < 1:
-        raise Exit(2, f"--episodes: must be >= 1 (got {episodes})")
+    most = _max_eval_episodes()
+    if episodes is not None and not 1 <= episodes <= most:
+        raise Exit(2, f"--episodes: between 1 and {most:,} (got {episodes:,})")
+    if not runs.is_spec_file(target):
+        # A trained run's spec and budget are fixed: these would silently change nothing.
+        for given, option in ((set_, "--set"), (budget != "paper", "--budget")):
+            if given:
+                raise Exit(2, f"{option} applies to a spec file target only; {target} names a trained run, "
+                              "whose spec and budget are fixed (name the spec file instead)")
     run_path = runs.find_run(target, budget, set_, STATE.store)
     built = ensure(runs.eval_recipe(run_path, STATE.store, episodes, err, human, seat), STATE.store)
     path, summary, cached = built.path, built.summary(), built.cached
@@ -203,11 +224,13 @@ def exact(
     robot: Optional[str] = typer.Option(None, "--robot", help="a training run (key or path) whose Boltzmann policy the robot follows; default uniform"),
     goal: Optional[str] = typer.Option(None, "--goal", help="the human's goal cell 'row,col' (default: the centre)"),
     gamma: Optional[float] = typer.Option(None, "--gamma", help="future-state horizon (default: the spec's method.future_gamma)"),
-    seed_index: int = typer.Option(0, "--seed-index", help="which seed of --robot's run"),
+    seed_index: Optional[int] = typer.Option(None, "--seed-index", help="which seed of --robot's run (default 0)"),
 ):
     """Exact effective empowerment of a small gridworld: I(aH; s+ | s, aR) for every state."""
     from esr_cli import exact_runs
 
+    if seed_index is not None and robot is None:
+        raise Exit(2, "--seed-index applies to --robot's run only (a uniform robot has no seeds)")
     spec = _load_spec(spec_file, budget, set_)
     cell = None
     if goal is not None:
@@ -216,7 +239,7 @@ def exact(
             assert len(cell) == 2
         except (ValueError, AssertionError):
             raise Exit(2, f"--goal: expected 'row,col', got {goal!r}") from None
-    built = ensure(exact_runs.exact_recipe(spec, STATE.store, cell, gamma, robot, seed_index, err), STATE.store)
+    built = ensure(exact_runs.exact_recipe(spec, STATE.store, cell, gamma, robot, seed_index or 0, err), STATE.store)
     path, summary, cached = built.path, built.summary(), built.cached
     table = Table(title=f"exact empowerment: {spec.name}, goal {tuple(summary['goal'])}, gamma {summary['gamma']}")
     table.add_column("quantity")
@@ -295,13 +318,26 @@ PAPER_FIGURES = ("gridworld", "overcooked", "no-robot-action", "greedy", "mi", "
 def plot(
     figure: str = typer.Argument(..., help="estimator | geometry | " + " | ".join(PAPER_FIGURES), show_default=False),
     ref: Optional[str] = typer.Argument(None, help="estimator: an exact artifact made with --robot"),
-    budget: str = BudgetOpt,
-    gamma: float = typer.Option(0.2, "--gamma", help="geometry: the future-state horizon"),
-    state: int = typer.Option(0, "--state", help="geometry: which of the 3 states"),
+    budget: Optional[str] = typer.Option(None, "--budget", "-b", help="paper figures: paper | quick | smoke (default paper)"),
+    gamma: Optional[float] = typer.Option(None, "--gamma", help="geometry: the future-state horizon (default 0.2)"),
+    state: Optional[int] = typer.Option(None, "--state", help="geometry: which of the 3 states (default 0)"),
 ):
     """Draw a figure from artifacts (never trains; a missing run is named with its command)."""
     from esr_cli import exact_runs
 
+    if figure not in ("estimator", "geometry", *PAPER_FIGURES):
+        raise Exit(2, f"unknown figure {figure!r}; known: estimator, geometry, {', '.join(PAPER_FIGURES)}")
+    # Each figure reads some of the options; one it would ignore is a mistake worth naming.
+    if ref is not None and figure != "estimator":
+        raise Exit(2, f"esr plot {figure} takes no artifact (got {ref!r}); only `esr plot estimator` reads one")
+    if budget is not None and figure not in PAPER_FIGURES:
+        raise Exit(2, f"--budget applies to the paper figures ({', '.join(PAPER_FIGURES)}), not to {figure}")
+    for value, option in ((gamma, "--gamma"), (state, "--state")):
+        if value is not None and figure != "geometry":
+            raise Exit(2, f"{option} applies to `esr plot geometry` only, not to {figure}")
+    budget = budget or "paper"
+    gamma = 0.2 if gamma is None else gamma
+    state = 0 if state is None else state
     if figure == "estimator":
         if ref is None:
             raise Exit(2, "esr plot estimator needs an exact artifact: make one with `esr exact SPEC --robot RUN`")
@@ -315,7 +351,7 @@ def plot(
         err.print(f"3-state MDP, state {state}, gamma {gamma}: capacity I = {result['mutual_information']:.4f} nats "
                   f"(uniform policy: {result['uniform_policy_mi']:.4f})")
         png = built.path / "geometry.png"
-    elif figure in PAPER_FIGURES:
+    else:  # a paper figure
         from esr_cli import figures as figs, paper
 
         try:
@@ -323,8 +359,6 @@ def plot(
         except figs.MissingRuns as e:
             raise Exit(2, f"{e}\nor all at once: make paper-figures BUDGET={budget}") from None
         png = built.path / f"{figs.FIGURES[figure][0]}.png"
-    else:
-        raise Exit(2, f"unknown figure {figure!r}; known: estimator, geometry, {', '.join(PAPER_FIGURES)}")
     err.print(f"[green]{'cache hit' if built.cached else 'drawn'}[/]: {png}")
     out.print(str(png), soft_wrap=True, highlight=False)
 
@@ -401,31 +435,42 @@ def paper_(
 
 
 # ---------------------------------------------------------------- ls / show / verify
+def _field(info, *path):
+    """info[path[0]][path[1]]...; None where a level is missing or not an object (an imported
+    manifest is only checked for the fields the store itself reads)."""
+    for name in path:
+        info = info.get(name) if isinstance(info, dict) else None
+    return info
+
+
 @app.command("ls")
 def ls():
     """List the artifacts in the store."""
     table = Table()
     for col in ("kind", "name", "key", "budget", "seeds", "status", "final return"):
         table.add_column(col)
-    n = 0
+    n = damaged = 0
     for e in STATE.store.entries():
         m = e.manifest or {}
-        ret = (m.get("summary") or {}).get("return", {}).get("mean")
-        seeds = m.get("seeds")
+        status = "damaged" if e.status == "complete" and e.manifest is None else e.status  # unreadable manifest
+        damaged += status == "damaged"
+        ret, seeds = _field(m, "summary", "return", "mean"), m.get("seeds")
         table.add_row(
             e.kind,
             str(m.get("name", "?")),
             e.key[:12],
             str(m.get("budget", "?")),
-            str(len(seeds)) if seeds else "?",
-            e.status,
-            "" if ret is None else f"{ret:.2f}",
+            str(len(seeds)) if seeds and isinstance(seeds, list) else "?",
+            status,
+            f"{ret:.2f}" if isinstance(ret, (int, float)) else "",
         )
         n += 1
     if n == 0:
         err.print(f"store {STATE.store.root} is empty")
         return
     out.print(table)
+    if damaged:
+        err.print(f"{damaged} artifact(s) have a damaged manifest: `esr verify` says what is wrong")
 
 
 # ---------------------------------------------------------------- play

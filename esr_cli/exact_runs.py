@@ -7,6 +7,7 @@ robot action, and the effective empowerment (esr_cli/analysis/exact.py).
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import jax
@@ -31,6 +32,10 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
     robot or the Boltzmann policy of seed `seed_index` of the trained run `robot`."""
     if spec.env.kind != "gridworld":
         raise StoreError("exact empowerment is defined for gridworld specs only")
+    try:  # from the spec alone: enumerating a large space exhausts memory before it can count
+        exact.check_size(spec.env.size, spec.env.blocks)
+    except exact.TooManyStates as e:
+        raise StoreError(f"{spec.name}: {e}") from None
     size = spec.env.size
     goal = tuple(goal) if goal else (size // 2, size // 2)
     if not all(0 <= g < size for g in goal):
@@ -94,7 +99,7 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
             "states_with_zero_mi": int((emp.state_mi < 1e-9).sum()),
         }
 
-    return Recipe(EXACT_KIND, spec.name, components, build, budget=spec.budget)
+    return Recipe(EXACT_KIND, spec.name, components, _discard_on_failure(build), budget=spec.budget)
 
 
 def estimator_recipe(exact_ref: str, store: Store, console: Console) -> Recipe:
@@ -110,7 +115,8 @@ def estimator_recipe(exact_ref: str, store: Store, console: Console) -> Recipe:
         with console.status("computing ESR's estimate for every state and robot action"):
             return estimator_check(exact_path, store, out / "estimator.png")
 
-    return Recipe(FIGURE_KIND, f"estimator-{manifest['name']}", components, build, budget=manifest.get("budget"))
+    return Recipe(FIGURE_KIND, f"estimator-{manifest['name']}", components, _discard_on_failure(build),
+                  budget=manifest.get("budget"))
 
 
 def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None) -> dict:
@@ -220,4 +226,19 @@ def geometry_recipe(gamma: float, state: int) -> Recipe:
                 "uniform_policy_mi": geo.uniform_mi, "capacity_policy": geo.policy.round(6).tolist(),
                 "kl_to_centre": geo.kl.round(6).tolist()}
 
-    return Recipe(FIGURE_KIND, "information-geometry", components, build)
+    return Recipe(FIGURE_KIND, "information-geometry", components, _discard_on_failure(build))
+
+
+def _discard_on_failure(build):
+    """A build that removes its partial directory when it fails: unlike a training run these
+    artifacts are computed in one go, so a partial one has nothing to resume. The store's lock
+    is released by `ensure` either way."""
+
+    def wrapped(out: Path, store: Store) -> dict:
+        try:
+            return build(out, store)
+        except BaseException:
+            shutil.rmtree(out, ignore_errors=True)
+            raise
+
+    return wrapped

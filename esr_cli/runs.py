@@ -170,10 +170,16 @@ def run_recipe(spec, console: Console) -> Recipe:
                   record={"method": spec.method.kind, "env": spec.env.kind}, summary_file=False, on_wait=waiting)
 
 
+def is_spec_file(target: str) -> bool:
+    """Whether a command's target names a spec file rather than an artifact (a key or a path)."""
+    p = Path(target)
+    return p.suffix in (".yaml", ".yml") or p.is_file()
+
+
 def find_run(target: str, budget: str, sets, store: Store) -> Path:
     """A committed run from a spec file (at budget/sets) or an artifact key/path."""
     p = Path(target)
-    if p.suffix in (".yaml", ".yml") or (p.is_file() and not (p / "manifest.json").exists()):
+    if is_spec_file(target):
         spec = specs.load(p, budget, list(sets or []))
         key, _ = run_key(spec)
         hit = store.lookup(RUN_KIND, key)

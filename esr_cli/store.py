@@ -25,7 +25,7 @@ import shutil
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Callable, Iterator
 
 from esr_cli import faults
@@ -105,6 +105,12 @@ class Entry:
 class Store:
     def __init__(self, root: str | Path):
         self.root = Path(root)
+        # A file where the store (or a folder above it) should be would read as an empty store.
+        here = next(p for p in (self.root.absolute(), *self.root.absolute().parents) if os.path.exists(p))
+        if here == self.root.absolute() and not here.is_dir():
+            raise StoreError(f"store {self.root} is not a directory")
+        if not here.is_dir():
+            raise StoreError(f"store {self.root} is not writable: {here} is not a directory")
 
     # ---------------------------------------------------------------- paths
     def final_path(self, kind: str, key: str) -> Path:
@@ -131,12 +137,11 @@ class Store:
         return path if (path / MANIFEST).is_file() else None
 
     def read_manifest(self, path: Path) -> dict:
+        """A committed artifact's manifest: a JSON object with at least MANIFEST_FIELDS."""
         try:
-            return json.loads((Path(path) / MANIFEST).read_text())
-        except FileNotFoundError:
-            raise StoreError(f"{path}: no {MANIFEST}: not a committed artifact") from None
-        except json.JSONDecodeError as e:
-            raise StoreError(f"{path}/{MANIFEST} is corrupt: {e}") from None
+            return load_manifest(Path(path))
+        except StoreError as e:
+            raise StoreError(f"{path}: {e}") from None
 
     def entries(self) -> Iterator[Entry]:
         for kind in KINDS:
@@ -153,7 +158,13 @@ class Store:
                     if status == "partial":
                         yield Entry(kind, key, d, "partial", _try_json(d / "pending.json"))
                     elif (d / MANIFEST).is_file():
-                        yield Entry(kind, key, d, "complete", _try_json(d / MANIFEST))
+                        yield Entry(kind, key, d, "complete", self._manifest_or_none(d))
+
+    def _manifest_or_none(self, path: Path) -> dict | None:
+        try:
+            return self.read_manifest(path)
+        except StoreError:
+            return None
 
     def resolve(self, ref: str) -> Path:
         """A committed artifact from a key, a unique key prefix (>= 4 chars) or a path."""
@@ -253,13 +264,27 @@ class Store:
 
     # ---------------------------------------------------------------- checking
     def verify(self, path: Path) -> list[str]:
-        """Re-hash every file against the manifest; -> list of problems (empty: intact)."""
-        manifest = self.read_manifest(path)
+        """Check that the manifest names this artifact and re-hash every file against it;
+        -> list of problems (empty: intact)."""
+        path = Path(path)
+        try:
+            manifest = load_manifest(path)
+        except StoreError as e:
+            return [str(e)]
         problems = []
-        listed = manifest.get("files", {})
+        kind, folder = manifest["kind"], path.parent.parent.name
+        if manifest["key"] != path.name:
+            problems.append(f"{MANIFEST} names key {manifest['key'][:40]!r}, not the directory's {path.name}")
+        if kind not in KINDS:
+            problems.append(f"{MANIFEST} names kind {kind[:40]!r}, not one of {', '.join(KINDS)}")
+        elif folder in KINDS and kind != folder:  # a directory outside a store has no kind folder
+            problems.append(f"{MANIFEST} names kind {kind!r}, but the artifact is under {folder}/")
+        listed = manifest["files"]
         for rel, want in sorted(listed.items()):
-            f = Path(path) / rel
-            if not f.is_file():
+            f = path / rel
+            if PurePosixPath(rel).is_absolute() or ".." in PurePosixPath(rel).parts:  # never read outside it
+                problems.append(f"{MANIFEST} lists {rel[:80]!r}, which is not a file inside the artifact")
+            elif not f.is_file():
                 problems.append(f"missing file {rel}")
             elif digest_file(f) != want:
                 problems.append(f"changed file {rel} (digest differs from the manifest)")
@@ -270,8 +295,34 @@ class Store:
         return problems
 
 
+# What every commit writes (artifacts.ensure and Store.commit); readers rely on these.
+MANIFEST_FIELDS = {"kind": str, "key": str, "files": dict}
+
+
+def load_manifest(path: Path) -> dict:
+    """The manifest of the artifact directory `path`; StoreError if it is missing or damaged, whose
+    text names the problem but not the path (callers say where)."""
+    try:
+        data = (path / MANIFEST).read_bytes()
+    except FileNotFoundError:
+        raise StoreError(f"no {MANIFEST}: not a committed artifact") from None
+    except OSError as e:
+        raise StoreError(f"{MANIFEST} cannot be read ({e.strerror})") from None
+    try:
+        manifest = json.loads(data.decode())
+    except (ValueError, RecursionError):  # ValueError: bad UTF-8 or bad JSON
+        raise StoreError(f"{MANIFEST} is not UTF-8 JSON") from None
+    if not isinstance(manifest, dict):
+        raise StoreError(f"{MANIFEST} is not a JSON object")
+    for field, kind in MANIFEST_FIELDS.items():
+        if not isinstance(manifest.get(field), kind):
+            raise StoreError(f"{MANIFEST} has no {field!r} ({'an object' if kind is dict else 'text'}), which every artifact's manifest has")
+    return manifest
+
+
 def _try_json(path: Path) -> dict | None:
     try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
+        value = json.loads(path.read_bytes())
+    except (OSError, ValueError, RecursionError):
         return None
+    return value if isinstance(value, dict) else None

@@ -15,12 +15,14 @@ then the entry's `set`, then one point of the product of the suite's and the ent
 (an entry's grid key replaces the suite's grid for that key). A top-level list is short for
 `{specs: [...]}`. Every run is loaded and validated before any work, and every problem is a
 `SuiteError` (a `SpecError`, so the CLI exits 2) naming the file, the key and the problem.
+A suite expands to at most `MAX_RUNS` runs; the count is checked before any run is built.
 """
 
 from __future__ import annotations
 
 import itertools
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
@@ -33,6 +35,11 @@ from esr_cli.store import content_key
 
 class SuiteError(specs.SpecError):
     """A suite that cannot be used; `str()` is one line naming file, key path and problem."""
+
+
+# Each run is loaded, validated and keyed before any work, and each is one job: far above any
+# real suite (the paper's has 24 runs), low enough that expanding one takes seconds, not hours.
+MAX_RUNS = 10_000
 
 
 class _Model(BaseModel):
@@ -56,16 +63,19 @@ def _check_grid(v: dict) -> dict:
 
 
 class SlurmOptions(_Model):
-    """Resources of each SLURM job (one run per job, submitted as one job array)."""
+    """Resources of each SLURM job (one run per job, submitted as one job array). The upper
+    bounds are far above any node; they catch a slip of the keyboard before sbatch does."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     partition: Optional[str] = None
     account: Optional[str] = None
     qos: Optional[str] = None
-    time_min: int = Field(720, ge=1, description="wall-clock limit of one job, minutes")
-    gpus: int = Field(1, ge=0, description="GPUs per job")
-    cpus: int = Field(8, ge=1, description="CPU cores per job")
-    mem_gb: float = Field(32, gt=0, description="memory per job, GB")
-    array_parallelism: int = Field(64, ge=1, description="at most this many jobs of the array run at once")
+    time_min: int = Field(720, ge=1, le=366 * 24 * 60, description="wall-clock limit of one job, minutes")
+    gpus: int = Field(1, ge=0, le=64, description="GPUs per job")
+    cpus: int = Field(8, ge=1, le=4096, description="CPU cores per job")
+    mem_gb: float = Field(32, gt=0, le=65_536, description="memory per job, GB")
+    array_parallelism: int = Field(64, ge=1, le=MAX_RUNS, description="at most this many jobs of the array run at once")
     setup: tuple[str, ...] = Field((), description="shell lines run before each job (module load, ...)")
     additional: dict[str, Any] = Field(default_factory=dict, description="extra sbatch options, e.g. {constraint: a100}")
 
@@ -153,22 +163,40 @@ def _format_loc(loc: tuple) -> str:
     return out
 
 
+def first_problem(e: ValidationError) -> tuple[tuple, str]:
+    """(location, one-line message) of a validation error's first problem, without pydantic's
+    trailing URL; a count of the others is appended."""
+    errors = e.errors()
+    err = errors[0]
+    msg = err["msg"]
+    if err["type"] == "extra_forbidden":
+        msg = "unknown key"
+    elif msg.startswith("Value error, "):
+        msg = msg[len("Value error, "):]
+    more = f" (and {len(errors) - 1} more problem(s))" if len(errors) > 1 else ""
+    return tuple(err["loc"]), msg + more
+
+
 def _validate(raw: Any, source: str) -> SuiteModel:
     if isinstance(raw, list):
         raw = {"specs": raw}
     if not isinstance(raw, dict):
         raise SuiteError(source, "", "a suite is a mapping with a `specs:` list, or a list of spec files")
+    entries = raw.get("specs")
+    if isinstance(entries, list) and len(entries) > MAX_RUNS:  # before each entry is validated
+        raise SuiteError(source, "specs", f"{len(entries):,} entries, more than the {MAX_RUNS:,} runs a suite may "
+                                          "hold: split it into several suites")
     try:
         return SuiteModel.model_validate(raw)
     except ValidationError as e:
-        err = e.errors()[0]
-        msg = err["msg"]
-        if err["type"] == "extra_forbidden":
-            msg = "unknown key"
-        elif msg.startswith("Value error, "):
-            msg = msg[len("Value error, "):]
-        more = f" (and {len(e.errors()) - 1} more problem(s))" if len(e.errors()) > 1 else ""
-        raise SuiteError(source, _format_loc(tuple(err["loc"])), msg + more) from None
+        loc, msg = first_problem(e)
+        raise SuiteError(source, _format_loc(loc), msg) from None
+
+
+def run_count(model: SuiteModel) -> int:
+    """The runs a suite names before duplicates are dropped: per entry, the product of its grid
+    sizes (the suite's grid with the entry's keys replaced), summed over entries. Counted, not built."""
+    return sum(math.prod(len(v) for v in {**model.grid, **entry.grid}.values()) for entry in model.specs)
 
 
 def load(path: str | Path, budget: str = "paper") -> Suite:
@@ -182,6 +210,10 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
     except yamlio.YamlInputError as e:
         raise SuiteError(source, "", str(e)) from None
     model = _validate(raw, source)
+    count = run_count(model)
+    if count > MAX_RUNS:
+        raise SuiteError(source, "", f"expands to {count:,} runs, more than the {MAX_RUNS:,} a suite may hold: "
+                                     "shrink its grids or split it into several suites")
 
     from esr_cli import runs  # the run key needs jax (toolchain); import only when expanding
 

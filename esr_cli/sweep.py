@@ -31,7 +31,9 @@ from rich.table import Table
 from esr_cli import spec as specs
 from esr_cli.artifacts import ensure
 from esr_cli.store import RUN_KIND, Store, atomic_write_text
-from esr_cli.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
+from pydantic import ValidationError
+
+from esr_cli.suite import Run, SlurmOptions, Suite, SuiteError, first_problem, load as load_suite
 
 EXECUTORS = ("local", "slurm", "submitit-local")
 STATES = ("done", "running", "queued", "failed", "missing")
@@ -47,7 +49,8 @@ class SweepError(Exception):
     """A sweep that cannot proceed (e.g. no SLURM here); `str()` is one line."""
 
 
-__all__ = ["EXECUTORS", "RunStatus", "SweepError", "SweepResult", "SuiteError", "load_suite", "run_suite", "status", "status_table"]
+__all__ = ["EXECUTORS", "RunStatus", "SlurmOptions", "SweepError", "SweepResult", "SuiteError", "check_metrics",
+           "known_metrics", "load_suite", "run_suite", "slurm_options", "status", "status_table"]
 
 
 # ---------------------------------------------------------------- the state file
@@ -207,16 +210,50 @@ def status_json(rows: list[RunStatus]) -> list[dict]:
 
 
 DEFAULT_RESULT_METRICS = ("return", "success")
+_NOT_METRICS = ("epoch", "env_steps")  # bookkeeping columns of metrics.jsonl
+
+
+def known_metrics(suite: Suite, store: Store, rows: Optional[list[RunStatus]] = None) -> tuple[str, ...]:
+    """Every metric `--metric` may name for this suite: the trainer's own, those each registered
+    method declares (ESR's with inferred human actions too), and whatever the suite's committed
+    runs logged (a learning human's, for one)."""
+    from esr_cli.core.train import BASE_METRICS
+    from esr_cli.finals import read_rows
+    from esr_cli.methods import esr
+    from esr_cli.methods.registry import METHODS
+
+    names = dict.fromkeys(BASE_METRICS)
+    for cls in METHODS.values():
+        names.update(dict.fromkeys(getattr(cls, "_field_defaults", {}).get("metric_names", ())))
+    names.update(dict.fromkeys(esr.INFERRED_METRICS))
+    for r in rows if rows is not None else status(suite, store):
+        if r.state == "done":
+            logged = read_rows(r.path)
+            names.update(dict.fromkeys(k for k in (logged[-1] if logged else {}) if k not in _NOT_METRICS))
+    return tuple(names)
+
+
+def check_metrics(suite: Suite, store: Store, metrics: tuple[str, ...], rows: Optional[list[RunStatus]] = None) -> None:
+    """Raise SuiteError naming the first of `metrics` that no run of this suite can log."""
+    if set(metrics) <= set(DEFAULT_RESULT_METRICS):
+        return
+    known = known_metrics(suite, store, rows)
+    for m in metrics:
+        if m not in known:
+            raise SuiteError("--metric", "", f"unknown metric {m!r}; known: {', '.join(known)}")
 
 
 def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS) -> list[dict]:
     """Each run's final value of each metric (return and success unless told; mean +- SE across
     seeds, esr_cli.finals) and wall time, read from the committed artifacts; a metric a run does
-    not log is left out of its row; runs not done carry their state and the command."""
+    not log is left out of its row; runs not done carry their state and the command. A metric
+    no run of the suite can log is refused (SuiteError)."""
     from esr_cli.finals import read_rows, run_finals
 
+    rows = status(suite, store)
+    check_metrics(suite, store, metrics, rows)
     out = []
-    for r in status(suite, store):
+    for r in rows:
         row = {"run": r.run.label, "method": r.run.spec.method.kind, "key": r.run.key, "state": r.state}
         if r.state == "done":
             logged = set(read_rows(r.path)[-1]) if metrics != DEFAULT_RESULT_METRICS else set(metrics)
@@ -307,6 +344,22 @@ def _executor(kind: str, folder: Path, suite: Suite, opts: SlurmOptions):
     return ex
 
 
+_SLURM_FLAGS = {"time_min": "--time-min", "mem_gb": "--mem-gb"}  # the rest: --name
+
+
+def slurm_options(base: SlurmOptions, overrides: Optional[dict], source: str) -> SlurmOptions:
+    """`base` with the command line's `overrides` (None: not given), validated. A problem is a
+    one-line SuiteError naming the option as it was given (--mem-gb, or slurm.mem_gb in the suite)."""
+    given = {k: v for k, v in (overrides or {}).items() if v is not None}
+    try:
+        return SlurmOptions.model_validate({**base.model_dump(), **given})
+    except ValidationError as e:
+        loc, msg = first_problem(e)
+        field = str(loc[0]) if loc else ""
+        where = _SLURM_FLAGS.get(field, f"--{field}") if field in given else ("slurm." + ".".join(map(str, loc))).rstrip(".")
+        raise SuiteError(source, where, msg) from None
+
+
 def run_suite(
     suite: Suite | str | Path,
     budget: str = "paper",
@@ -324,16 +377,15 @@ def run_suite(
     """
     console = console or Console(stderr=True)
     store = store if isinstance(store, Store) else Store(store)
+    # The command line's own mistakes first: loading a suite builds every run.
+    if executor not in EXECUTORS:
+        raise SuiteError("--executor", "", f"unknown executor {executor!r}; known: {', '.join(EXECUTORS)}")
+    slurm_options(SlurmOptions(), slurm, str(suite.path if isinstance(suite, Suite) else suite))
     if not isinstance(suite, Suite):
         suite = load_suite(suite, budget)
     elif suite.budget != budget:
         raise SuiteError(str(suite.path), "--budget", f"the suite was loaded for budget {suite.budget!r}, not {budget!r}")
-    if executor not in EXECUTORS:
-        raise SuiteError("--executor", "", f"unknown executor {executor!r}; known: {', '.join(EXECUTORS)}")
-    try:
-        opts = SlurmOptions.model_validate({**suite.slurm.model_dump(), **{k: v for k, v in (slurm or {}).items() if v is not None}})
-    except Exception as e:  # noqa: BLE001 - pydantic's message, made one line
-        raise SuiteError(str(suite.path), "slurm", str(e).splitlines()[-1].strip()) from None
+    opts = slurm_options(suite.slurm, slurm, str(suite.path))
     wait = executor != "slurm" if wait is None else wait
     store.ensure_writable()
 

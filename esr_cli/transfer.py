@@ -7,8 +7,9 @@ them this way: an unfinished run travels with its newest verified checkpoint and
 wherever it is imported (from a checkout of the commit its pending.json names).
 
 Importing treats the archive as untrusted: members must stay inside that one directory and be
-plain files or folders, sizes are bounded, a committed artifact must match its manifest, and
-the artifact appears in the store by one rename, or not at all.
+plain files or folders, sizes are bounded, a committed artifact's manifest must name it (its
+key and kind) and match every file, and the artifact appears in the store by one rename, or not
+at all (a refused import also removes the folders it made).
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ def export(store: Store, ref: str, out: Path | None = None) -> Moved:
         raise StoreError(f"no directory {out.parent} to write {out.name} into")
     arcroot = PurePosixPath(kind, key[:2], src.name)
     with tempfile.TemporaryDirectory(prefix=".export-", dir=store.root) as tmp:
-        stage = Path(tmp) / src.name
+        stage = Path(tmp) / arcroot  # laid out as in a store: verify checks the kind folder
         if status == "complete":
             shutil.copytree(src, stage)
             problems = store.verify(stage)
@@ -123,33 +124,47 @@ def import_archive(store: Store, archive: Path) -> Moved:
         tar = tarfile.open(archive, "r:*")
     except (tarfile.TarError, OSError, EOFError) as e:
         raise StoreError(f"{archive} is not a tar archive ({_first_line(e)})") from None
+    made = [] if store.root.is_dir() else [store.root]  # folders to remove again if it is refused
+    try:
+        with tar:
+            return _import(store, tar, archive, made)
+    except BaseException:
+        for d in reversed(made):  # innermost first; rmdir leaves a folder another process filled
+            try:
+                d.rmdir()
+            except OSError:
+                pass
+        raise
+
+
+def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path]) -> Moved:
     store.ensure_writable()
-    with tar:
+    try:
+        kind, dirname, members = _checked_members(tar, archive)
+    except (tarfile.TarError, OSError, EOFError, zlib.error) as e:
+        raise StoreError(f"{archive} could not be read to the end ({_first_line(e)})") from None
+    key, status = parse_dirname(dirname)
+    final, partial = store.final_path(kind, key), store.partial_path(kind, key)
+    if store.lookup(kind, key):  # already here: like a cache hit, nothing to do
+        return Moved(kind, key, "complete", 0, final)
+    made += [d for d in (final.parent.parent, final.parent) if not d.exists()]
+    final.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=".import-", dir=final.parent) as tmp:
         try:
-            kind, dirname, members = _checked_members(tar, archive)
+            tar.extractall(tmp, members=members, filter="data")
         except (tarfile.TarError, OSError, EOFError, zlib.error) as e:
             raise StoreError(f"{archive} could not be read to the end ({_first_line(e)})") from None
-        key, status = parse_dirname(dirname)
-        final, partial = store.final_path(kind, key), store.partial_path(kind, key)
-        if store.lookup(kind, key):  # already here: like a cache hit, nothing to do
-            return Moved(kind, key, "complete", 0, final)
-        final.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(prefix=".import-", dir=final.parent) as tmp:
-            try:
-                tar.extractall(tmp, members=members, filter="data")
-            except (tarfile.TarError, OSError, EOFError, zlib.error) as e:
-                raise StoreError(f"{archive} could not be read to the end ({_first_line(e)})") from None
-            stage = Path(tmp) / kind / key[:2] / dirname
-            _check_contents(store, stage, kind, key, status, archive)
-            with store.lock(kind, key, wait=False):
-                if store.lookup(kind, key):
-                    return Moved(kind, key, "complete", 0, final)
-                if partial.exists():
-                    raise StoreError(f"{kind} {key[:12]} is already unfinished in store {store.root} ({partial}); "
-                                     "remove that directory first to replace it with the archive's")
-                target = final if status == "complete" else partial
-                stage.rename(target)
-                fsync_dir(target.parent)
+        stage = Path(tmp) / kind / key[:2] / dirname
+        _check_contents(store, stage, kind, key, status, archive)
+        with store.lock(kind, key, wait=False):
+            if store.lookup(kind, key):
+                return Moved(kind, key, "complete", 0, final)
+            if partial.exists():
+                raise StoreError(f"{kind} {key[:12]} is already unfinished in store {store.root} ({partial}); "
+                                 "remove that directory first to replace it with the archive's")
+            target = final if status == "complete" else partial
+            stage.rename(target)
+            fsync_dir(target.parent)
     files = sum(1 for p in target.rglob("*") if p.is_file())
     return Moved(kind, key, status, files, target)
 
@@ -201,12 +216,10 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
         if not (stage / MANIFEST).is_file():
             raise StoreError(f"{archive}: {kind} {key[:12]} has no {MANIFEST}, so it is not a finished artifact "
                              "(an unfinished run's directory ends in .partial); nothing imported")
-        try:
-            problems = store.verify(stage)
-        except (StoreError, AttributeError, TypeError):  # a manifest that is not a JSON object of files
-            raise StoreError(f"{archive}: the {MANIFEST} of {kind} {key[:12]} cannot be read; nothing imported") from None
+        problems = store.verify(stage)  # what `esr verify` checks: the manifest names it, every digest
         if problems:
-            raise StoreError(f"{archive}: {kind} {key[:12]} fails its manifest ({problems[0]}); nothing imported")
+            more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
+            raise StoreError(f"{archive}: {kind}/{key[:2]}/{key}: {problems[0]}{more}; nothing imported")
         return
     from esr_cli.core.loop import verified_steps
 

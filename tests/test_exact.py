@@ -217,3 +217,50 @@ def test_merged_mi_equals_the_true_mi_under_deterministic_dynamics(tiny):
     space = tiny[2]
     merges = (space.next_state[..., :, None] == space.next_state[..., None, :]).sum(axis=(-1, -2)) > space.next_state.shape[-1]
     assert merges.any()  # the tiny grid does have indistinguishable actions
+
+
+@pytest.mark.parametrize("size, blocks, start", [(3, 1, "random"), (3, 2, "corner"), (3, 7, "random"), (4, 2, "corner")])
+def test_the_state_bound_holds_the_reachable_states(size, blocks, start):
+    """`state_bound` is read from the spec before any enumeration: it must never be below what
+    enumeration finds, and stays close to it (8,960 for 8,851 on a 4x4 grid with 3 blocks)."""
+    env = Gridworld(size=size, num_blocks=blocks, start=start, episode_steps=50)
+    goal = (size // 2, size // 2)
+    found = exact.enumerate_states(env, goal, exact.start_states(env, goal, 256)).size
+    assert found <= exact.state_bound(size, blocks) <= 1.3 * found
+    assert exact.state_bound(4, 3) == 8960 and exact.state_bound(16, 0) == 256
+
+
+def test_the_spec_alone_refuses_a_space_too_large():
+    assert exact.check_size(4, 3) == 8960  # the largest shipped spec for exact analysis
+    with pytest.raises(exact.TooManyStates, match=r"env.size=16, env.blocks=40: up to .* states, more than the 12,000 "
+                                                  r"exact analysis handles: lower env.size or env.blocks"):
+        exact.check_size(16, 40)
+    with pytest.raises(exact.TooManyStates, match="up to 57,500 states"):
+        exact.check_size(5, 3)
+
+
+def test_a_failed_exact_build_leaves_no_lock_or_partial_artifact(tmp_path, monkeypatch):
+    from rich.console import Console
+
+    from esr_cli import exact_runs, spec as specs
+    from esr_cli.artifacts import ensure
+    from esr_cli.store import EXACT_KIND, Store
+
+    spec_path = tmp_path / "tiny.yaml"
+    spec_path.write_text(TINY_SPEC)
+    spec = specs.load(spec_path)
+    store = Store(tmp_path / "store")
+    recipe = exact_runs.exact_recipe(spec, store, (1, 1), None, None, 0, Console(quiet=True))
+
+    def fail(*args, **kwargs):
+        raise MemoryError("out of memory in the middle of the solve")
+
+    monkeypatch.setattr(exact, "empowerment", fail)
+    with pytest.raises(MemoryError):
+        ensure(recipe, store)
+    assert not store.partial_path(EXACT_KIND, recipe.key).exists()
+    assert store.lookup(EXACT_KIND, recipe.key) is None
+    with store.lock(EXACT_KIND, recipe.key, wait=False):  # free: LockBusy otherwise
+        pass
+    monkeypatch.undo()
+    assert ensure(recipe, store).cached is False  # the same command then succeeds

@@ -292,3 +292,120 @@ def test_networks_too_wide_for_memory_are_refused_before_any_work(tmp_path):
     assert "too large for this machine" in proc.stderr and "lower the network's widths" in proc.stderr
     assert not (tmp_path / "store" / "runs").exists()
     assert time.perf_counter() - t0 < 60
+
+
+# ---------------------------------------------------------------- suites, sweeps, eval, exact
+GRID_2 = ROOT / "experiments" / "grid_2.yaml"
+
+
+def _refused_fast(fn, match, seconds=3.0, mib=50):
+    """fn() raises SuiteError matching `match`, in bounded time and memory."""
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    try:
+        with pytest.raises(suites.SuiteError, match=match) as e:
+            fn()
+    finally:
+        elapsed = time.perf_counter() - t0
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+    assert "\n" not in str(e.value)
+    assert elapsed < seconds and peak < mib * 2**20, (elapsed, peak)
+    return e.value
+
+
+def test_suite_expansion_is_capped_before_anything_is_built(tmp_path):
+    limit = f"{suites.MAX_RUNS:,}"
+    grid = "".join(f"  learner.k{i}: [{', '.join(str(v) for v in range(10))}]\n" for i in range(6))
+    p = write(tmp_path, f"specs: [{GRID_2}]\ngrid:\n{grid}", "grid.yaml")
+    err = _refused_fast(lambda: suites.load(p), rf"expands to 1,000,000 runs, more than the {limit}")
+    assert err.path == ""
+    # An entry's grid multiplies the suite's grid; entries add up.
+    p = write(tmp_path, f"specs:\n  - {GRID_2}\n  - {{spec: {GRID_2}, grid: {{learner.a: {list(range(101))}}}}}\n"
+                        f"grid: {{learner.b: {list(range(100))}}}\n", "product.yaml")
+    _refused_fast(lambda: suites.load(p), rf"expands to 10,200 runs, more than the {limit}")
+    # A long entries list is refused before its entries are validated (reading the YAML
+    # itself, bounded by the file size, is most of the time here).
+    p = write(tmp_path, "specs: [" + ", ".join(["a.yaml"] * 12_000) + "]\n", "entries.yaml")
+    err = _refused_fast(lambda: suites.load(p), rf"12,000 entries, more than the {limit}", seconds=10)
+    assert err.path == "specs"
+
+
+def test_huge_suite_through_the_cli_exits_2_and_writes_nothing(tmp_path):
+    grid = "".join(f"  learner.k{i}: [{', '.join(str(v) for v in range(10))}]\n" for i in range(6))
+    p = write(tmp_path, f"specs: [{GRID_2}]\ngrid:\n{grid}", "grid.yaml")
+    proc = esr("sweep", str(p), "--status", store=tmp_path / "store", check=False)
+    assert proc.returncode == 2 and "1,000,000 runs" in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "store").exists()
+
+
+def test_sweep_results_refuses_an_unknown_metric(tmp_path):
+    p = write(tmp_path, f"specs: [{GRID_2}]\n", "suite.yaml")
+    proc = esr("sweep", str(p), "--budget", "smoke", "--results", "--metric", "return", "--metric", "bogus",
+               store=tmp_path / "store", check=False)
+    assert proc.returncode == 2 and "--metric: unknown metric 'bogus'" in proc.stderr, proc.stderr
+    known = proc.stderr.split("known:")[1]
+    assert "return" in known and "success" in known and "mi_estimate" in known
+    assert not (tmp_path / "store").exists()
+
+
+@pytest.mark.parametrize("slurm, problem", [("mem_gb: .inf", "slurm.mem_gb: Input should be a finite number"),
+                                            ("mem_gb: .nan", "slurm.mem_gb: Input should be a finite number"),
+                                            ("time_min: 100000000", "slurm.time_min: Input should be less than or equal"),
+                                            ("gpus: 100000", "slurm.gpus: Input should be less than or equal")])
+def test_slurm_options_refuse_non_finite_and_absurd_values(tmp_path, slurm, problem):
+    p = write(tmp_path, f"specs: [{GRID_2}]\nslurm: {{{slurm}}}\n", "suite.yaml")
+    with pytest.raises(suites.SuiteError, match=problem) as e:
+        suites.load(p)
+    assert "pydantic" not in str(e.value) and "\n" not in str(e.value)
+
+
+def test_slurm_overrides_on_the_command_line_are_one_line_errors(tmp_path):
+    from esr_cli import sweep
+
+    p = write(tmp_path, f"specs: [{GRID_2}]\n", "suite.yaml")
+    with pytest.raises(suites.SuiteError) as e:
+        sweep.run_suite(p, "smoke", "slurm", tmp_path / "store", slurm={"cpus": 0})
+    assert str(e.value).endswith("--cpus: Input should be greater than or equal to 1"), str(e.value)
+    assert not (tmp_path / "store").exists()
+    for option, value, problem in (("--mem-gb", "inf", "--mem-gb: Input should be a finite number"),
+                                   ("--cpus", "0", "--cpus: Input should be greater than or equal to 1")):
+        proc = esr("sweep", str(p), "--executor", "slurm", option, value, store=tmp_path / "store", check=False)
+        assert proc.returncode == 2 and problem in proc.stderr, proc.stderr
+        assert "pydantic" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+        assert not (tmp_path / "store").exists()
+
+
+def test_eval_episodes_are_bounded_like_the_spec(tmp_path):
+    field = specs.EvalSpec.model_fields["episodes"]
+    bound = f"{next(m.le for m in field.metadata if getattr(m, 'le', None) is not None):,}"  # the spec's own bound
+    for n in ("0", "-3", "1000001", "10000000000000"):
+        proc = esr("eval", str(GRID_2), "--episodes", n, store=tmp_path / "store", check=False)
+        assert proc.returncode == 2 and "--episodes: between 1 and " + bound in proc.stderr, proc.stderr
+        assert "not trained" not in proc.stderr and not (tmp_path / "store").exists()
+
+
+def test_options_that_only_apply_to_a_spec_file_are_refused_with_an_artifact(tmp_path):
+    store = tmp_path / "store"
+    for args, problem in (
+        (["eval", "0123abcd", "--set", "train.seeds=2"], "--set applies to a spec file"),
+        (["eval", "0123abcd", "--budget", "smoke"], "--budget applies to a spec file"),
+        (["exact", str(GRID_2), "--seed-index", "2"], "--seed-index applies to --robot"),
+        (["plot", "gridworld", "0123abcd"], "takes no artifact"),
+        (["plot", "estimator", "0123abcd", "--budget", "smoke"], "--budget"),
+        (["plot", "geometry", "--budget", "quick"], "--budget"),
+        (["plot", "mi", "--gamma", "0.5"], "--gamma"),
+        (["plot", "estimator", "0123abcd", "--state", "1"], "--state"),
+    ):
+        proc = esr(*args, store=store, check=False)
+        assert proc.returncode == 2 and problem in proc.stderr, (args, proc.stderr)
+        assert "no artifact with key" not in proc.stderr and not store.exists()
+
+
+def test_exact_on_a_huge_state_space_is_refused_before_any_work(tmp_path):
+    t0 = time.perf_counter()
+    proc = esr("exact", str(GRID_2), "--set", "env.size=16", "--set", "env.blocks=40", store=tmp_path / "store", check=False)
+    assert proc.returncode == 2, proc.stderr
+    assert "env.size" in proc.stderr and "env.blocks" in proc.stderr and "12,000" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "store").exists()
+    assert time.perf_counter() - t0 < 30  # the process start and imports; no enumeration

@@ -6,6 +6,7 @@ import time
 
 import pytest
 
+from conftest import esr
 from esr_cli.store import Store, StoreError, content_key
 
 
@@ -76,11 +77,71 @@ def test_find_names_unfinished_artifacts_only_when_asked(tmp_path):
     assert store.find(unfinished[:6], include_partial=True).path == done
 
 
-def test_unwritable_store(tmp_path):
+def test_a_store_that_is_a_file_is_refused(tmp_path):
     blocker = tmp_path / "a-file"
-    blocker.write_text("")  # a store root below a plain file can never be created (root or not)
-    with pytest.raises(StoreError, match="not writable"):
-        Store(blocker / "store").ensure_writable()
+    blocker.write_text("")  # it would read as an empty store, and a store below it can never be made
+    with pytest.raises(StoreError, match=f"store {blocker} is not a directory$"):
+        Store(blocker)
+    with pytest.raises(StoreError, match=f"store {blocker}/store is not writable: {blocker} is not a directory"):
+        Store(blocker / "store")
+    Store(tmp_path / "not" / "yet")  # a store that does not exist yet is made on the first write
+
+
+def test_every_command_refuses_a_store_that_is_a_file(tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    archive = tmp_path / "a.tar.gz"
+    archive.write_bytes(b"")
+    for args in (["ls"], ["verify"], ["show", "abcd"], ["import", str(archive)], ["export", "abcd"]):
+        proc = esr(*args, "--store", str(blocker), store=tmp_path / "unused", check=False)
+        assert proc.returncode == 2, args
+        assert proc.stderr.strip() == f"error: store {blocker} is not a directory", args
+    assert blocker.read_text() == ""
+
+
+DAMAGED = {b"\xff\xfe{}": "is not UTF-8 JSON", b"{": "is not UTF-8 JSON", b"[]": "is not a JSON object",
+           b"3": "is not a JSON object", b"{}": "has no 'kind'", b'{"kind": "runs", "key": 1}': "has no 'key'"}
+
+
+@pytest.mark.parametrize("content", DAMAGED)
+def test_a_damaged_manifest_is_a_store_error_and_a_verify_problem(tmp_path, content):
+    store = Store(tmp_path)
+    path = make_artifact(store)
+    (path / "manifest.json").write_bytes(content)
+    with pytest.raises(StoreError, match=f"^{path}: manifest.json {DAMAGED[content]}"):
+        store.read_manifest(path)
+    problems = store.verify(path)
+    assert len(problems) == 1 and problems[0].startswith(f"manifest.json {DAMAGED[content]}")
+    (entry,) = store.entries()
+    assert (entry.status, entry.manifest) == ("complete", None)  # listed, marked unreadable
+
+
+def test_verify_checks_that_the_manifest_names_its_artifact(tmp_path):
+    import json
+
+    store = Store(tmp_path)
+    path = make_artifact(store)
+    manifest = store.read_manifest(path)
+    for change, problem in (({"key": "cd" * 16}, f"names key '{'cd' * 16}', not the directory's {path.name}"),
+                            ({"kind": "evals"}, "names kind 'evals', but the artifact is under runs/"),
+                            ({"kind": "models"}, "names kind 'models', not one of runs, evals"),
+                            ({"files": {**manifest["files"], "../../x": "00"}}, "lists '../../x', which is not a file inside")):
+        (path / "manifest.json").write_text(json.dumps({**manifest, **change}))
+        assert any(problem in p for p in store.verify(path)), (change, store.verify(path))
+
+
+def test_commands_report_a_damaged_manifest_in_one_line(tmp_path):
+    store = Store(tmp_path)
+    path = make_artifact(store)
+    (path / "manifest.json").write_bytes(b"[]")
+    listed = esr("ls", store=tmp_path)
+    assert listed.returncode == 0 and "damaged" in listed.stdout and "damaged manifest" in listed.stderr
+    verified = esr("verify", store=tmp_path, check=False)
+    assert verified.returncode == 1 and "CORRUPT" in verified.stderr and "manifest.json is not a JSON object" in verified.stderr
+    for args in (["show", path.name[:8]], ["eval", path.name[:8]]):
+        proc = esr(*args, store=tmp_path, check=False)
+        assert proc.returncode == 2, args
+        assert proc.stderr.strip().splitlines() == [f"error: {path}: manifest.json is not a JSON object"], args
 
 
 def hold_lock(root, key, seconds: int = 3) -> subprocess.Popen:

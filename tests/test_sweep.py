@@ -166,10 +166,13 @@ def test_sweep_through_submitit_local(smoke_run, tmp_path):
     assert "| run | method | seeds | return | success | wall |" in md
     assert sum(line.startswith("| grid_2 train.seeds=") for line in md.splitlines()) == 5
     assert "(1 seed)" in md and "±" not in md.split("|---|")[-1]  # one seed: no standard error shown
-    # --metric: any logged metric; one the run does not log is shown as a dash, not invented.
+    # --metric: any logged metric; one the run does not log (ESR's with inferred human actions)
+    # is shown as a dash, not invented; one no run can log is refused.
     md = esr("sweep", str(five), "--budget", "smoke", "--results", "--markdown", "--metric", "mi_estimate",
-             "--metric", "no_such_metric", store=store).stdout
-    assert "| run | method | seeds | mi_estimate | no_such_metric | wall |" in md
+             "--metric", "code_accuracy", store=store).stdout
+    assert "| run | method | seeds | mi_estimate | code_accuracy | wall |" in md
+    bad = esr("sweep", str(five), "--budget", "smoke", "--results", "--metric", "no_such_metric", store=store, check=False)
+    assert bad.returncode == 2 and "unknown metric 'no_such_metric'; known: return, success" in bad.stderr
     last = json.loads((result.paths[0] / "metrics.jsonl").read_text().splitlines()[-1])
     first_row = next(line for line in md.splitlines() if line.startswith("| grid_2 train.seeds="))
     assert f"| {last['mi_estimate'][0]:.3f} (1 seed) | — |" in first_row

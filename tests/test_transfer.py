@@ -2,6 +2,7 @@
 and a hostile archive changes nothing (esr_cli/transfer.py)."""
 
 import io
+import json
 import os
 import shutil
 import signal
@@ -78,6 +79,11 @@ def _archive(tmp_path, members, name="bad.tar.gz"):
 RUN_DIR = f"runs/{KEY[:2]}/{KEY}"
 
 
+def _manifest(**fields) -> bytes:
+    """A committed run's manifest as JSON, with `fields` replaced."""
+    return json.dumps({"kind": "runs", "key": KEY, "name": "x", "files": {}, **fields}).encode()
+
+
 @pytest.mark.parametrize(
     "members, message",
     [
@@ -90,9 +96,18 @@ RUN_DIR = f"runs/{KEY[:2]}/{KEY}"
         ([(f"runs/zz/{KEY}/manifest.json", b"{}")], "not an esr artifact directory"),
         ([(f"evals/{KEY[:2]}/{KEY}.partial/pending.json", b"{}")], "only unfinished runs"),
         ([(f"{RUN_DIR}/metrics.jsonl", b"{}\n")], "has no manifest.json"),
-        ([(f"{RUN_DIR}/manifest.json", b"[1, 2")], "cannot be read"),
-        ([(f"{RUN_DIR}/manifest.json", b"[1, 2]")], "cannot be read"),
-        ([(f"{RUN_DIR}/manifest.json", b'{"files": {"metrics.jsonl": "00"}}')], "fails its manifest"),
+        ([(f"{RUN_DIR}/manifest.json", b"[1, 2")], f"{RUN_DIR}: manifest.json is not UTF-8 JSON"),
+        ([(f"{RUN_DIR}/manifest.json", b"\xff\xfe{}")], f"{RUN_DIR}: manifest.json is not UTF-8 JSON"),
+        ([(f"{RUN_DIR}/manifest.json", b"[1, 2]")], f"{RUN_DIR}: manifest.json is not a JSON object"),
+        ([(f"{RUN_DIR}/manifest.json", b"3")], f"{RUN_DIR}: manifest.json is not a JSON object"),
+        ([(f"{RUN_DIR}/manifest.json", b"{}")], f"{RUN_DIR}: manifest.json has no 'kind'"),
+        ([(f"{RUN_DIR}/manifest.json", _manifest(files=[]))], "has no 'files'"),
+        ([(f"{RUN_DIR}/manifest.json", _manifest(key="ab" * 16))], "names key 'abab.*not the directory's"),
+        ([(f"{RUN_DIR}/manifest.json", _manifest(kind="evals"))], "names kind 'evals', but the artifact is under runs/"),
+        ([(f"{RUN_DIR}/manifest.json", _manifest(kind="models"))], "names kind 'models', not one of"),
+        ([(f"{RUN_DIR}/manifest.json", _manifest(files={"metrics.jsonl": "00"}))], "missing file metrics.jsonl"),
+        ([(f"{RUN_DIR}/manifest.json", _manifest(files={"/proc/self/status": "00"}))], "not a file inside the artifact"),
+        ([(f"{RUN_DIR}/manifest.json", _manifest()), (f"{RUN_DIR}/extra", b"x")], "unexpected file extra"),
         ([(f"{RUN_DIR}.partial/metrics.jsonl", b"{}\n")], "no pending.json"),
         ([(f"{RUN_DIR}.partial/pending.json", b"{}")], "no checkpoint matching"),
         ([], "holds no artifact"),
@@ -102,8 +117,27 @@ def test_a_bad_archive_is_refused_and_changes_nothing(tmp_path, members, message
     store = Store(tmp_path / "store")
     with pytest.raises(StoreError, match=message):
         import_archive(store, _archive(tmp_path, members))
-    left = [p for p in (tmp_path / "store").rglob("*") if p.is_file() and not p.name.endswith(".lock")]
-    assert left == [] and not (tmp_path / "evil").exists()
+    assert not (tmp_path / "store").exists() and not (tmp_path / "evil").exists()  # not even empty folders
+
+
+def test_a_refused_import_removes_only_the_folders_it_made(tmp_path):
+    store = Store(tmp_path / "store")
+    other = tmp_path / "store" / "runs" / "ff" / "kept"
+    other.mkdir(parents=True)
+    with pytest.raises(StoreError, match="has no 'kind'"):
+        import_archive(store, _archive(tmp_path, [(f"{RUN_DIR}/manifest.json", b"{}")]))
+    assert sorted(p.relative_to(tmp_path / "store").as_posix() for p in (tmp_path / "store").rglob("*")) == \
+        ["runs", "runs/ff", "runs/ff/kept"]
+
+
+def test_an_empty_manifest_is_not_imported_as_an_artifact(tmp_path):
+    """A tar holding only runs/KK/KEY/manifest.json = {} was once taken as a finished run."""
+    store = tmp_path / "store"
+    proc = esr("import", str(_archive(tmp_path, [(f"{RUN_DIR}/manifest.json", b"{}")])), store=store, check=False)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert f"{RUN_DIR}: manifest.json has no 'kind'" in proc.stderr and "nothing imported" in proc.stderr
+    assert not store.exists()  # nothing committed, no folder left behind
 
 
 def test_a_tampered_finished_run_is_refused(smoke_run, tmp_path):

@@ -25,6 +25,7 @@ set of (state, robot action) pairs needs, so MI can be restricted to the pairs t
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -80,6 +81,36 @@ class TooManyStates(ValueError):
     pass
 
 
+def state_bound(size: int, blocks: int) -> int:
+    """An upper bound on the states `enumerate_states` can reach on a size x size grid with
+    `blocks` blocks, from the spec alone. Blocks sit on distinct cells. A live human stands on a
+    cell without a block; a dead one is under the block just pushed onto it, so one of its
+    neighbours is free. The smaller of that count and "human anywhere, any layout" is close to
+    the reachable count: 8,960 for 8,851 on a 4x4 grid with 3 blocks, 5,340 for 5,031 on a 6x6
+    grid with 34."""
+    cells = size * size
+    anywhere = cells * math.comb(cells, blocks)
+    if blocks == 0:
+        return anywhere
+    neighbour_pairs = 4 * size * (size - 1)  # (cell, adjacent cell), both orders
+    live_or_dead = cells * math.comb(cells - 1, blocks) + neighbour_pairs * math.comb(cells - 2, blocks - 1)
+    return min(anywhere, live_or_dead)
+
+
+def _count(n: int) -> str:
+    return f"{n:,}" if n < 10**12 else f"{float(n):.1e}"
+
+
+def check_size(size: int, blocks: int, max_states: int = MAX_STATES) -> int:
+    """`state_bound`, or TooManyStates naming the spec fields to lower when it exceeds `max_states`."""
+    n = state_bound(size, blocks)
+    if n > max_states:
+        raise TooManyStates(f"env.size={size}, env.blocks={blocks}: up to {_count(n)} states, more than the "
+                            f"{max_states:,} exact analysis handles: lower env.size or env.blocks "
+                            "(a 4x4 grid with 3 blocks has 8,851)")
+    return n
+
+
 def enumerate_states(env: Gridworld, goal, starts: GridState, max_states: int = MAX_STATES) -> StateSpace:
     """Breadth-first enumeration of every state reachable from `starts` (a batch of states
     with this goal) under all joint actions."""
@@ -107,9 +138,13 @@ def enumerate_states(env: Gridworld, goal, starts: GridState, max_states: int = 
             blockss.append(b)
         start_ids.append(index[k])
     transitions = []  # per processed state, int[A_R, A_H]
+    # Each state has A_R x A_H successors: on a large grid with many blocks, 512 states' worth
+    # would be gigabytes, so a batch holds about 64 MiB of them.
+    per_state = a_r * a_h * (2 * env.num_blocks + 2) * 4
+    batch_states = max(1, min(512, (64 << 20) // per_state))
     done = 0
     while done < len(humans):
-        batch = slice(done, min(len(humans), done + 512))
+        batch = slice(done, min(len(humans), done + batch_states))
         nh, nb = successors(jnp.asarray(np.stack(humans[batch])), jnp.asarray(np.stack(blockss[batch])))
         nh, nb = np.asarray(nh), np.asarray(nb)
         shape = nh.shape[:3]
