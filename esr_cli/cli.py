@@ -295,9 +295,10 @@ def diagnose(
         table = Table(title="corner starts: robot actions by what they do (the human staying)")
         table.add_column("human at")
         for name in dg.EFFECTS:
-            table.add_column(f"{name}: actions, max Q, P(policy)")
+            table.add_column(f"{name}: actions, max Q, P(policy), in buffer")
         for row in starts:
-            table.add_row(str(row["human"]), *[f"{row[e]['actions']}, {row[e]['q_max']:.2f}, {row[e]['p']:.3f}" for e in dg.EFFECTS])
+            table.add_row(str(row["human"]), *[f"{row[e]['actions']}, {row[e]['q_max']:.2f}, {row[e]['p']:.3f}, "
+                                               f"{row[e]['stored']}" for e in dg.EFFECTS])
         out.print(table)
     if reprs:
         table = Table(title="representations: how often each picks a transition's future in a batch")

@@ -5,7 +5,7 @@ import json
 import numpy as np
 
 from conftest import esr
-from esr_cli.analysis.diagnose import SITUATIONS, free_trapped_contrast, situation
+from esr_cli.analysis.diagnose import SITUATIONS, free_trapped_contrast, situation, stored_effects
 
 
 def test_situations_of_hand_made_states():
@@ -45,6 +45,7 @@ def test_diagnose_reads_a_trained_run(smoke_run):
         # A cornered human (N = 2): 4 robot actions free it, 2 push a block onto it.
         assert (row["free"]["actions"], row["dead"]["actions"], row["trapped"]["actions"]) == (4, 2, 119)
         assert abs(sum(row[e]["p"] for e in ("trapped", "free", "dead")) - 1) < 1e-4
+        assert all(row[e]["stored"] >= 0 for e in ("trapped", "free", "dead"))
     reprs = report["representations"]  # an ESR run: what its representations pick futures by
     assert set(reprs) == {"accuracy_phi", "accuracy_phi_prime", "chance", "layout_only", "within_layout_phi",
                           "within_layout_phi_prime", "mi_estimate"}
@@ -73,3 +74,24 @@ def test_representation_scores_of_hand_made_representations():
     assert got["chance"] == 0.25 and got["layout_only"] == 0.5
     assert abs(got["mi_estimate"] - (1 - 0.5) / 4) < 1e-6  # diagonal logits / d
 
+
+
+def test_stored_effects_counts_the_transitions_out_of_a_trapped_corner():
+    from esr_cli import replay
+
+    start = np.zeros((3, 3, 2), np.uint8)
+    start[0, 0, 0] = 1; start[0, 1, 1] = 1; start[1, 0, 1] = 1  # noqa: E702 - cornered at (0, 0)
+    elsewhere = start.copy(); elsewhere[2, 2, 1] = 1  # noqa: E702 - cornered too, another layout
+    freed = start.copy(); freed[0, 1, 1] = 0; freed[0, 2, 1] = 1  # noqa: E702 - a block pushed away
+    dead = start.copy(); dead[0, 0, 1] = 1; dead[0, 1, 1] = 0  # noqa: E702 - a block pushed onto the human
+    free = np.zeros((3, 3, 2), np.uint8); free[0, 0, 0] = 1  # noqa: E702 - at the corner but free
+    episodes = np.stack([
+        [start, start, freed],  # trapped, then freed
+        [elsewhere, dead, dead],  # dead (then a dead human: not trapped, not counted)
+        [free, start, freed],  # a free human first: not counted; then freed
+        [start, start, start],  # the slot past `count`: not held, never counted
+    ])
+    buf = replay.Buffer(obs=episodes, robot_action=np.zeros((4, 2), np.int32), human_action=np.zeros((4, 2), np.int32),
+                        reward=np.zeros((4, 2), np.float32), ptr=np.int32(3), count=np.int32(3))
+    assert stored_effects(buf, (0, 0)) == {"trapped": 1, "free": 2, "dead": 1}
+    assert stored_effects(buf, (2, 2)) == {"trapped": 0, "free": 0, "dead": 0}

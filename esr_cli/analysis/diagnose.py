@@ -75,9 +75,24 @@ def free_trapped_contrast(rewards: dict) -> dict:
     return {"difference": diff, "effect_size": float(diff / pooled) if pooled > 0 else float("nan")}
 
 
+def stored_effects(buffer: replay.Buffer, human_cell) -> dict:
+    """{effect: n}: the buffer's transitions out of a state where the human is trapped at
+    `human_cell` (row, col), whatever the other blocks, by the human's situation after them.
+    What the critic can have learned about freeing the human there from the data it holds: an
+    effect that never occurs has its Q values from generalisation alone."""
+    held = int(buffer.count)
+    obs = np.asarray(buffer.obs[:held])
+    before, after = obs[:, :-1], obs[:, 1:]
+    no_reward = np.zeros(before.shape[:2])
+    here = (before[..., human_cell[0], human_cell[1], 0] == 1) & (situation(before, no_reward) == SITUATIONS.index("trapped"))
+    effect = situation(after[here], np.zeros(int(here.sum())))
+    return {name: int(np.sum(effect == SITUATIONS.index(name))) for name in EFFECTS}
+
+
 def corner_start_policy(trainer, state, key, starts: int = 4) -> list[dict]:
     """For `starts` corner starts: per effect of the robot's action (the human staying), how many
-    actions have it, their largest and mean Q, and the policy's probability of choosing one."""
+    actions have it, their largest and mean Q, the policy's probability of choosing one, and how
+    many of the buffer's transitions out of a trapped human at that corner had it (`stored_effects`)."""
     env, learner = trainer.env, trainer.learner
     actions = jnp.arange(env.num_robot_actions, dtype=jnp.int32)
     rows = []
@@ -90,10 +105,12 @@ def corner_start_policy(trainer, state, key, starts: int = 4) -> list[dict]:
         q = np.asarray(learner.q_values(state.learner.params, obs))[0]
         p = np.exp(np.asarray(learner.log_probs(state.learner, obs))[0])
         row = {"human": np.asarray(s.human).tolist()}
+        stored = stored_effects(state.buffer, tuple(int(c) for c in np.asarray(s.human)))
         for name in EFFECTS:
             chosen = effect == name
             row[name] = {"actions": int(chosen.sum()), "q_max": float(q[chosen].max()) if chosen.any() else float("nan"),
-                         "q_mean": float(q[chosen].mean()) if chosen.any() else float("nan"), "p": float(p[chosen].sum())}
+                         "q_mean": float(q[chosen].mean()) if chosen.any() else float("nan"), "p": float(p[chosen].sum()),
+                         "stored": stored[name]}
         rows.append(row)
     return rows
 
