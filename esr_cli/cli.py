@@ -120,10 +120,9 @@ def sweep(
         if show_results:
             metrics = tuple(dict.fromkeys(metric)) if metric else sw.DEFAULT_RESULT_METRICS
             try:
-                sw.check_metrics(suite, STATE.store, metrics)
+                rows = sw.results(suite, STATE.store, metrics)  # refuses a metric no run can log
             except sw.SuiteError as e:
                 raise Exit(2, str(e)) from None
-            rows = sw.results(suite, STATE.store, metrics)
             if as_json:
                 out.print_json(json.dumps(rows))
             elif markdown:
@@ -163,11 +162,6 @@ def sweep(
 
 
 # ---------------------------------------------------------------- eval
-def _max_eval_episodes() -> int:
-    """eval.episodes' upper bound in the spec: --episodes replaces it, so it obeys the same."""
-    return next(m.le for m in specs.EvalSpec.model_fields["episodes"].metadata if getattr(m, "le", None) is not None)
-
-
 @app.command("eval")
 def eval_(
     target: str = typer.Argument(..., help="a spec file or a training-run artifact (key or path)", show_default=False),
@@ -187,7 +181,7 @@ def eval_(
 
     if human not in runs.EVAL_PARTNERS and not human.startswith(runs.PLAY_PARTNER):
         raise Exit(2, f"--human: unknown partner {human!r}; known: {', '.join(runs.EVAL_PARTNERS)}, {runs.PLAY_PARTNER}KEY,...")
-    most = _max_eval_episodes()
+    most = specs.MAX_EVAL_EPISODES
     if episodes is not None and not 1 <= episodes <= most:
         raise Exit(2, f"--episodes: between 1 and {most:,} (got {episodes:,})")
     if not runs.is_spec_file(target):

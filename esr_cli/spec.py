@@ -61,6 +61,7 @@ MAX_SEED = 2**31 - 1  # seeds become int32 PRNG keys
 MAX_WIDTH, MAX_LAYERS = 1 << 14, 16
 # Upper bounds on sizes that alone could hang or exhaust a machine; far above any real run.
 MAX_EPOCHS, MAX_ENVS, MAX_UPDATES, MAX_ENV_STEPS = 10_000_000, 1 << 20, 1_000_000, 10**12
+MAX_EVAL_EPISODES = 1_000_000  # eval.episodes, and `esr eval --episodes` that replaces it
 
 
 class SpecError(Exception):
@@ -401,7 +402,7 @@ class TrainSpec(_Model):
 
 
 class EvalSpec(_Model):
-    episodes: Int = Field(100, ge=1, le=1_000_000, description="evaluation episodes per seed and policy")
+    episodes: Int = Field(100, ge=1, le=MAX_EVAL_EPISODES, description="evaluation episodes per seed and policy")
 
 
 class Spec(_Model):
