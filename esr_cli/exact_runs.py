@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from scipy.stats import spearmanr
 
 from esr_cli import plots, provenance
@@ -81,8 +82,7 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
             pi_r = exact.boltzmann_robot(space, lambda obs: trainer.learner.log_probs(lstate, obs))
         else:
             pi_r = exact.uniform_robot(space)
-        with console.status(f"solving for occupancies and mutual information ({space.size:,} states)"):
-            emp = exact.empowerment(space, pi_r, pi_h, gamma)
+        emp = _solve(space, pi_r, pi_h, gamma, console)
         np.savez_compressed(
             out / "exact.npz", human=space.human, blocks=space.blocks, next_state=space.next_state, start=space.start,
             pi_human=pi_h, pi_robot=pi_r, mi=emp.mi, mi_merged=emp.mi_merged, state_mi=emp.state_mi, value=emp.value,
@@ -97,9 +97,31 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
             "mean_mi_visited_merged_actions": _visited_mean(emp, pi_r, emp.mi_merged),
             "max_mi": float(np.nanmax(emp.mi)),
             "states_with_zero_mi": int((emp.state_mi < 1e-9).sum()),
+            # above exact.DENSE_STATES only the robot's visited pairs: the rest count 0 in
+            # state_mi and value, so the effective empowerment is then a lower bound
+            "pairs": "all" if emp.complete else f"visited ({exact.VISITED_MASS:.0%} of the robot's occupancy)",
+            "pairs_computed": int(np.isfinite(emp.mi).sum()),
         }
 
     return Recipe(EXACT_KIND, spec.name, components, _discard_on_failure(build), budget=spec.budget)
+
+
+def _solve(space, pi_r: np.ndarray, pi_h: np.ndarray, gamma: float, console: Console) -> exact.Empowerment:
+    """exact.empowerment over every pair, or over the robot's visited pairs where the space is
+    too large for the dense solve (the sparse series costs per row of M wanted), with progress."""
+    p = exact.transition_matrix(space, pi_r, pi_h)
+    if space.size <= exact.DENSE_STATES:
+        with console.status(f"solving for occupancies and mutual information ({space.size:,} states)"):
+            return exact.empowerment(space, pi_r, pi_h, gamma, occupancy=exact.solve_occupancy(p, gamma))
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                  console=console, transient=True) as bar:
+        task = bar.add_task("visitation", total=1)
+        occ = exact.solve_occupancy(p, gamma, progress=lambda n: bar.advance(task, n))
+        pairs = exact.visited_pairs(occ, space.start, pi_r)
+        rows = exact.rows_needed(space, pairs)
+        console.print(f"{int(pairs.sum()):,} visited (state, robot action) pairs need {rows:,} rows of the occupancy")
+        bar.reset(task, total=rows + 2, description="occupancy rows")  # + value and visitation
+        return exact.empowerment(space, pi_r, pi_h, gamma, pairs=pairs, occupancy=occ)
 
 
 def estimator_recipe(exact_ref: str, store: Store, console: Console) -> Recipe:
@@ -148,7 +170,7 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
     psi_all = np.asarray(esr.represent_future(mstate.params, obs), dtype=np.float64)  # [S, d]
     gamma = manifest["key_components"]["gamma"]
     space = exact.StateSpace(env=env, goal=tuple(manifest["key_components"]["goal"]), human=data["human"], blocks=data["blocks"], next_state=data["next_state"], start=data["start"])
-    occ = exact.Occupancy(exact.transition_matrix(space, data["pi_robot"], data["pi_human"]), gamma)
+    occ = exact.solve_occupancy(exact.transition_matrix(space, data["pi_robot"], data["pi_human"]), gamma)
     psibar = occ.times(psi_all)  # [S, d]: expected psi(g) from each next state
     a_h = env.num_human_actions
     mi = data["mi"]
@@ -171,10 +193,10 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
             total += data["pi_human"][st, h] * np.einsum("bd,bd->b", diff, psibar[data["next_state"][st, ar, h]])
         est[st, ar] = total
     rho, _ = spearmanr(est[computed], mi[computed])
-    visited = visited_pairs(space, data["pi_robot"], data["pi_human"], gamma)
+    visited = exact.visited_pairs(occ, space.start, data["pi_robot"]) & computed
     rho_visited, _ = spearmanr(est[visited], mi[visited])
     result = {"spearman": float(rho), "pairs": int(computed.sum()), "spearman_visited": float(rho_visited),
-              "visited_pairs": int(visited.sum()), "visited_mass": VISITED_MASS,
+              "visited_pairs": int(visited.sum()), "visited_mass": exact.VISITED_MASS,
               "run": run_manifest["key"], "exact": manifest["key"]}
     if out_png is not None:
         plots.estimator_scatter(mi[computed], est[computed], float(rho), out_png,
@@ -189,24 +211,6 @@ def _visited_mean(emp, pi_robot: np.ndarray, mi: np.ndarray | None = None) -> fl
     weight = emp.visitation[:, None] * pi_robot
     ok = np.isfinite(mi)
     return float(np.sum(weight[ok] * mi[ok]) / np.sum(weight[ok]))
-
-
-# "Visited" (state, robot action) pairs: the most likely pairs under the robot's own discounted
-# occupancy from the start states that together hold this share of it.
-VISITED_MASS = 0.99
-
-
-def visited_pairs(space, pi_robot: np.ndarray, pi_human: np.ndarray, gamma: float) -> np.ndarray:
-    """bool[S, A_R]: the smallest set of pairs holding VISITED_MASS of the discounted occupancy
-    d(s) pi_R(aR | s), d the discounted state distribution from the start (exact.empowerment's)."""
-    d = exact.Occupancy(exact.transition_matrix(space, pi_robot, pi_human), gamma).visitation(space.start)
-    weight = (d[:, None] * pi_robot).reshape(-1)
-    order = np.argsort(-weight)
-    keep = np.cumsum(weight[order]) <= VISITED_MASS * weight.sum()
-    keep[np.argmin(keep)] = True  # the pair that crosses the threshold belongs to the set
-    mask = np.zeros(weight.shape, bool)
-    mask[order[keep]] = True
-    return mask.reshape(pi_robot.shape)
 
 
 def geometry_recipe(gamma: float, state: int) -> Recipe:

@@ -163,14 +163,58 @@ def test_visited_pairs_hold_99_percent_of_the_robots_occupancy_by_hand():
     0.998, 0.000999, 0.0005, 0.0005: the pair (0, 0) alone holds over 99%."""
     from types import SimpleNamespace
 
-    from esr_cli.exact_runs import visited_pairs
-
     space = SimpleNamespace(next_state=np.array([[[0], [1]], [[1], [1]]]), start=np.array([1.0, 0.0]))
-    pi_robot = np.array([[0.999, 0.001], [0.5, 0.5]])
-    mask = visited_pairs(space, pi_robot, np.ones((2, 1)), 0.5)
-    assert mask.tolist() == [[True, False], [False, False]]
-    uniform = visited_pairs(space, np.full((2, 2), 0.5), np.ones((2, 1)), 0.5)
-    assert uniform.sum() == 4  # d = (2/3, 1/3): every pair is needed to reach 99%
+
+    def visited(pi_robot, dense_states):
+        occ = exact.solve_occupancy(exact.transition_matrix(space, pi_robot, np.ones((2, 1))), 0.5, dense_states)
+        return exact.visited_pairs(occ, space.start, pi_robot)
+
+    for dense_states in (2, 0):  # the LU and the series agree
+        assert visited(np.array([[0.999, 0.001], [0.5, 0.5]]), dense_states).tolist() == [[True, False], [False, False]]
+        assert visited(np.full((2, 2), 0.5), dense_states).sum() == 4  # d = (2/3, 1/3): every pair is needed
+
+
+def test_the_series_stops_where_the_rest_weighs_the_tolerance_by_hand():
+    """Two states that swap every step: the row of M from state 0 is (1 - g) (1, g, g^2, ...)
+    alternating, i.e. (1, g) / (1 + g). Summed to K terms the row misses mass exactly g^K, and
+    K is the fewest terms with g^K <= tolerance."""
+    g = 0.9
+    p = np.array([[0.0, 1.0], [1.0, 0.0]])
+    exact_row = np.array([1.0, g]) / (1.0 + g)
+    for tol in (1e-2, 1e-6, exact.SERIES_TOLERANCE):
+        occ = exact.SeriesOccupancy(p, g, tolerance=tol)
+        k = occ.terms
+        assert g**k <= tol < g ** (k - 1)
+        row = occ.rows(np.array([0]))[0]
+        assert (row <= exact_row + 1e-15).all()
+        assert exact_row.sum() - row.sum() == pytest.approx(g**k, rel=1e-6, abs=1e-15)
+    assert exact.SeriesOccupancy(p, 0.0).terms == 1  # gamma 0: the next state itself
+
+
+def test_the_series_occupancy_equals_the_lu_one(tiny):
+    """Above DENSE_STATES the sparse series replaces the LU: rows, products, values and
+    visitation agree to the series' tolerance, and so does the MI computed from them."""
+    env, _, space, pi_h, pi_r, emp = tiny
+    p = exact.transition_matrix(space, pi_r, pi_h)
+    chunks = []
+    series = exact.solve_occupancy(p, GAMMA, dense_states=0, progress=chunks.append)
+    assert isinstance(series, exact.SeriesOccupancy) and isinstance(emp.occupancy, exact.LUOccupancy)
+    lu = emp.occupancy
+    states = np.arange(space.size)
+    np.testing.assert_allclose(series.rows(states), lu.rows(states), atol=1e-10)
+    assert sum(chunks) == space.size and max(chunks) <= 256  # reported chunk by chunk
+    v = np.arange(space.size * 2, dtype=float).reshape(space.size, 2) / space.size
+    np.testing.assert_allclose(series.times(v), lu.times(v), atol=1e-9)
+    np.testing.assert_allclose(series.discounted_sum(emp.state_mi), lu.discounted_sum(emp.state_mi), atol=1e-9)
+    np.testing.assert_allclose(series.visitation(space.start), emp.visitation, atol=1e-10)
+    pairs = exact.visited_pairs(series, space.start, pi_r)
+    assert 0 < pairs.sum() < pairs.size
+    part = exact.empowerment(space, pi_r, pi_h, GAMMA, pairs=pairs, occupancy=series)
+    np.testing.assert_allclose(part.mi[pairs], emp.mi[pairs], atol=1e-8)
+    assert np.isnan(part.mi[~pairs]).all()
+    assert exact.rows_needed(space, pairs) == len(np.unique(space.next_state[pairs]))
+    # the pairs left out count 0, so the effective empowerment is a lower bound, and close
+    assert emp.effective_empowerment * 0.95 <= part.effective_empowerment <= emp.effective_empowerment + 1e-12
 
 
 def test_factorised_occupancy_equals_the_dense_inverse(tiny):
@@ -232,11 +276,37 @@ def test_the_state_bound_holds_the_reachable_states(size, blocks, start):
 
 def test_the_spec_alone_refuses_a_space_too_large():
     assert exact.check_size(4, 3) == 8960  # the largest shipped spec for exact analysis
-    with pytest.raises(exact.TooManyStates, match=r"env.size=16, env.blocks=40: up to .* states, more than the 12,000 "
+    assert exact.check_size(4, 4) == 29120  # 28,604 reachable: the sparse series' range
+    with pytest.raises(exact.TooManyStates, match=r"env.size=16, env.blocks=40: up to .* states, more than the 30,000 "
                                                   r"exact analysis handles: lower env.size or env.blocks"):
         exact.check_size(16, 40)
     with pytest.raises(exact.TooManyStates, match="up to 57,500 states"):
         exact.check_size(5, 3)
+
+
+def test_exact_above_the_dense_limit_covers_the_visited_pairs(tmp_path, monkeypatch):
+    """A space larger than DENSE_STATES (here made small) is solved with the series, over the
+    pairs holding 99% of the robot's occupancy, and the summary says so; those pairs' MI equals
+    the complete computation's."""
+    from rich.console import Console
+
+    from esr_cli import exact_runs, spec as specs
+    from esr_cli.artifacts import ensure
+    from esr_cli.store import Store
+
+    spec_path = tmp_path / "tiny.yaml"
+    spec_path.write_text(TINY_SPEC)
+    spec = specs.load(spec_path)
+    complete = ensure(exact_runs.exact_recipe(spec, Store(tmp_path / "a"), (1, 1), None, None, 0, Console(quiet=True)), Store(tmp_path / "a"))
+    monkeypatch.setattr(exact, "DENSE_STATES", 10)
+    part = ensure(exact_runs.exact_recipe(spec, Store(tmp_path / "b"), (1, 1), None, None, 0, Console(quiet=True)), Store(tmp_path / "b"))
+    full, some = (json.loads((r.path / "summary.json").read_text()) for r in (complete, part))
+    assert full["pairs"] == "all" and full["pairs_computed"] == full["states"] * 45
+    assert some["pairs"] == "visited (99% of the robot's occupancy)" and 0 < some["pairs_computed"] < full["pairs_computed"]
+    mi_full, mi_some = np.load(complete.path / "exact.npz")["mi"], np.load(part.path / "exact.npz")["mi"]
+    computed = np.isfinite(mi_some)
+    np.testing.assert_allclose(mi_some[computed], mi_full[computed], atol=1e-8)
+    assert some["effective_empowerment"] <= full["effective_empowerment"] + 1e-12
 
 
 def test_a_failed_exact_build_leaves_no_lock_or_partial_artifact(tmp_path, monkeypatch):

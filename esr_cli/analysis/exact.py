@@ -18,16 +18,19 @@ and the effective empowerment of the policy pair from start distribution mu0,
 
 The MDP is the infinite-horizon one (no 50-step cut-off), matching the geometric future of
 ESR's buffer except near episode ends. Transitions come from `vmap` of the environment; P is
-sparse, and M is never formed: one LU factorisation of I - gamma P gives the rows of M that a
-set of (state, robot action) pairs needs, so MI can be restricted to the pairs that matter
-(those a trained robot visits) on spaces of about 10,000 states (a 4 x 4 grid with 3 blocks).
+sparse, and M is never formed. Up to DENSE_STATES states one LU factorisation of I - gamma P
+gives the rows of M that a set of (state, robot action) pairs needs (`LUOccupancy`); above it
+(a 4 x 4 grid with 4 blocks: 28,604 states, where the dense LU needs 13 GB and 12 minutes) the
+rows are sums of the Neumann series sum_k gamma^k P^k with sparse products, stopped where the
+rest of the series weighs at most SERIES_TOLERANCE (`SeriesOccupancy`). MI can be restricted
+to the pairs that matter (those a trained robot visits).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -73,8 +76,13 @@ def _keys(human: np.ndarray, blocks: np.ndarray) -> list[bytes]:
 
 
 # The occupancy's dense LU needs 8 S^2 bytes and S^3 / 1.5 operations: about 1.2 GB and a
-# minute on 2 cores at this size.
-MAX_STATES = 12_000
+# minute on 2 cores at this size. Above it the occupancy is a sparse series (`SeriesOccupancy`),
+# whose cost grows with the rows wanted rather than S^3.
+DENSE_STATES = 12_000
+# Enumeration keeps A_R x A_H successors per state (a 4 x 4 grid with 4 blocks: 28,604 states,
+# 11 million transitions, a minute) and the series costs about 0.35 s per wanted row there on
+# one core: beyond this the pairs a trained robot visits take hours.
+MAX_STATES = 30_000
 
 
 class TooManyStates(ValueError):
@@ -107,7 +115,7 @@ def check_size(size: int, blocks: int, max_states: int = MAX_STATES) -> int:
     if n > max_states:
         raise TooManyStates(f"env.size={size}, env.blocks={blocks}: up to {_count(n)} states, more than the "
                             f"{max_states:,} exact analysis handles: lower env.size or env.blocks "
-                            "(a 4x4 grid with 3 blocks has 8,851)")
+                            "(a 4x4 grid with 4 blocks has 28,604)")
     return n
 
 
@@ -161,7 +169,7 @@ def enumerate_states(env: Gridworld, goal, starts: GridState, max_states: int = 
         done = batch.stop
         if len(humans) > max_states:
             raise TooManyStates(f"more than {max_states:,} reachable states: too large for exact analysis "
-                                f"(a {env.size}x{env.size} grid with {env.num_blocks} blocks; a 4x4 grid with 3 blocks has 8,851)")
+                                f"(a {env.size}x{env.size} grid with {env.num_blocks} blocks; a 4x4 grid with 4 blocks has 28,604)")
     start = np.bincount(start_ids, minlength=len(humans)).astype(np.float64)
     return StateSpace(
         env=env,
@@ -209,11 +217,38 @@ def occupancy(p, gamma: float) -> np.ndarray:
     return (1.0 - gamma) * np.linalg.solve(np.eye(n) - gamma * p, np.eye(n))
 
 
-class Occupancy:
-    """M = (1 - gamma) (I - gamma P)^-1 as one LU factorisation of I - gamma P: its rows, its
-    products and the discounted visitation, each a triangular solve. The factorisation is dense:
-    a sparse LU of a 4 x 4 grid with 4 blocks (29,000 states) fills in to 250 million entries and
-    takes longer than the dense one of 10,000 states, which is about the limit (`MAX_STATES`)."""
+class Occupancy(Protocol):
+    """M = (1 - gamma) (I - gamma P)^-1 without forming it: what exact analysis needs of it."""
+
+    size: int
+    gamma: float
+
+    def rows(self, states: np.ndarray) -> np.ndarray:
+        """float64[len(states), S]: M[states], the future-state distributions from those states."""
+
+    def times(self, v: np.ndarray) -> np.ndarray:
+        """M @ v."""
+
+    def discounted_sum(self, v: np.ndarray) -> np.ndarray:
+        """(I - gamma P)^-1 v: the discounted sum of v along the chain from each state."""
+
+    def visitation(self, start: np.ndarray) -> np.ndarray:
+        """(1 - gamma) mu0 (I - gamma P)^-1: the discounted state distribution from mu0."""
+
+
+def solve_occupancy(p, gamma: float, dense_states: int | None = None,
+                    progress: Callable[[int], None] | None = None) -> Occupancy:
+    """The dense LU up to `dense_states` states (DENSE_STATES unless given; fastest there), the
+    sparse series above (`progress` hears of each chunk of columns it finishes)."""
+    limit = DENSE_STATES if dense_states is None else dense_states
+    return LUOccupancy(p, gamma) if p.shape[0] <= limit else SeriesOccupancy(p, gamma, progress=progress)
+
+
+class LUOccupancy:
+    """M as one LU factorisation of I - gamma P: its rows, its products and the discounted
+    visitation, each a triangular solve. The factorisation is dense: a sparse LU of a 4 x 4 grid
+    with 4 blocks (28,604 states) fills in to 250 million entries and takes 14 minutes, the
+    dense one 12 minutes and 13 GB, so above DENSE_STATES `SeriesOccupancy` serves instead."""
 
     def __init__(self, p, gamma: float):
         p = p.toarray() if sparse.issparse(p) else np.asarray(p, np.float64)
@@ -237,6 +272,63 @@ class Occupancy:
     def visitation(self, start: np.ndarray) -> np.ndarray:
         """(1 - gamma) mu0 (I - gamma P)^-1: the discounted state distribution from mu0."""
         return (1.0 - self.gamma) * lu_solve(self._lu, np.asarray(start, np.float64), trans=1, check_finite=False)
+
+
+# Where the Neumann series stops: the terms left out weigh at most this much (in l1, per row of
+# M), far below the float64 rounding that KL terms of size 1e-3 already carry.
+SERIES_TOLERANCE = 1e-10
+
+
+class SeriesOccupancy:
+    """M = (1 - gamma) sum_k gamma^k P^k, summed with sparse products until the rest weighs at
+    most `tolerance`. P is stochastic, so every term gamma^k x P^k of a row has l1 mass gamma^k
+    and the rest of the series after K terms exactly gamma^K: K = log(tolerance) / log(gamma)
+    terms (219 at gamma 0.9) bound the error of every row, product and visitation alike. Each
+    term costs one product with P's few dozen non-zeros per row, so the cost grows with the
+    columns wanted, not S^3: the rows a trained robot's visited pairs need on a 4 x 4 grid with
+    4 blocks take minutes where the dense LU takes 12 and 13 GB. `chunk` columns at a time bound
+    the memory (S x chunk floats, twice)."""
+
+    def __init__(self, p, gamma: float, tolerance: float = SERIES_TOLERANCE, chunk: int = 256,
+                 progress: Callable[[int], None] | None = None):
+        p = sparse.csr_matrix(p, dtype=np.float64)
+        self.size, self.gamma = p.shape[0], gamma
+        self._p, self._pt = p, p.T.tocsr()
+        self.terms = 1 if gamma == 0.0 else max(1, math.ceil(math.log(tolerance) / math.log(gamma)))
+        self._chunk = chunk
+        self._progress = progress  # called with the number of columns each finished chunk solved
+
+    def _series(self, matrix, v: np.ndarray) -> np.ndarray:
+        """sum_{k < terms} gamma^k matrix^k v, v [S, C], `chunk` columns at a time."""
+        v = np.asarray(v, np.float64)
+        flat = v.ndim == 1
+        v = v.reshape(self.size, -1)
+        out = np.empty_like(v)
+        for c in range(0, v.shape[1], self._chunk):
+            term = np.array(v[:, c : c + self._chunk])
+            total = term.copy()
+            for _ in range(self.terms - 1):
+                term = self.gamma * (matrix @ term)
+                total += term
+            out[:, c : c + self._chunk] = total
+            if self._progress is not None:
+                self._progress(total.shape[1])
+        return out[:, 0] if flat else out
+
+    def rows(self, states: np.ndarray) -> np.ndarray:
+        states = np.asarray(states)
+        e = np.zeros((self.size, len(states)))
+        e[states, np.arange(len(states))] = 1.0
+        return (1.0 - self.gamma) * self._series(self._pt, e).T  # row s: e_s^T sum gamma^k P^k
+
+    def times(self, v: np.ndarray) -> np.ndarray:
+        return (1.0 - self.gamma) * self._series(self._p, v)
+
+    def discounted_sum(self, v: np.ndarray) -> np.ndarray:
+        return self._series(self._p, v)
+
+    def visitation(self, start: np.ndarray) -> np.ndarray:
+        return (1.0 - self.gamma) * self._series(self._pt, start)
 
 
 def _mutual_information(m_rows: np.ndarray, pi_h: np.ndarray) -> np.ndarray:
@@ -278,35 +370,65 @@ def pair_weights(space: StateSpace, pi_robot: np.ndarray, visitation: np.ndarray
     return visitation[:, None] * pi_robot
 
 
+# "Visited" (state, robot action) pairs: the most likely pairs under the robot's own discounted
+# occupancy from the start states that together hold this share of it.
+VISITED_MASS = 0.99
+
+
+def visited_pairs(occupancy: Occupancy, start: np.ndarray, pi_robot: np.ndarray) -> np.ndarray:
+    """bool[S, A_R]: the smallest set of pairs holding VISITED_MASS of the discounted occupancy
+    d(s) pi_R(aR | s), d the discounted state distribution from `start` under the chain whose
+    `occupancy` this is (the robot's own)."""
+    weight = (occupancy.visitation(start)[:, None] * pi_robot).reshape(-1)
+    order = np.argsort(-weight)
+    keep = np.cumsum(weight[order]) <= VISITED_MASS * weight.sum()
+    keep[np.argmin(keep)] = True  # the pair that crosses the threshold belongs to the set
+    mask = np.zeros(weight.shape, bool)
+    mask[order[keep]] = True
+    return mask.reshape(pi_robot.shape)
+
+
+def _distinct_pairs(space: StateSpace, wanted: np.ndarray):
+    """The distinct (state, next states over aH) rows among the wanted pairs (most robot actions
+    are no-ops or share their effect), the pairs' flat indices and their row in the distinct set."""
+    s, a_r, a_h = space.next_state.shape
+    rows = np.concatenate([np.repeat(np.arange(s), a_r)[:, None], space.next_state.reshape(s * a_r, a_h)], axis=1)
+    picked = np.flatnonzero(np.asarray(wanted, bool).reshape(-1))
+    unique, inverse = np.unique(rows[picked], axis=0, return_inverse=True)
+    return unique, picked, inverse.reshape(-1)
+
+
+def rows_needed(space: StateSpace, pairs: np.ndarray) -> int:
+    """How many rows of M `empowerment` solves for these pairs: their distinct next states."""
+    return len(np.unique(space.next_state[np.asarray(pairs, bool)]))
+
+
 def empowerment(
     space: StateSpace, pi_robot: np.ndarray, pi_human: np.ndarray, gamma: float,
-    pairs: np.ndarray | None = None, batch: int = 64,
+    pairs: np.ndarray | None = None, batch: int = 64, occupancy: Occupancy | None = None,
 ) -> Empowerment:
     """Exact MI for every (state, robot action), or only where `pairs` (bool[S, A_R]) is true:
-    the rows of M are solved for just the next states those pairs need."""
-    p = transition_matrix(space, pi_robot, pi_human)
-    occ = Occupancy(p, gamma)
+    the rows of M are solved for just the next states those pairs need. `occupancy` is the
+    chain's under these policies if the caller has it already (else solved here)."""
+    occ = occupancy if occupancy is not None else solve_occupancy(transition_matrix(space, pi_robot, pi_human), gamma)
     s, a_r, a_h = space.next_state.shape
     wanted = np.ones((s, a_r), bool) if pairs is None else np.asarray(pairs, bool)
-    # Most robot actions are no-ops or share their effect: compute each distinct
-    # (state, next states over aH) once.
-    rows = np.concatenate([np.repeat(np.arange(s), a_r)[:, None], space.next_state.reshape(s * a_r, a_h)], axis=1)
-    picked = np.flatnonzero(wanted.reshape(-1))
-    unique, inverse = np.unique(rows[picked], axis=0, return_inverse=True)
-    # Rows of M one solve each, or all of M at once when most of it is needed anyway.
+    unique, picked, inverse = _distinct_pairs(space, wanted)
+    # Every row of M the pairs need, solved once: S x (rows needed) floats, at most 7 GB at MAX_STATES.
     needed = np.unique(unique[:, 1:])
-    full = occ.rows(np.arange(s)) if len(needed) > s // 4 else None
+    table = occ.rows(needed)
+    where = np.zeros(s, np.int64)
+    where[needed] = np.arange(len(needed))
     mi_unique, merged_unique = np.empty(len(unique)), np.empty(len(unique))
     for i in range(0, len(unique), batch):
         chunk = unique[i : i + batch]
-        nxt = chunk[:, 1:].reshape(-1)
-        m_rows = (full[nxt] if full is not None else occ.rows(nxt)).reshape(len(chunk), a_h, s)
+        m_rows = table[where[chunk[:, 1:].reshape(-1)]].reshape(len(chunk), a_h, s)
         mi_unique[i : i + batch] = _mutual_information(m_rows, pi_human[chunk[:, 0]])
         merged_unique[i : i + batch] = _mutual_information(m_rows, merge_indistinguishable(chunk[:, 1:], pi_human[chunk[:, 0]]))
 
     def per_pair(values):
         out = np.full(s * a_r, np.nan)
-        out[picked] = np.maximum(values[inverse.reshape(-1)], 0.0)  # KL >= 0; clip rounding
+        out[picked] = np.maximum(values[inverse], 0.0)  # KL >= 0; clip rounding
         return out.reshape(s, a_r)
 
     mi, mi_merged = per_pair(mi_unique), per_pair(merged_unique)
