@@ -8,7 +8,7 @@ checks every implementation against these.
 
 from __future__ import annotations
 
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import jax
 
@@ -74,6 +74,9 @@ class Method(Protocol):
     acts_by_rule: bool  # True: the robot acts by memory_init / rule_step / rule_metrics instead
     has_reward_table: bool  # True: reward_table / reward_from_table over the whole buffer
     metric_names: tuple  # keys of `update`'s metrics
+    # every key `metric_names` can hold under any spec of this method (a class attribute:
+    # `esr sweep --metric` checks names before any method is built)
+    all_metric_names: ClassVar[tuple[str, ...]]
 
     @property
     def updates_per_epoch(self) -> int: ...

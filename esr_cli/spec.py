@@ -568,38 +568,46 @@ def _valid_names(loc: tuple) -> list[str]:
     return []
 
 
-def _first_problem(errors: list[dict]) -> dict:
-    """The mistake to name first: an unknown key (a typo usually also makes a required key
-    'missing', which is its consequence), then anything else in pydantic's order."""
-    unknown = [e for e in errors if e["type"] == "extra_forbidden"]
-    return (unknown or errors)[0]
+def first_problem(e: ValidationError) -> tuple[dict, str]:
+    """The mistake to name first and its message in plain words (no pydantic prefix or URL):
+    an unknown key first (a typo usually also makes a required key 'missing', which is its
+    consequence), then anything else in pydantic's order. Specs, suites and slurm options share it."""
+    errors = e.errors()
+    err = ([x for x in errors if x["type"] == "extra_forbidden"] or errors)[0]
+    msg = err["msg"]
+    if err["type"] == "extra_forbidden":
+        msg = "unknown key"
+    elif msg.startswith("Value error, "):
+        msg = msg[len("Value error, ") :]
+    elif err["type"] in ("model_attributes_type", "dict_type"):
+        msg = f"expected a section (a mapping of keys), got {type(err['input']).__name__} {str(err['input'])[:40]!r}"
+    elif err["type"] == "bool_type":
+        msg = "expected true or false"
+    return err, msg
+
+
+def other_problems(e: ValidationError) -> str:
+    """' (and N more problem(s))' after the first problem's message, or nothing."""
+    n = len(e.errors()) - 1
+    return f" (and {n} more problem(s))" if n else ""
 
 
 def validate(raw: dict, source: str = "") -> Spec:
     try:
         return Spec.model_validate(raw)
     except ValidationError as e:
-        err = _first_problem(e.errors())
-        path = _format_loc(tuple(err["loc"]))
-        msg = err["msg"]
+        err, msg = first_problem(e)
+        loc = tuple(err["loc"])
         if err["type"] == "extra_forbidden":
-            msg = "unknown key"
-            close = difflib.get_close_matches(str(err["loc"][-1]), _valid_names(tuple(err["loc"])), n=1, cutoff=0.6)
+            close = difflib.get_close_matches(str(loc[-1]), _valid_names(loc), n=1, cutoff=0.6)
             if close:
                 msg += f"; did you mean `{close[0]}`?"
-        elif msg.startswith("Value error, "):
-            msg = msg[len("Value error, ") :]
-        section = KIND_MODELS.get(str(err["loc"][0]) if err["loc"] else "", {})
+        section = KIND_MODELS.get(str(loc[0]) if loc else "", {})
         if err["type"] == "union_tag_not_found":
             msg = f"needs a `kind`: one of {', '.join(section)}"
         elif err["type"] == "union_tag_invalid":
             msg = f"kind {err.get('ctx', {}).get('tag')!r} is not one of {', '.join(section)}"
-        elif err["type"] in ("model_attributes_type", "dict_type"):
-            msg = f"expected a section (a mapping of keys), got {type(err['input']).__name__} {str(err['input'])[:40]!r}"
-        elif err["type"] == "bool_type":
-            msg = "expected true or false"
-        more = f" (and {len(e.errors()) - 1} more problem(s))" if len(e.errors()) > 1 else ""
-        raise SpecError(source, path, msg + more) from None
+        raise SpecError(source, _format_loc(loc), msg + other_problems(e)) from None
 
 
 def _merge(base: dict, child: dict) -> dict:

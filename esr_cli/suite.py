@@ -163,20 +163,6 @@ def _format_loc(loc: tuple) -> str:
     return out
 
 
-def first_problem(e: ValidationError) -> tuple[tuple, str]:
-    """(location, one-line message) of a validation error's first problem, without pydantic's
-    trailing URL; a count of the others is appended."""
-    errors = e.errors()
-    err = errors[0]
-    msg = err["msg"]
-    if err["type"] == "extra_forbidden":
-        msg = "unknown key"
-    elif msg.startswith("Value error, "):
-        msg = msg[len("Value error, "):]
-    more = f" (and {len(errors) - 1} more problem(s))" if len(errors) > 1 else ""
-    return tuple(err["loc"]), msg + more
-
-
 def _validate(raw: Any, source: str) -> SuiteModel:
     if isinstance(raw, list):
         raw = {"specs": raw}
@@ -189,7 +175,8 @@ def _validate(raw: Any, source: str) -> SuiteModel:
     try:
         return SuiteModel.model_validate(raw)
     except ValidationError as e:
-        loc, msg = first_problem(e)
+        err, msg = specs.first_problem(e)
+        loc, msg = tuple(err["loc"]), msg + specs.other_problems(e)
         raise SuiteError(source, _format_loc(loc), msg) from None
 
 

@@ -33,7 +33,7 @@ from esr_cli.artifacts import ensure
 from esr_cli.store import RUN_KIND, Store, atomic_write_text
 from pydantic import ValidationError
 
-from esr_cli.suite import Run, SlurmOptions, Suite, SuiteError, first_problem, load as load_suite
+from esr_cli.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
 
 EXECUTORS = ("local", "slurm", "submitit-local")
 STATES = ("done", "running", "queued", "failed", "missing")
@@ -219,13 +219,11 @@ def known_metrics(suite: Suite, store: Store, rows: Optional[list[RunStatus]] = 
     runs logged (a learning human's, for one)."""
     from esr_cli.core.train import BASE_METRICS
     from esr_cli.finals import read_rows
-    from esr_cli.methods import esr
     from esr_cli.methods.registry import METHODS
 
     names = dict.fromkeys(BASE_METRICS)
     for cls in METHODS.values():
-        names.update(dict.fromkeys(getattr(cls, "_field_defaults", {}).get("metric_names", ())))
-    names.update(dict.fromkeys(esr.INFERRED_METRICS))
+        names.update(dict.fromkeys(cls.all_metric_names))
     for r in rows if rows is not None else status(suite, store):
         if r.state == "done":
             logged = read_rows(r.path)
@@ -354,7 +352,8 @@ def slurm_options(base: SlurmOptions, overrides: Optional[dict], source: str) ->
     try:
         return SlurmOptions.model_validate({**base.model_dump(), **given})
     except ValidationError as e:
-        loc, msg = first_problem(e)
+        err, msg = specs.first_problem(e)
+        loc, msg = tuple(err["loc"]), msg + specs.other_problems(e)
         field = str(loc[0]) if loc else ""
         where = _SLURM_FLAGS.get(field, f"--{field}") if field in given else ("slurm." + ".".join(map(str, loc))).rstrip(".")
         raise SuiteError(source, where, msg) from None
@@ -380,8 +379,8 @@ def run_suite(
     # The command line's own mistakes first: loading a suite builds every run.
     if executor not in EXECUTORS:
         raise SuiteError("--executor", "", f"unknown executor {executor!r}; known: {', '.join(EXECUTORS)}")
-    slurm_options(SlurmOptions(), slurm, str(suite.path if isinstance(suite, Suite) else suite))
     if not isinstance(suite, Suite):
+        slurm_options(SlurmOptions(), slurm, str(suite))  # before loading builds every run
         suite = load_suite(suite, budget)
     elif suite.budget != budget:
         raise SuiteError(str(suite.path), "--budget", f"the suite was loaded for budget {suite.budget!r}, not {budget!r}")

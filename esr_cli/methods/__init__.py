@@ -9,6 +9,7 @@ them all with the shared soft-Q learner:
     updates_per_epoch: int                     how many `update` steps per epoch
     learns_policy: bool                        False: the robot acts uniformly at random
     metric_names: tuple[str, ...]              keys of `update`'s metrics
+    all_metric_names (class attribute)         every key metric_names holds under any spec
 
 A method with `acts_by_rule = True` (Goal Inference) instead decides every step itself:
     memory_init(obs) -> memory                 per environment, at an episode's start

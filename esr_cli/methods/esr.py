@@ -135,6 +135,7 @@ class ESR(NamedTuple):
 
     learns_policy: bool = True
     metric_names: tuple = BASE_METRICS
+    all_metric_names = BASE_METRICS + INFERRED_METRICS  # not a field: those of any ESR spec
     acts_by_rule: bool = False
     has_reward_table: bool = True  # reward_table / reward_from_table (core/train.reward_table_pays)
 

@@ -47,6 +47,7 @@ class GoalInference(NamedTuple):
     learns_policy: bool = False
     acts_by_rule: bool = True
     metric_names: tuple = ("goal_belief_true",)
+    all_metric_names = metric_names  # not a field (a class attribute): the same for every spec
     has_reward_table: bool = False
 
     init = stateless_init

@@ -52,6 +52,7 @@ class IQLearn(NamedTuple):
 
     learns_policy: bool = True
     metric_names: tuple = ("iq_loss", "iq_reward_taken", "iq_reward_random")
+    all_metric_names = metric_names  # not a field (a class attribute): the same for every spec
     acts_by_rule: bool = False
     has_reward_table: bool = False
 

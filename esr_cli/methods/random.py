@@ -13,6 +13,7 @@ class RandomRobot(NamedTuple):
     updates_per_epoch: int = 0
     learns_policy: bool = False
     metric_names: tuple = ()
+    all_metric_names = ()  # not a field: the same for every spec
     acts_by_rule: bool = False
     has_reward_table: bool = False
 
