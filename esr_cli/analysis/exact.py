@@ -298,28 +298,34 @@ class SeriesOccupancy:
         self._chunk = chunk
         self._progress = progress  # called with the number of columns each finished chunk solved
 
+    def _sum(self, matrix, term: np.ndarray) -> np.ndarray:
+        """sum_{k < terms} gamma^k matrix^k term, term [S, C]."""
+        total = term.copy()
+        for _ in range(self.terms - 1):
+            term = self.gamma * (matrix @ term)
+            total += term
+        if self._progress is not None:
+            self._progress(total.shape[1])
+        return total
+
     def _series(self, matrix, v: np.ndarray) -> np.ndarray:
-        """sum_{k < terms} gamma^k matrix^k v, v [S, C], `chunk` columns at a time."""
+        """sum_k gamma^k matrix^k v for v [S] or [S, C], `chunk` columns at a time."""
         v = np.asarray(v, np.float64)
-        flat = v.ndim == 1
-        v = v.reshape(self.size, -1)
-        out = np.empty_like(v)
-        for c in range(0, v.shape[1], self._chunk):
-            term = np.array(v[:, c : c + self._chunk])
-            total = term.copy()
-            for _ in range(self.terms - 1):
-                term = self.gamma * (matrix @ term)
-                total += term
-            out[:, c : c + self._chunk] = total
-            if self._progress is not None:
-                self._progress(total.shape[1])
-        return out[:, 0] if flat else out
+        cols = v.reshape(self.size, -1)
+        out = np.empty_like(cols)
+        for c in range(0, cols.shape[1], self._chunk):
+            out[:, c : c + self._chunk] = self._sum(matrix, np.array(cols[:, c : c + self._chunk]))
+        return out.reshape(v.shape)
 
     def rows(self, states: np.ndarray) -> np.ndarray:
         states = np.asarray(states)
-        e = np.zeros((self.size, len(states)))
-        e[states, np.arange(len(states))] = 1.0
-        return (1.0 - self.gamma) * self._series(self._pt, e).T  # row s: e_s^T sum gamma^k P^k
+        out = np.empty((len(states), self.size))  # built a chunk at a time: no S x len(states) copies
+        for c in range(0, len(states), self._chunk):
+            part = states[c : c + self._chunk]
+            e = np.zeros((self.size, len(part)))
+            e[part, np.arange(len(part))] = 1.0
+            out[c : c + len(part)] = (1.0 - self.gamma) * self._sum(self._pt, e).T  # row s: e_s^T sum gamma^k P^k
+        return out
 
     def times(self, v: np.ndarray) -> np.ndarray:
         return (1.0 - self.gamma) * self._series(self._p, v)
