@@ -239,11 +239,11 @@ def exact(
     table.add_column("quantity")
     table.add_column("value")
     for k in ("states", "effective_empowerment", "mean_mi_visited", "mean_mi_visited_merged_actions", "mean_mi_uniform_states",
-              "max_mi", "states_with_zero_mi"):
+              "max_mi", "states_with_zero_mi", "pairs", "pairs_computed"):
         if k not in summary:  # made by an earlier version
             continue
         v = summary[k]
-        table.add_row(k, f"{v:.4f}" if isinstance(v, float) else str(v))
+        table.add_row(k, f"{v:.4f}" if isinstance(v, float) else "— (not every pair computed)" if v is None else str(v))
     err.print(table)
     err.print(f"[green]{'cache hit' if cached else 'computed'}[/]: {path}")
     out.print(str(path), soft_wrap=True, highlight=False)

@@ -62,7 +62,7 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
         "goal": list(goal),
         "gamma": gamma,
         "robot": {"run": robot_manifest["key"], "seed_index": seed_index} if robot_manifest else "uniform",
-        "code": provenance.code_digest(provenance.EVAL_SOURCES + ("analysis",)),
+        "code": provenance.code_digest(provenance.EVAL_SOURCES + ("analysis", "exact_runs.py")),
         "toolchain": provenance.toolchain(),
     }
 
@@ -91,12 +91,13 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
             "name": spec.name, "goal": list(goal), "gamma": gamma, "states": space.size,
             "robot": components["robot"],
             "effective_empowerment": emp.effective_empowerment,
-            "mean_mi_uniform_states": float(emp.state_mi.mean()),
+            # over every state alike: only where every pair was computed
+            "mean_mi_uniform_states": float(emp.state_mi.mean()) if emp.complete else None,
             "mean_mi_visited": _visited_mean(emp, pi_r),
             # what a robot that infers the human's action from (s, s') could at most see
             "mean_mi_visited_merged_actions": _visited_mean(emp, pi_r, emp.mi_merged),
             "max_mi": float(np.nanmax(emp.mi)),
-            "states_with_zero_mi": int((emp.state_mi < 1e-9).sum()),
+            "states_with_zero_mi": int((emp.state_mi < 1e-9).sum()) if emp.complete else None,
             # above exact.DENSE_STATES only the robot's visited pairs: the rest count 0 in
             # state_mi and value, so the effective empowerment is then a lower bound
             "pairs": "all" if emp.complete else f"visited ({exact.VISITED_MASS:.0%} of the robot's occupancy)",

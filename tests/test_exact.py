@@ -303,6 +303,8 @@ def test_exact_above_the_dense_limit_covers_the_visited_pairs(tmp_path, monkeypa
     full, some = (json.loads((r.path / "summary.json").read_text()) for r in (complete, part))
     assert full["pairs"] == "all" and full["pairs_computed"] == full["states"] * 45
     assert some["pairs"] == "visited (99% of the robot's occupancy)" and 0 < some["pairs_computed"] < full["pairs_computed"]
+    assert some["mean_mi_uniform_states"] is None and some["states_with_zero_mi"] is None  # not over every state
+    assert full["mean_mi_uniform_states"] > 0 and full["states_with_zero_mi"] > 0
     mi_full, mi_some = np.load(complete.path / "exact.npz")["mi"], np.load(part.path / "exact.npz")["mi"]
     computed = np.isfinite(mi_some)
     np.testing.assert_allclose(mi_some[computed], mi_full[computed], atol=1e-8)
