@@ -249,8 +249,54 @@ def _run_cell(ev: Optional[Evidence]) -> str:
     return f"`{ev.key[:8]}` ({ev.budget}; {ev.describe_length()}{commit})"
 
 
-def continue_command(ev: Evidence, store: Store) -> str:
-    return f"esr --store {store.root} train {ev.path / 'spec.yaml'} --budget {ev.budget}"
+def _leaves(tree: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in tree.items():
+        if isinstance(v, dict):
+            out.update(_leaves(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _override_text(path: str, value) -> str:
+    if path == "train.seeds" and value == list(range(len(value))):
+        value = len(value)  # seeds 0..n-1, as a spec file writes them
+    text = value if isinstance(value, str) else json.dumps(value)
+    return f"{path}={text}"
+
+
+def train_overrides(spec: specs.Spec, budget: str, experiments: Path = EXPERIMENTS) -> Optional[tuple[Path, list[str]]]:
+    """The spec file in `experiments` and the `--set` values that, at `budget`, resolve to this
+    spec's training part (the run's key), or None when no such file does. The result is checked
+    by resolving it, so a command printed from it makes this very run."""
+    file = experiments / f"{spec.name}.yaml"
+    if not file.is_file():
+        return None
+    try:
+        base = _leaves(specs.load(file, budget).training_part())
+        want = _leaves(spec.training_part())
+        if base.keys() != want.keys():  # another kind of method, human or network
+            return None
+        sets = [_override_text(k, want[k]) for k in want if want[k] != base[k]]
+        if specs.load(file, budget, sets).training_part() != spec.training_part():
+            return None
+    except (specs.SpecError, yamlio.YamlInputError):
+        return None
+    return file, sets
+
+
+def train_command(ev: Evidence, store: Store) -> str:
+    """The command that made this run and, run again from a checkout of its commit, continues it."""
+    found = train_overrides(ev.spec, ev.budget)
+    if found is None:
+        return f"no spec file in experiments/ resolves to this run; its spec is {ev.path / 'spec.yaml'}"
+    file, sets = found
+    try:
+        shown = file.relative_to(EXPERIMENTS.parent)
+    except ValueError:
+        shown = file
+    return (f"esr --store {store.root} train {shown} --budget {ev.budget}" + "".join(f" --set {s}" for s in sets))
 
 
 MIN_CURVE_EPOCHS = 500
@@ -367,14 +413,17 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
                 if ev is not None:
                     lines.append(f"| ↳ esr's variant `{label}` | | {measured} | {_run_cell(ev)} | |")
         lines.append("")
-    unfinished = {ev.key: ev for f in findings for ev in [f.a, f.b] + [v[1] for v in f.variants]
-                  if ev is not None and ev.status == "partial"}
-    if unfinished:
-        lines += ["## Runs still going", "", "Each continues from its last checkpoint with the command beside it, run from "
-                  "a checkout whose training code is the one that started it (docs/paper.md: the long runs are pinned to one "
-                  "commit), or with the sweep that started it:", ""]
-        for ev in unfinished.values():
-            lines.append(f"- `{ev.key[:8]}` {ev.spec.name}: {ev.describe_length()}; `{continue_command(ev, store)}`")
+    behind = {ev.key: ev for f in findings for ev in [f.a, f.b] + [v[1] for v in f.variants] if ev is not None}
+    if behind:
+        lines += ["## The runs behind this report", "",
+                  "Each was made by the command beside it, run from a checkout of its commit (the training code is part of a "
+                  "run's key: docs/store.md). An unfinished run continues from its last checkpoint with the same command; a "
+                  "finished one grows with a larger `train.epochs`, starting from its last epoch (docs/store.md).", "",
+                  "| run | spec | status | commit | command |", "|---|---|---|---|---|"]
+        for ev in sorted(behind.values(), key=lambda e: (e.status == "complete", e.spec.name, e.key)):
+            state = "finished" if ev.status == "complete" else "**unfinished**"
+            lines.append(f"| `{ev.key[:8]}` | {ev.spec.name} | {state}: {ev.describe_length()} | "
+                         f"{(ev.commit or 'unknown')[:7]} | `{train_command(ev, store)}` |")
         lines.append("")
     img = out.parent / "img" / "reproduction_curves.png"
     if learning_curves(findings, img, f"Runs of at least {MIN_CURVE_EPOCHS:,} epochs behind the report (epochs done in brackets)"):

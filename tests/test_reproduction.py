@@ -92,6 +92,7 @@ def test_cli_writes_the_report_from_a_store(tmp_path):
     text = out.read_text()
     assert "| N = 2: ESR ends above Random |" in text and f"`{run_path.name[:8]}`" in text
     assert "**Summary:** 38 statements" in text
+    assert f"train experiments/grid_2.yaml --budget paper --set train.epochs=1 --set train.num_envs=4 --set train.seeds=1 --set train.chunk_epochs=1" in text
     assert len(list(Path(store).glob("runs/*/*/manifest.json"))) == 3  # the report trained nothing
 
 
@@ -99,3 +100,22 @@ def test_an_mi_estimate_stuck_near_zero_is_not_positive():
     claim = _claim("N = 5: the MI estimate turns positive and stays positive")
     stuck = _index(_evidence("grid_5", mi=lambda e: 0.002))
     assert rep.judge(claim, stuck).verdict == "not reproduced (1 seed)"
+
+
+def test_the_command_that_made_a_run_resolves_to_its_spec():
+    """The report's command for a run: its experiments/ file and the --set values that turn it
+    into the stored spec, at the run's budget (a quick run's own budget changes are not repeated)."""
+    sets = ["train.epochs=3000", "train.seeds=1", "method.variant=original"]
+    spec = rep.specs.load(rep.EXPERIMENTS / "grid_5_ave.yaml", "paper", sets)
+    file, found = rep.train_overrides(spec, "paper")
+    assert file.name == "grid_5_ave.yaml" and sorted(found) == sorted(sets)
+    quick = rep.specs.load(rep.EXPERIMENTS / "grid_7.yaml", "quick", ["train.epochs=200", "train.seeds=[3, 4]", "method.future=human"])
+    file, found = rep.train_overrides(quick, "quick")
+    assert sorted(found) == ["method.future=human", "train.epochs=200", "train.seeds=[3, 4]"]
+    assert rep.specs.load(file, "quick", found).training_part() == quick.training_part()
+    renamed = rep.specs.load(rep.EXPERIMENTS / "grid_2.yaml", "paper", ["name=my_grid"])
+    assert rep.train_overrides(renamed, "paper") is None  # no experiments/my_grid.yaml
+    ev = rep.Evidence("0" * 32, Path("/store/runs/00/x"), "partial", "paper", spec, [{"epoch": 1, "return": [1.0]}], "abc1234")
+    assert rep.train_command(ev, rep.Store(Path("/store"))) == (
+        "esr --store /store train experiments/grid_5_ave.yaml --budget paper"
+        " --set method.variant=original --set train.epochs=3000 --set train.seeds=1")
