@@ -421,8 +421,8 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
                   "finished one grows with a larger `train.epochs`, starting from its last epoch (docs/store.md).", "",
                   "| run | spec | status | commit | command |", "|---|---|---|---|---|"]
         for ev in sorted(behind.values(), key=lambda e: (e.status == "complete", e.spec.name, e.key)):
-            state = "finished" if ev.status == "complete" else "**unfinished**"
-            lines.append(f"| `{ev.key[:8]}` | {ev.spec.name} | {state}: {ev.describe_length()} | "
+            state = f"finished: {ev.describe_length()}" if ev.status == "complete" else f"**{ev.describe_length()}**"
+            lines.append(f"| `{ev.key[:8]}` | {ev.spec.name} | {state} | "
                          f"{(ev.commit or 'unknown')[:7]} | `{train_command(ev, store)}` |")
         lines.append("")
     img = out.parent / "img" / "reproduction_curves.png"
