@@ -274,12 +274,12 @@ def train_overrides(spec: specs.Spec, budget: str, experiments: Path = EXPERIMEN
     if not file.is_file():
         return None
     try:
-        base = _leaves(specs.load(file, budget).training_part())
-        want = _leaves(spec.training_part())
+        target = spec.training_part()
+        base, want = _leaves(specs.load(file, budget).training_part()), _leaves(target)
         if base.keys() != want.keys():  # another kind of method, human or network
             return None
         sets = [_override_text(k, want[k]) for k in want if want[k] != base[k]]
-        if specs.load(file, budget, sets).training_part() != spec.training_part():
+        if specs.load(file, budget, sets).training_part() != target:
             return None
     except (specs.SpecError, yamlio.YamlInputError):
         return None

@@ -199,7 +199,6 @@ def test_stacked_batch_negatives_lose_the_human_where_the_context_identifies_the
     assert estimate < 0.3 * TRUE_MI, estimate
 
 
-
 def test_the_separate_loss_estimate_carries_an_arbitrary_offset_here():
     """What the paper's equation (two separate InfoNCE problems) does here: each problem fixes
     its logits only up to its own constant, so phi - phi' is offset by their difference and the
@@ -207,6 +206,7 @@ def test_the_separate_loss_estimate_carries_an_arbitrary_offset_here():
     docs/estimators.md)."""
     estimate = _synthetic_estimate("separate", 1, "full")
     assert estimate > TRUE_MI + 0.45, estimate
+
 
 # ---------------------------------------------------------------- the simplified reward
 def test_simplified_reward_by_hand():
