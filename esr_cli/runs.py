@@ -233,8 +233,7 @@ def _eval_partner(spec, partner: str):
             other = type(spec.human).model_validate({**spec.human.model_dump(), "data": episodes, "split": "train",
                                                      "adapt": False})
         except ValidationError as e:
-            msg = e.errors()[0]["msg"].removeprefix("Value error, ")
-            raise StoreError(f"--human {partner[:60]}: {msg}") from None
+            raise StoreError(f"--human {partner[:60]}: {specs.first_problem(e)[1]}") from None
     other_spec = spec.model_copy(update={"human": other})
     keys = human_runs.dependencies(other_spec)[HUMAN_KIND]
     return other_spec, keys if isinstance(keys, str) else content_key({"per_seed_humans": keys})
