@@ -196,10 +196,31 @@ def _mi_summary(ev: Evidence) -> tuple[bool, str]:
     return holds, f"final MI {final:+.3f} nats; positive in {share:.0%} of the second half's epochs"
 
 
+def run_label(spec: specs.Spec) -> str:
+    """The method of a run as a reader knows it, with what sets it apart from the paper's
+    settings in brackets: 'ESR (warm-up 20, representation rate 0.001)', 'AvE (published)'."""
+    from esr_cli.figures import METHOD_LABELS
+
+    method, notes = spec.method, []
+    if isinstance(method, specs.AvEMethodSpec) and method.variant == "original":
+        notes.append("published")
+    if isinstance(method, specs.ESRMethodSpec):
+        if not method.condition_on_robot_action:
+            notes.append("without aR")
+        if method.repr_lr != specs.ESRMethodSpec.model_fields["repr_lr"].default:
+            notes.append(f"representation rate {method.repr_lr:g}")
+    if spec.learner.gamma == 0.0:
+        notes.append("critic gamma 0")
+    if spec.learner.warmup_epochs:
+        notes.append(f"warm-up {spec.learner.warmup_epochs}")
+    name = METHOD_LABELS.get(method.kind, method.kind).removesuffix(" (ours)")
+    return name + (f" ({', '.join(notes)})" if notes else "")
+
+
 def _compare(kind: str, a: Evidence, b: Evidence) -> tuple[bool | None, str]:
     """(holds, text): True / False, or None where several seeds leave it open."""
     fa, fb = a.finals(), b.finals()
-    text = f"{format_summary(fa)} against {format_summary(fb)}"
+    text = f"{run_label(a.spec)} {format_summary(fa)} against {run_label(b.spec)} {format_summary(fb)}"
     if fa["seeds"] >= 2 or fb["seeds"] >= 2:
         p, low, high = probability_of_improvement(fa["per_seed"], fb["per_seed"])
         text += f"; P(improvement) {p:.2f} [{low:.2f}, {high:.2f}]"
@@ -225,7 +246,7 @@ def judge(claim: Claim, index: dict[str, list[Evidence]]) -> Finding:
             variants.append((label, ev, _mi_summary(ev)[1]))
         else:
             other = b and _compare(claim.kind, ev, b)[1]
-            variants.append((label, ev, other or format_summary(ev.finals())))
+            variants.append((label, ev, other or f"{run_label(ev.spec)} {format_summary(ev.finals())}"))
     needed = [a] + ([b] if claim.b else [])
     if any(e is None for e in needed):
         return Finding(claim, a, b, NOT_YET, "not run", variants)
@@ -322,12 +343,7 @@ def learning_curves(findings: list[Finding], out_png: Path, title: str) -> Optio
     groups: dict[str, list] = {}
     colours: dict[str, str] = {}
     for ev in sorted(runs.values(), key=panel_order):
-        variant = []
-        if ev.spec.learner.warmup_epochs:
-            variant.append(f"warm-up {ev.spec.learner.warmup_epochs}")
-        if getattr(ev.spec.method, "variant", None) == "original":
-            variant.append("published")
-        name = figs.METHOD_LABELS.get(ev.spec.method.kind, ev.spec.method.kind) + (f" ({', '.join(variant)})" if variant else "")
+        name = run_label(ev.spec)
         colour = colours.setdefault(name, f"C{len(colours)}")
         groups.setdefault(figs.env_title(ev.spec), []).append((f"{name} [{ev.epochs_done:,}]", colour, ev.rows))
     fig, _ = figs.panels_figure(list(groups.items()), title, "return", legend_each=True)

@@ -37,7 +37,19 @@ def test_one_seed_verdicts_and_the_comparable_length():
     assert rep.judge(above, index).verdict == "not reproduced (1 seed)"
     short = _index(_evidence("grid_5", finals=(20.0,), epochs=2999, status="partial"), _evidence("grid_5_random", finals=(9.0,)))
     finding = rep.judge(above, short)
-    assert finding.verdict == rep.NOT_YET and finding.measured.startswith("20.00 (1 seed) against 9.00 (1 seed)")
+    assert finding.verdict == rep.NOT_YET and finding.measured.startswith("ESR 20.00 (1 seed) against Random 9.00 (1 seed)")
+
+
+def test_each_side_of_a_comparison_is_named_with_what_sets_it_apart():
+    label = lambda stem, sets=(): rep.run_label(rep.claim_spec((stem, sets)))
+    assert label("grid_5") == "ESR"
+    assert label("grid_5", rep.QUICK_CHANGES) == "ESR (representation rate 0.001, warm-up 20)"
+    assert label("grid_5", rep.NO_ROBOT_ACTION) == "ESR (without aR)"
+    assert label("grid_5", rep.GREEDY) == "ESR (critic gamma 0)"
+    assert label("grid_5_ave", rep.PUBLISHED_AVE) == "AvE (published)" and label("grid_5_ave") == "AvE"
+    below = _claim("N = 5: AvE ends below Random")
+    index = _index(_evidence("grid_5_random", finals=(9.0,)), _evidence("grid_5_ave", rep.PUBLISHED_AVE, finals=(0.0,)))
+    assert rep.judge(below, index).measured == "Random 9.00 (1 seed) against AvE (published) 0.00 (1 seed)"
 
 
 def test_the_longest_matching_run_is_used_whatever_its_length_or_seeds():
