@@ -108,6 +108,21 @@ def test_cli_writes_the_report_from_a_store(tmp_path):
     assert len(list(Path(store).glob("runs/*/*/manifest.json"))) == 3  # the report trained nothing
 
 
+def test_the_estimator_check_takes_the_longest_finished_n2_esr_run_that_learned():
+    random = _evidence("grid_2_random", finals=(13.0,))
+    paper = _evidence("grid_2", finals=(17.0,), epochs=1000)
+    quick = _evidence("grid_2", rep.QUICK_CHANGES, finals=(35.0,), epochs=1000)
+    assert rep.estimator_run(_index(random, quick, paper)) is paper  # a tie goes to the paper's settings
+    assert rep.estimator_run(_index(random, paper, quick)) is paper
+    longer = _evidence("grid_2", rep.QUICK_CHANGES, finals=(35.0,), epochs=1500)
+    assert rep.estimator_run(_index(random, paper, longer)) is longer
+    below = _evidence("grid_2", finals=(9.0,), epochs=3000)
+    unfinished = _evidence("grid_2", rep.QUICK_CHANGES, finals=(35.0,), epochs=2000, status="partial")
+    larger_grid = _evidence("grid_5", finals=(30.0,), epochs=3000)
+    assert rep.estimator_run(_index(random, paper, below, unfinished, larger_grid)) is paper
+    assert rep.estimator_run(_index(paper)) is None  # no Random run to have learned against
+
+
 def test_an_mi_estimate_stuck_near_zero_is_not_positive():
     claim = _claim("N = 5: the MI estimate turns positive and stays positive")
     stuck = _index(_evidence("grid_5", mi=lambda e: 0.002))
