@@ -94,11 +94,14 @@ def rollout_gif(frames: list[np.ndarray], out_gif: Path, fps: int = 6) -> Path:
     return out_gif
 
 
+SCATTER_POINTS = 20_000  # the estimator scatter draws this many pairs at random when there are more
+
+
 def estimator_scatter(exact_mi, estimate, spearman: float, out_png: Path, provenance: dict) -> Path:
     """ESR's reward estimate against the exact conditional MI, one point per (state, robot action)."""
     fig, ax = plt.subplots(figsize=(4.8, 4.2))
     rng = np.random.default_rng(0)
-    idx = rng.choice(len(exact_mi), size=min(len(exact_mi), 20_000), replace=False)
+    idx = rng.choice(len(exact_mi), size=min(len(exact_mi), SCATTER_POINTS), replace=False)
     ax.scatter(np.asarray(exact_mi)[idx], np.asarray(estimate)[idx], s=3, alpha=0.3, color="C0", linewidths=0)
     ax.set_xlabel("exact I(aH; s+ | s, aR)  (nats)")
     ax.set_ylabel("ESR reward, averaged over g ~ rho")

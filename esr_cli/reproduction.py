@@ -22,7 +22,7 @@ from esr_cli import spec as specs, yamlio
 from esr_cli.artifacts import ensure
 from esr_cli.finals import FINAL_FRACTION, final_per_seed, read_rows, series
 from esr_cli.stats import describe, format_summary, probability_of_improvement
-from esr_cli.store import RUN_KIND, Store, atomic_write_text
+from esr_cli.store import RUN_KIND, Store, atomic_write_bytes, atomic_write_text
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
 PAPER_EPOCHS = 10_000
@@ -375,8 +375,10 @@ def estimator_run(index: dict[str, list[Evidence]]) -> Optional[Evidence]:
     return max(learned, key=lambda e: (e.epochs_done, e.seeds, paper_settings(e), e.key), default=None)
 
 
-def estimator_section(index: dict[str, list[Evidence]], store: Store, console, compute: bool) -> list[str]:
-    """The estimator check (exact empowerment against ESR's reward) on `estimator_run`."""
+def estimator_section(index: dict[str, list[Evidence]], store: Store, console, compute: bool,
+                      img_dir: Path) -> list[str]:
+    """The estimator check (exact empowerment against ESR's reward) on `estimator_run`, its
+    scatter copied into `img_dir` beside the report."""
     lines = ["## The estimator against exact empowerment", ""]
     ev = estimator_run(index)
     if ev is None:
@@ -387,20 +389,27 @@ def estimator_section(index: dict[str, list[Evidence]], store: Store, console, c
     if not compute:
         return lines + [head, "", "not computed (run `esr paper --report` without `--no-exact`).", ""]
     from esr_cli import exact_runs  # jax: only when the report computes exact empowerment
+    from esr_cli.plots import SCATTER_POINTS
 
     trained = ensure(exact_runs.exact_recipe(ev.spec, store, None, None, ev.key, 0, console), store)
     uniform = ensure(exact_runs.exact_recipe(ev.spec, store, None, None, None, 0, console), store)
     uniform_summary = uniform.summary()
-    check = ensure(exact_runs.estimator_recipe(trained.path.name, store, console), store).summary()
-    trained_summary = trained.summary()
+    scatter = ensure(exact_runs.estimator_recipe(trained.path.name, store, console), store)
+    check, trained_summary = scatter.summary(), trained.summary()
+    figure = []
+    if (scatter.path / "estimator.png").is_file():
+        img_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(img_dir / "reproduction_estimator.png", (scatter.path / "estimator.png").read_bytes())
+        figure = ["![ESR's reward against the exact MI](img/reproduction_estimator.png)", ""]
     return lines + [head, "",
                     "| quantity | value |", "|---|---|",
                     f"| Spearman (ESR's reward, exact MI), all {check['pairs']:,} (state, robot action) pairs | {check['spearman']:.3f} |",
                     f"| the same over the {check['visited_pairs']:,} pairs holding 99% of the trained robot's discounted occupancy | {check['spearman_visited']:.3f} |",
                     f"| the human's exact effective empowerment under the trained robot | {trained_summary['effective_empowerment']:.3f} nats |",
                     f"| the same under a uniform robot | {uniform_summary['effective_empowerment']:.3f} nats |",
-                    "", f"Artifacts: exact `{trained.path.name[:8]}` (trained), `{uniform.path.name[:8]}` (uniform); "
-                    "`esr plot estimator` draws the scatter.", ""]
+                    "", f"Artifacts: exact `{trained.path.name[:8]}` (trained), `{uniform.path.name[:8]}` (uniform), "
+                    f"scatter `{scatter.path.name[:8]}` (`esr plot estimator`): one point per (state, robot action) pair, "
+                    f"{min(check['pairs'], SCATTER_POINTS):,} of the {check['pairs']:,} drawn at random.", ""] + figure
 
 
 def report(store: Store, out: Path, console, exact: bool = True, now: Optional[str] = None) -> list[Finding]:
@@ -455,7 +464,7 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
     img = out.parent / "img" / "reproduction_curves.png"
     if learning_curves(findings, img, f"Runs of at least {MIN_CURVE_EPOCHS:,} epochs behind the report (epochs done in brackets)"):
         lines += ["## Learning curves", "", f"![learning curves](img/{img.name})", ""]
-    lines += estimator_section(index, store, console, exact)
+    lines += estimator_section(index, store, console, exact, out.parent / "img")
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, "\n".join(lines))
     return findings
