@@ -196,6 +196,16 @@ def _mi_summary(ev: Evidence) -> tuple[bool, str]:
     return holds, f"final MI {final:+.3f} nats; positive in {share:.0%} of the second half's epochs"
 
 
+def _paper_repr_lr(name: str) -> Optional[float]:
+    """The representation rate of experiments/<name>.yaml at the paper's budget (it differs
+    between environments), or None where there is no such ESR spec file."""
+    try:
+        base = specs.load(EXPERIMENTS / f"{name}.yaml", "paper")
+    except (OSError, specs.SpecError, yamlio.YamlInputError):
+        return None
+    return base.method.repr_lr if isinstance(base.method, specs.ESRMethodSpec) else None
+
+
 def run_label(spec: specs.Spec) -> str:
     """The method of a run as a reader knows it, with what sets it apart from the paper's
     settings in brackets: 'ESR (warm-up 20, representation rate 0.001)', 'AvE (published)'."""
@@ -207,7 +217,8 @@ def run_label(spec: specs.Spec) -> str:
     if isinstance(method, specs.ESRMethodSpec):
         if not method.condition_on_robot_action:
             notes.append("without aR")
-        if method.repr_lr != specs.ESRMethodSpec.model_fields["repr_lr"].default:
+        paper_rate = _paper_repr_lr(spec.name)
+        if paper_rate is not None and method.repr_lr != paper_rate:
             notes.append(f"representation rate {method.repr_lr:g}")
     if spec.learner.gamma == 0.0:
         notes.append("critic gamma 0")

@@ -47,6 +47,8 @@ def test_each_side_of_a_comparison_is_named_with_what_sets_it_apart():
     assert label("grid_5", rep.NO_ROBOT_ACTION) == "ESR (without aR)"
     assert label("grid_5", rep.GREEDY) == "ESR (critic gamma 0)"
     assert label("grid_5_ave", rep.PUBLISHED_AVE) == "AvE (published)" and label("grid_5_ave") == "AvE"
+    assert label("cramped_room") == "ESR"  # Overcooked's own paper rate is not a change
+    assert label("cramped_room", ("method.repr_lr=0.001",)) == "ESR (representation rate 0.001)"
     below = _claim("N = 5: AvE ends below Random")
     index = _index(_evidence("grid_5_random", finals=(9.0,)), _evidence("grid_5_ave", rep.PUBLISHED_AVE, finals=(0.0,)))
     assert rep.judge(below, index).measured == "Random 9.00 (1 seed) against AvE (published) 0.00 (1 seed)"
