@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from functools import cache
 from pathlib import Path
 from typing import Optional
 
@@ -196,6 +197,7 @@ def _mi_summary(ev: Evidence) -> tuple[bool, str]:
     return holds, f"final MI {final:+.3f} nats; positive in {share:.0%} of the second half's epochs"
 
 
+@cache  # every label of a report asks again for the same few spec files
 def _paper_repr_lr(name: str) -> Optional[float]:
     """The representation rate of experiments/<name>.yaml at the paper's budget (it differs
     between environments), or None where there is no such ESR spec file."""
