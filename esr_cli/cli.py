@@ -1,6 +1,7 @@
 """The `esr` command line: parse, call, render. Progress and messages go to stderr; stdout
 carries results (artifact paths, tables). Exit codes: 0 success (a cache hit is success),
-1 a failed run, 2 bad usage or a bad spec, 130 interrupted."""
+1 a failed run, 2 bad usage or a bad spec, 75 stopped at `--stop-after` (resumable), 130
+interrupted (resumable)."""
 
 from __future__ import annotations
 
@@ -68,18 +69,44 @@ def _load_spec(path: Path, budget: str, sets: Optional[List[str]]):
     return specs.load(path, budget, list(sets or []))
 
 
+_DURATION_UNITS = {"": 1.0, "s": 1.0, "m": 60.0, "h": 3600.0}
+MAX_DURATION_S = 366 * 24 * 3600.0
+
+
+def parse_duration(text: str, option: str) -> float:
+    """'90', '90s', '9m', '1.5h' -> seconds; anything else (negative, not finite, over a year)
+    is a usage error naming the option."""
+    t = text.strip().lower()
+    unit = t[-1:] if t[-1:] in ("s", "m", "h") else ""
+    try:
+        seconds = float(t[: len(t) - len(unit)]) * _DURATION_UNITS[unit]
+    except ValueError:
+        seconds = float("nan")
+    if not 0.0 <= seconds <= MAX_DURATION_S:  # also false for nan
+        raise Exit(2, f"{option}: expected a duration such as 90s, 9m or 1.5h (at most a year), got {text!r}")
+    return seconds
+
+
 # ---------------------------------------------------------------- train
 @app.command()
 def train(
     spec_file: Path = typer.Argument(..., help="experiment spec (YAML)", show_default=False),
     budget: str = BudgetOpt,
     set_: Optional[List[str]] = SetOpt,
+    stop_after: Optional[str] = typer.Option(
+        None, "--stop-after", help="stop at the last chunk boundary before this much time has passed "
+        "(90s, 9m, 1.5h), saved and resumable, exit 75; for a job or machine with a time limit"),
 ):
     """Train a spec (all its seeds in one program); a finished spec is a cache hit."""
+    import time
+
     from esr_cli import runs
 
+    started = time.monotonic()
+    limit = None if stop_after is None else parse_duration(stop_after, "--stop-after")
     spec = _load_spec(spec_file, budget, set_)
-    built = ensure(runs.run_recipe(spec, err), STATE.store)
+    stop_at = None if limit is None else started + limit
+    built = ensure(runs.run_recipe(spec, err, stop_at=stop_at), STATE.store)
     path, cached = built.path, built.cached
     err.print(f"[green]{'cache hit' if cached else 'trained'}[/]: {spec.name} ({spec.budget}) -> {path}")
     out.print(str(path), soft_wrap=True, highlight=False)
@@ -656,7 +683,7 @@ def global_options_first(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from esr_cli.core.loop import CorruptCheckpoint, Diverged, Interrupted
+    from esr_cli.core.loop import CorruptCheckpoint, Diverged, Interrupted, TimeLimitReached
     from esr_cli.resources import ResourceError
 
     argv = global_options_first(sys.argv[1:] if argv is None else list(argv))
@@ -683,6 +710,9 @@ def main(argv: list[str] | None = None) -> int:
             code, msg = 2, str(e)
         elif isinstance(e, ResourceError):
             code, msg = 2, f"too large for this machine: {e}"
+        elif isinstance(e, TimeLimitReached):
+            code, msg = 75, (f"stopped after epoch {e.epoch:,} of {e.total:,}: the next chunk would pass the time limit; "
+                             "the checkpoint is saved: run the same command again to continue")
         elif isinstance(e, Interrupted):
             code, msg = 130, f"interrupted after epoch {e.epoch}; the checkpoint is saved: run the same command again to resume"
         elif isinstance(e, CorruptCheckpoint):

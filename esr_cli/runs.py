@@ -123,9 +123,10 @@ def _fmt_stats(row: dict, steps_per_s: float) -> str:
     return "  ".join(parts)
 
 
-def run_recipe(spec, console: Console) -> Recipe:
+def run_recipe(spec, console: Console, stop_at: float | None = None) -> Recipe:
     """The training run of `spec` as an artifact: trained, or resumed from its checkpoint, when
-    the store lacks it; its BC humans (if any) are made first."""
+    the store lacks it; its BC humans (if any) are made first. stop_at (a time.monotonic()
+    value): stop at the last chunk boundary before it, resumable (loop.TimeLimitReached)."""
     key, components = run_key(spec)
 
     def check(store: Store):  # memory and disk, before anything is built or written
@@ -152,7 +153,7 @@ def run_recipe(spec, console: Console) -> Recipe:
                 if not console.is_terminal:  # a log file: no bar, a line per chunk
                     console.print(f"{label} epoch {epoch:,}/{total:,}  {stats}", markup=False, highlight=False)
 
-            summary = loop.train(trainer, run_dir, on_chunk=on_chunk, on_start=on_start)
+            summary = loop.train(trainer, run_dir, on_chunk=on_chunk, on_start=on_start, stop_at=stop_at)
         plots.learning_curve(
             read_rows(run_dir),
             run_dir / "figures" / "learning_curve.png",

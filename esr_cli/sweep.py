@@ -320,13 +320,24 @@ class SweepResult:
         return all(p is not None for p in self.paths)
 
 
-def train_job(spec_path: str, budget: str, sets: list[str], store_root: str) -> str:
-    """One job: `esr train spec_path --budget budget --set ...` in-process. -> the artifact path.
-    Module-level so that submitit pickles it by reference."""
+def job_time_budget_s(time_min: int) -> float:
+    """Seconds a job trains before it stops at a chunk boundary: its wall-clock limit less a
+    margin (5%, at least a minute) for start-up and exit, so the scheduler never kills a chunk
+    half-done and the next sweep resumes from the job's last chunk."""
+    limit = 60.0 * time_min
+    return max(0.0, limit - max(60.0, 0.05 * limit))
+
+
+def train_job(spec_path: str, budget: str, sets: list[str], store_root: str, stop_after_s: float | None = None) -> str:
+    """One job: `esr train spec_path --budget budget --set ... --stop-after stop_after_s`
+    in-process. -> the artifact path. Module-level so that submitit pickles it by reference."""
+    import time
+
     from esr_cli import runs  # jax and the training core load only where a run is made here
 
+    stop_at = None if stop_after_s is None else time.monotonic() + stop_after_s
     spec = specs.load(spec_path, budget, sets)
-    return str(ensure(runs.run_recipe(spec, Console(stderr=True)), Store(store_root)).path)
+    return str(ensure(runs.run_recipe(spec, Console(stderr=True), stop_at=stop_at), Store(store_root)).path)
 
 
 def _executor(kind: str, folder: Path, suite: Suite, opts: SlurmOptions):
@@ -440,7 +451,8 @@ def _submit(todo, executor, opts, suite, store, console, result, wait) -> None:
     try:
         with ex.batch():  # one job array on SLURM
             for s in todo:
-                jobs.append(ex.submit(train_job, str(s.run.spec_path), suite.budget, list(s.run.sets), str(store.root.absolute())))
+                jobs.append(ex.submit(train_job, str(s.run.spec_path), suite.budget, list(s.run.sets), str(store.root.absolute()),
+                                         job_time_budget_s(opts.time_min)))
     except FileNotFoundError as e:
         raise SweepError(f"cannot submit to SLURM from here ({e.filename or e} not found): run on a login node, "
                          "or use --executor local") from None

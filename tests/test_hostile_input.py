@@ -409,3 +409,24 @@ def test_exact_on_a_huge_state_space_is_refused_before_any_work(tmp_path):
     assert "env.size" in proc.stderr and "env.blocks" in proc.stderr and "30,000" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "store").exists()
     assert time.perf_counter() - t0 < 30  # the process start and imports; no enumeration
+
+
+@pytest.mark.parametrize("value", ["9x", "-5s"])
+def test_a_bad_stop_after_is_a_usage_error_before_any_work(tmp_path, value):
+    store = tmp_path / "store"
+    proc = esr("train", "experiments/grid_2.yaml", "--budget", "smoke", "--stop-after", value, store=store, check=False)
+    assert proc.returncode == 2 and "--stop-after: expected a duration such as 90s" in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr and not store.exists()
+
+
+def test_durations_by_hand():
+    from esr_cli.cli import Exit, parse_duration
+
+    assert parse_duration("90", "--x") == 90.0
+    assert parse_duration("90s", "--x") == 90.0
+    assert parse_duration("9m", "--x") == 540.0
+    assert parse_duration("1.5H", "--x") == 5400.0
+    assert parse_duration("0", "--x") == 0.0
+    for bad in ("", "m", "-5s", "nan", "inf", "9x", "400d", "1e9h", "5 minutes"):
+        with pytest.raises(Exit, match="--x: expected a duration"):
+            parse_duration(bad, "--x")

@@ -60,7 +60,9 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path, reference, poi
         np.testing.assert_array_equal(a, b)
 
 
-def test_ctrl_c_stops_at_a_chunk_boundary_and_says_how_to_resume(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_stops_at_a_chunk_boundary_and_says_how_to_resume(tmp_path, sig):
+    """Ctrl-C, and the SIGTERM of `kill`, `timeout` or a scheduler, wait for the chunk to end."""
     store = tmp_path / "store"
     proc = subprocess.Popen(
         [sys.executable, "-m", "esr_cli.cli", *SMOKE, "--set", "train.epochs=400"],
@@ -72,7 +74,7 @@ def test_ctrl_c_stops_at_a_chunk_boundary_and_says_how_to_resume(tmp_path):
         if metrics and metrics[0].read_text().count("\n") >= 1:
             break
         time.sleep(0.2)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     out, err = proc.communicate(timeout=300)
     assert proc.returncode == 130, err
     assert "run the same command again to resume" in err and "Traceback" not in err
@@ -81,6 +83,41 @@ def test_ctrl_c_stops_at_a_chunk_boundary_and_says_how_to_resume(tmp_path):
     assert list((part / "checkpoints").iterdir())
     n = len((part / "metrics.jsonl").read_text().splitlines())
     assert 1 <= n < 400
+
+
+def test_stop_after_ends_at_a_chunk_boundary_and_resumes_to_the_uninterrupted_result(tmp_path, reference):
+    store = tmp_path / "store"
+    # 0s: no second chunk fits, so the run stops after its first (one always runs)
+    stopped = esr(*SMOKE, "--stop-after", "0s", store=store, check=False)
+    assert stopped.returncode == 75, stopped.stderr
+    assert "stopped after epoch 1 of 2" in stopped.stderr and "run the same command again" in stopped.stderr
+    assert stopped.stdout == "" and committed(store) == []
+    (part,) = partials(store)
+    assert len((part / "metrics.jsonl").read_text().splitlines()) == 1
+    resumed = esr(*SMOKE, "--stop-after", "1h", store=store)
+    path = Path(resumed.stdout.strip())
+    assert "resuming" in resumed.stderr and committed(store) == [path] and partials(store) == []
+    want_metrics, want_state = reference
+    assert (path / "metrics.jsonl").read_text() == want_metrics
+    for a, b in zip(final_arrays(path), want_state):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_next_chunk_fits_by_the_last_chunks_duration():
+    from esr_cli.core.loop import next_chunk_fits
+
+    assert next_chunk_fits(100.0, None, 1e9)  # no limit
+    assert next_chunk_fits(100.0, 130.0, 30.0)  # ends exactly at the limit
+    assert not next_chunk_fits(100.0, 130.0, 30.5)
+    assert not next_chunk_fits(140.0, 130.0, 0.0)  # already past it
+
+
+def test_a_scheduled_job_stops_a_margin_before_its_time_limit():
+    from esr_cli.sweep import job_time_budget_s
+
+    assert job_time_budget_s(720) == 720 * 60 * 0.95  # 5% of 12 hours: 36 minutes
+    assert job_time_budget_s(10) == 600 - 60  # at least a minute
+    assert job_time_budget_s(1) == 0.0  # one chunk, then stop
 
 
 def test_two_trainers_of_one_spec_make_one_artifact(tmp_path):

@@ -36,11 +36,30 @@ CHECKPOINT_DIGESTS = "checkpoint_digests.json"
 
 
 class Interrupted(Exception):
-    """Ctrl-C arrived; the run stopped at a chunk boundary after saving."""
+    """Ctrl-C (SIGINT) or SIGTERM arrived; the run stopped at a chunk boundary after saving."""
 
     def __init__(self, epoch: int):
         self.epoch = epoch
         super().__init__(f"interrupted after epoch {epoch}")
+
+
+class TimeLimitReached(Exception):
+    """The next chunk would end past the run's time limit; the run stopped after saving."""
+
+    def __init__(self, epoch: int, total: int):
+        self.epoch, self.total = epoch, total
+        super().__init__(f"stopped at the time limit after epoch {epoch} of {total}")
+
+
+# Signals that stop a run at its next chunk boundary instead of at once: Ctrl-C, and the
+# SIGTERM of `kill`, `timeout` or a scheduler, so no finished chunk is lost.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def next_chunk_fits(now: float, stop_at: float | None, last_chunk_seconds: float) -> bool:
+    """Whether a chunk as long as the last one would end by `stop_at` (time.monotonic() values;
+    None: no limit). The last chunk's duration is the estimate: chunks of one run are alike."""
+    return stop_at is None or now + last_chunk_seconds <= stop_at
 
 
 class CorruptCheckpoint(Exception):
@@ -209,10 +228,13 @@ def train(
     run_dir: Path,
     on_chunk: Callable[[int, int, dict, float], None] | None = None,
     on_start: Callable[[int, int], None] | None = None,
+    stop_at: float | None = None,
 ) -> dict:
     """Train (or resume) in `run_dir` until `spec.train.epochs`; -> summary of the last epoch.
 
     on_start(start_epoch, total_epochs); on_chunk(epoch, total, last_row, env_steps_per_s).
+    stop_at: a time.monotonic() value; after each saved chunk the run stops (TimeLimitReached)
+    when the next chunk would end past it. At least one chunk always runs.
     """
     spec = trainer.spec
     run_dir = Path(run_dir)
@@ -227,10 +249,10 @@ def train(
 
     interrupted = {"flag": False}
 
-    def on_sigint(signum, frame):
+    def on_stop_signal(signum, frame):
         interrupted["flag"] = True
 
-    previous = signal.signal(signal.SIGINT, on_sigint)
+    previous = {sig: signal.signal(sig, on_stop_signal) for sig in STOP_SIGNALS}
     compiled: dict[int, Callable] = {}
     chunks_done = 0
     try:
@@ -258,8 +280,11 @@ def train(
                 on_chunk(epoch, total, rows[-1], n * steps_per_epoch * len(seeds) / max(elapsed, 1e-9))
             if interrupted["flag"]:
                 raise Interrupted(epoch)
+            if epoch < total and not next_chunk_fits(time.monotonic(), stop_at, time.perf_counter() - t0):
+                raise TimeLimitReached(epoch, total)
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         mngr.close()
     return summarize(read_rows(run_dir))
 
