@@ -102,10 +102,9 @@ def train(
 
     from esr_cli import runs
 
-    started = time.monotonic()
-    limit = None if stop_after is None else parse_duration(stop_after, "--stop-after")
+    # the limit counts from the command's start, as a scheduler's or a lent machine's does
+    stop_at = None if stop_after is None else time.monotonic() + parse_duration(stop_after, "--stop-after")
     spec = _load_spec(spec_file, budget, set_)
-    stop_at = None if limit is None else started + limit
     built = ensure(runs.run_recipe(spec, err, stop_at=stop_at), STATE.store)
     path, cached = built.path, built.cached
     err.print(f"[green]{'cache hit' if cached else 'trained'}[/]: {spec.name} ({spec.budget}) -> {path}")

@@ -239,6 +239,12 @@ def test_slurm_submission_builds_one_job_array(tmp_path, monkeypatch):
     quiet = Console(stderr=True, quiet=True)
     result = sweep.run_suite(path, "smoke", "slurm", store, quiet, slurm={"time_min": 90})
     assert [job for _, job in result.submitted] == ["4242_0", "4242_1", "4242_2"]
+    # Each job trains until a margin before its 90-minute limit, then stops at a chunk boundary.
+    pickles = sorted((tmp_path / "store").rglob("*_submitted.pkl"))
+    assert len(pickles) == 3
+    for pkl in pickles:
+        call = pickle.loads(pkl.read_bytes())
+        assert call.function is sweep.train_job and call.args[-1] == sweep.job_time_budget_s(90) == 90 * 60 * 0.95
     assert result.paths == [None] * 3 and not result.complete  # submitted, not waited for
     script = (bin_dir / "script.sh").read_text()
     for line in ("#SBATCH --array=0-2", "#SBATCH --partition=gpu", "#SBATCH --gpus-per-node=1",
