@@ -248,14 +248,15 @@ def main() -> None:
     print(f"machine: {machine}")
     for r in rows:
         print(f"{r['name']:28} {r['seeds']:>5}: {100 * r['gflops'] / peak:.1f}% of the matmul peak")
-    one = next((r for r in rows if r["seeds"] == 1), rows[0])
+    one = next((r for r in rows if r["seeds"] == 1), None)
     for r in rows:
-        if r["seeds"] > 1 and r["name"] == one["name"]:
+        if one is not None and r["seeds"] > 1 and r["name"] == one["name"]:  # no 1-seed row: no ratio
             print(f"{r['seeds']} seeds: {r['s_per_epoch'] / one['s_per_epoch']:.2f}x the 1-seed time per epoch ({r['seeds']}x would be no gain from vmap)")
     _write(args.out, {"machine": machine, "results": rows})
     print(f"wrote {args.out}")
-    print(f"headline on {machine['device']}: gridworld paper config, {one['seeds']} seed: {one['s_per_epoch']:.2f} s per epoch "
-          f"({one['gflops']:.0f} GFLOP/s, matmul peak {peak:.0f})")
+    head = one or rows[0]
+    print(f"headline on {machine['device']}: {head['name']}, {head['seeds']} seed(s): {head['s_per_epoch']:.3f} s per epoch "
+          f"({head['gflops']:.0f} GFLOP/s, matmul peak {peak:.0f})")
 
 
 if __name__ == "__main__":
