@@ -286,7 +286,24 @@ def train(
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         mngr.close()
+    keep_newest_checkpoint(run_dir)
     return summarize(read_rows(run_dir))
+
+
+def keep_newest_checkpoint(run_dir: Path) -> None:
+    """A finished run keeps only its newest verified checkpoint, the one evaluation and
+    extension restore. The one before it is kept during training only in case the newest is
+    cut short; dropping it halves what a finished run stores and what `esr export` moves."""
+    steps = verified_steps(run_dir)
+    if not steps:
+        return
+    newest = steps[0]
+    # Digests first: a kill between the two steps leaves older directories that verify as
+    # nothing, so they are never restored, and the next call removes them.
+    atomic_write_text(Path(run_dir) / CHECKPOINT_DIGESTS, json.dumps({str(newest): _read_digests(run_dir)[str(newest)]}))
+    for d in (Path(run_dir) / CHECKPOINT_DIR).iterdir():
+        if d.is_dir() and d.name.isdigit() and int(d.name) != newest:
+            shutil.rmtree(d)
 
 
 def summarize(rows: list[dict], last: int = 10) -> dict:
