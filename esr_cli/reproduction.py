@@ -51,6 +51,7 @@ class Evidence:
     spec: specs.Spec
     rows: list[dict]
     commit: Optional[str]
+    device: Optional[str] = None  # where it ran, e.g. 'gpu:NVIDIA H200'; None: unknown
     _finals: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -93,8 +94,11 @@ def index_store(store: Store) -> dict[str, list[Evidence]]:
             continue  # made by code whose spec fields this version no longer reads
         info = entry.manifest or {}
         commit = info.get("provenance", {}).get("git", {}).get("commit") or info.get("commit")
+        # A finished run names its device; an unfinished one only its backend (part of its key).
+        backend = info.get("key_components", {}).get("toolchain", {}).get("backend")
+        device = info.get("provenance", {}).get("device") or (f"{backend}" if backend else None)
         ev = Evidence(entry.key, entry.path, entry.status, info.get("budget", spec.budget), spec,
-                      read_rows(entry.path), commit)
+                      read_rows(entry.path), commit, device)
         if ev.rows:
             out.setdefault(_without_train(spec), []).append(ev)
     return out
@@ -280,7 +284,9 @@ def _run_cell(ev: Optional[Evidence]) -> str:
     if ev is None:
         return "—"
     commit = f", commit {ev.commit[:7]}" if ev.commit else ""
-    return f"`{ev.key[:8]}` ({ev.budget}; {ev.describe_length()}{commit})"
+    # The CPU is the default and goes unsaid; an accelerator's figures are marked as such.
+    device = f", on {ev.device}" if ev.device and not ev.device.startswith("cpu") else ""
+    return f"`{ev.key[:8]}` ({ev.budget}; {ev.describe_length()}{commit}{device})"
 
 
 def _leaves(tree: dict, prefix: str = "") -> dict:
@@ -439,7 +445,8 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
         "Run the same command again to bring it up to date.", "",
         "How to read it:",
         "- Each row is one statement of the paper, checked on the stored run with the most epochs whose spec matches "
-        "(in every field outside `train`, so runs of any length, seed count or checkout count).",
+        "(in every field outside `train`, so runs of any length, seed count or checkout count). A run made on an "
+        "accelerator says so ('on gpu:...'); the others ran on a CPU.",
         f"- Final return: each seed's mean over its last {FINAL_FRACTION:.0%} of epochs. Several seeds: mean ± SE, "
         "the interquartile mean (IQM) with its 95% stratified bootstrap interval, and the probability that the first run "
         "improves on the second with its interval. One seed: its value, marked as one seed.",

@@ -54,6 +54,14 @@ def test_each_side_of_a_comparison_is_named_with_what_sets_it_apart():
     assert rep.judge(below, index).measured == "Random 9.00 (1 seed) against AvE (published) 0.00 (1 seed)"
 
 
+def test_a_run_cell_names_an_accelerator_and_leaves_the_cpu_unsaid():
+    ev = _evidence("grid_10", finals=(6.0,) * 10, epochs=1200, status="partial")
+    ev.commit, ev.device = "e60b1a13968e", "gpu:NVIDIA H200"
+    assert rep._run_cell(ev) == f"`{ev.key[:8]}` (paper; 1,200 epochs of 10,000 (unfinished), 10 seeds, commit e60b1a1, on gpu:NVIDIA H200)"
+    ev.device = "cpu:cpu"
+    assert rep._run_cell(ev).endswith("10 seeds, commit e60b1a1)")
+
+
 def test_the_longest_matching_run_is_used_whatever_its_length_or_seeds():
     above = _claim("N = 5: ESR ends above Random")
     index = _index(_evidence("grid_5", finals=(1.0,), epochs=600), _evidence("grid_5", finals=(20.0,), epochs=3000),
