@@ -1,6 +1,6 @@
 """The `esr` command line: parse, call, render. Progress and messages go to stderr; stdout
 carries results (artifact paths, tables). Exit codes: 0 success (a cache hit is success),
-1 a failed run, 2 bad usage or a bad spec, 75 stopped at `--stop-after` (resumable), 130
+1 a failed run, 2 bad usage or a bad spec, 75 stopped at `--stop-after` or a sweep job's time budget (resumable), 130
 interrupted (resumable)."""
 
 from __future__ import annotations
@@ -117,7 +117,7 @@ def sweep(
     suite_file: Path = typer.Argument(..., help="a suite (YAML): spec files and/or a grid of --set values", show_default=False),
     budget: str = BudgetOpt,
     executor: str = typer.Option("local", "--executor", "-e", help="local (here, one after another) | slurm | submitit-local"),
-    show_status: bool = typer.Option(False, "--status", help="only show each run's state: done / running / queued / failed / missing"),
+    show_status: bool = typer.Option(False, "--status", help="only show each run's state: done / running / queued / stopped / failed / missing"),
     show_results: bool = typer.Option(False, "--results", help="only show each finished run's final return and success (mean ± SE across seeds); trains nothing"),
     as_json: bool = typer.Option(False, "--json", help="--status / --results: print JSON instead of a table"),
     markdown: bool = typer.Option(False, "--markdown", help="--results: print a markdown table"),
@@ -185,6 +185,9 @@ def sweep(
               f"{'run' if executor == 'local' else 'submitted'} this time; `esr sweep --status {suite_file}` shows each")
     if result.failed:
         raise Exit(1, f"{len(result.failed)} run(s) failed: " + "; ".join(f"{r.label}: {m}" for r, m in result.failed))
+    if result.stopped:  # saved at their jobs' time budgets: resumable, like `esr train --stop-after`
+        raise Exit(75, f"{len(result.stopped)} run(s) stopped at their jobs' time budget, saved; "
+                       f"run the same sweep again to continue them")
 
 
 # ---------------------------------------------------------------- eval

@@ -36,7 +36,7 @@ from pydantic import ValidationError
 from esr_cli.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
 
 EXECUTORS = ("local", "slurm", "submitit-local")
-STATES = ("done", "running", "queued", "failed", "missing")
+STATES = ("done", "running", "queued", "stopped", "failed", "missing")
 SWEEPS_DIR = "sweeps"
 
 # SLURM job states (sacct) grouped by what they mean for a run that is not committed.
@@ -49,7 +49,19 @@ class SweepError(Exception):
     """A sweep that cannot proceed (e.g. no SLURM here); `str()` is one line."""
 
 
-__all__ = ["EXECUTORS", "RunStatus", "SlurmOptions", "SweepError", "SweepResult", "SuiteError", "check_metrics",
+@dataclass(frozen=True)
+class JobStopped:
+    """What a job returns when it reached its time budget first: saved at a chunk boundary,
+    resumable. A job that ends this way succeeded; its run is *stopped*, not failed."""
+
+    epoch: int
+    total: int
+
+    def __str__(self) -> str:
+        return f"stopped at its time budget after epoch {self.epoch:,} of {self.total:,}; sweep again to continue"
+
+
+__all__ = ["EXECUTORS", "JobStopped", "RunStatus", "SlurmOptions", "SweepError", "SweepResult", "SuiteError", "check_metrics",
            "known_metrics", "load_suite", "run_suite", "slurm_options", "status", "status_table"]
 
 
@@ -129,7 +141,7 @@ def _job_outcome(rec: dict) -> tuple[str, str]:
         except Exception as e:  # noqa: BLE001 - a truncated pickle says as much as a crash
             return "ERROR", f"unreadable result ({type(e).__name__})"
         if outcome == "success":
-            return "SUCCESS", ""
+            return ("STOPPED", str(payload)) if isinstance(payload, JobStopped) else ("SUCCESS", "")
         last = [ln for ln in str(payload).strip().splitlines() if ln.strip()]
         return "ERROR", (last[-1].strip() if last else "job raised")[:160]
     if rec["executor"] == "slurm":
@@ -172,7 +184,9 @@ def status(suite: Suite, store: Store) -> list[RunStatus]:
         rec = jobs.get(run.key)
         job_state, detail = _job_outcome(rec) if rec else ("", "")
         job = f"job {rec['job_id']}" if rec else ""
-        if job_state == "ERROR" or (job_state and job_state not in _QUEUED | _ALIVE | {"SUCCESS", "GONE"}):
+        if job_state == "STOPPED" and partial.is_dir():
+            out.append(RunStatus(run, "stopped", f"{job}: {detail}", partial))
+        elif job_state == "ERROR" or (job_state and job_state not in _QUEUED | _ALIVE | {"SUCCESS", "STOPPED", "GONE"}):
             out.append(RunStatus(run, "failed", f"{job} {job_state}: {detail}".rstrip(": "), partial if partial.is_dir() else None))
         elif job_state in _QUEUED:
             out.append(RunStatus(run, "queued", f"{job} {job_state}: {detail}".rstrip(": ")))
@@ -189,7 +203,7 @@ def status(suite: Suite, store: Store) -> list[RunStatus]:
     return out
 
 
-_STYLE = {"done": "green", "running": "cyan", "queued": "blue", "failed": "red", "missing": "yellow"}
+_STYLE = {"done": "green", "running": "cyan", "queued": "blue", "stopped": "magenta", "failed": "red", "missing": "yellow"}
 
 
 def status_table(suite: Suite, rows: list[RunStatus]) -> Table:
@@ -314,6 +328,7 @@ class SweepResult:
     submitted: list[tuple[Run, str]] = field(default_factory=list)  # (run, job id); local: "local"
     skipped: list[RunStatus] = field(default_factory=list)  # done, running or queued before the sweep
     failed: list[tuple[Run, str]] = field(default_factory=list)
+    stopped: list[tuple[Run, str]] = field(default_factory=list)  # (run, why): at its time budget, resumable
 
     @property
     def complete(self) -> bool:
@@ -328,16 +343,22 @@ def job_time_budget_s(time_min: int) -> float:
     return max(0.0, limit - max(60.0, 0.05 * limit))
 
 
-def train_job(spec_path: str, budget: str, sets: list[str], store_root: str, stop_after_s: float | None = None) -> str:
+def train_job(spec_path: str, budget: str, sets: list[str], store_root: str,
+              stop_after_s: float | None = None) -> str | JobStopped:
     """One job: `esr train spec_path --budget budget --set ... --stop-after stop_after_s`
-    in-process. -> the artifact path. Module-level so that submitit pickles it by reference."""
+    in-process. -> the artifact path, or JobStopped if the time budget came first (the run is
+    saved at a chunk boundary). Module-level so that submitit pickles it by reference."""
     import time
 
     from esr_cli import runs  # jax and the training core load only where a run is made here
+    from esr_cli.core.loop import TimeLimitReached
 
     stop_at = None if stop_after_s is None else time.monotonic() + stop_after_s
     spec = specs.load(spec_path, budget, sets)
-    return str(ensure(runs.run_recipe(spec, Console(stderr=True), stop_at=stop_at), Store(store_root)).path)
+    try:
+        return str(ensure(runs.run_recipe(spec, Console(stderr=True), stop_at=stop_at), Store(store_root)).path)
+    except TimeLimitReached as e:
+        return JobStopped(e.epoch, e.total)
 
 
 def _executor(kind: str, folder: Path, suite: Suite, opts: SlurmOptions):
@@ -405,7 +426,7 @@ def run_suite(
         # artifacts.ensure waits on a run another process holds, so nothing is skipped but the done.
         todo = [s for s in before if s.state != "done"]
     else:
-        todo = [s for s in before if s.state in ("missing", "failed")]
+        todo = [s for s in before if s.state in ("missing", "stopped", "failed")]
     todo_keys = {s.run.key for s in todo}
     result.skipped = [s for s in before if s.run.key not in todo_keys]
     n_done = sum(s.state == "done" for s in before)
@@ -465,7 +486,11 @@ def _submit(todo, executor, opts, suite, store, console, result, wait) -> None:
         return
     for s, j in zip(todo, jobs):
         try:
-            j.result()
+            outcome = j.result()
+            if isinstance(outcome, JobStopped):
+                console.print(f"[magenta]stopped[/]: {s.run.label} (job {j.job_id}): {outcome}")
+                result.stopped.append((s.run, str(outcome)))
+                continue
             console.print(f"[green]done[/]: {s.run.label} (job {j.job_id})")
         except Exception as e:  # noqa: BLE001 - submitit's FailedJobError / UncompletedJobError
             last = [ln for ln in str(e).strip().splitlines() if ln.strip()]

@@ -190,31 +190,47 @@ def test_sweep_through_submitit_local(smoke_run, tmp_path):
 
 def test_status_tells_running_failed_queued_missing(tmp_path):
     store = Store(tmp_path / "store")
-    suite = sweep.load_suite(seeds_suite(tmp_path, 5), "smoke")
+    suite = sweep.load_suite(seeds_suite(tmp_path, 6), "smoke")
     r = suite.runs
     # 0: a partial run that nobody holds (a killed writer) -> failed.
     store.partial_path("runs", r[0].key).mkdir(parents=True)
-    # 2: a job that raised; 3: a job whose process is alive but has not taken the lock yet.
+    # 2: a job that raised; 3: a job whose process is alive but has not taken the lock yet;
+    # 5: a job that reached its time budget and saved its run at a chunk boundary.
     folder = tmp_path / "logs" / "%j"
-    sweep._record_jobs(store, suite, "submitit-local", [(r[2], "999999", folder), (r[3], str(os.getpid()), folder)])
-    result = tmp_path / "logs" / "999999" / "999999_0_result.pkl"
-    result.parent.mkdir(parents=True)
-    result.write_bytes(pickle.dumps(("error", "Traceback (most recent call last):\n  ...\nValueError: boom\n")))
+    sweep._record_jobs(store, suite, "submitit-local",
+                       [(r[2], "999999", folder), (r[3], str(os.getpid()), folder), (r[5], "999998", folder)])
+    for job, outcome in (("999999", ("error", "Traceback (most recent call last):\n  ...\nValueError: boom\n")),
+                         ("999998", ("success", sweep.JobStopped(1, 2)))):
+        result = tmp_path / "logs" / job / f"{job}_0_result.pkl"
+        result.parent.mkdir(parents=True)
+        result.write_bytes(pickle.dumps(outcome))
+    store.partial_path("runs", r[5].key).mkdir(parents=True)
     # 1: its lock is held (flock conflicts between two open files, even in one process).
     with store.lock("runs", r[1].key):
         rows = sweep.status(suite, store)
-    assert [row.state for row in rows] == ["failed", "running", "failed", "running", "missing"]
+    assert [row.state for row in rows] == ["failed", "running", "failed", "running", "missing", "stopped"]
     assert "no live writer" in rows[0].note
     assert f"pid {os.getpid()}" in rows[1].note
     assert "job 999999" in rows[2].note and "ValueError: boom" in rows[2].note
+    assert rows[5].note == "job 999998: stopped at its time budget after epoch 1 of 2; sweep again to continue"
     # Once the lock is free again, run 1 (no partial, no job) is missing.
     assert sweep.status(suite, store)[1].state == "missing"
     table = sweep.status_table(suite, rows)
-    assert table.row_count == 5 and "2 failed" in str(table.title) and "1 missing" in str(table.title)
+    assert table.row_count == 6 and "2 failed" in str(table.title) and "1 stopped" in str(table.title)
     # --results names what is not done, with the command that makes it, and reads nothing else.
     res = sweep.results(suite, store)
-    assert [row["state"] for row in res] == ["failed", "missing", "failed", "running", "missing"]
+    assert [row["state"] for row in res] == ["failed", "missing", "failed", "running", "missing", "stopped"]
     assert res[4]["command"] == f"esr train {GRID_2} --budget smoke --set 'train.seeds=[4]'" and "return" not in res[4]
+
+
+def test_a_job_that_reaches_its_time_budget_returns_stopped_and_the_next_finishes(smoke_run, tmp_path):
+    # In-process, as submitit runs it; grid_2's smoke program is in the session's compile cache.
+    store = tmp_path / "store"
+    stopped = sweep.train_job(GRID_2, "smoke", [], str(store), stop_after_s=0.0)  # one chunk always runs
+    assert stopped == sweep.JobStopped(1, 2)
+    assert len(list(store.glob("runs/*/*.partial"))) == 1
+    path = Path(sweep.train_job(GRID_2, "smoke", [], str(store), stop_after_s=None))
+    assert (path / "manifest.json").is_file() and not list(store.glob("runs/*/*.partial"))
 
 
 FAKE_SBATCH = """#!/bin/sh
@@ -255,3 +271,21 @@ def test_slurm_submission_builds_one_job_array(tmp_path, monkeypatch):
     assert [r.state for r in rows] == ["queued"] * 3 and "job 4242_0" in rows[0].note
     again = sweep.run_suite(path, "smoke", "slurm", store, quiet)
     assert again.submitted == [] and len(again.skipped) == 3
+
+
+def test_a_sweep_whose_jobs_stopped_at_their_time_budget_exits_75(tmp_path, monkeypatch, capsys):
+    from esr_cli.cli import main
+
+    path = seeds_suite(tmp_path, 2)
+    suite = sweep.load_suite(path, "smoke")
+
+    def stopped_sweep(*args, **kwargs):
+        r = suite.runs
+        return sweep.SweepResult(suite, [None, None], submitted=[(r[0], "1"), (r[1], "2")],
+                                 stopped=[(run, str(sweep.JobStopped(1, 2))) for run in r])
+
+    monkeypatch.setattr(sweep, "run_suite", stopped_sweep)
+    assert main(["--store", str(tmp_path / "store"), "sweep", str(path), "--budget", "smoke",
+                 "--executor", "submitit-local"]) == 75
+    err = " ".join(capsys.readouterr().err.split())
+    assert "0 of 2 run(s) done" in err and "2 run(s) stopped at their jobs' time budget, saved; run the same sweep again" in err
