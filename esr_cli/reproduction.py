@@ -96,7 +96,7 @@ def index_store(store: Store) -> dict[str, list[Evidence]]:
         commit = info.get("provenance", {}).get("git", {}).get("commit") or info.get("commit")
         # A finished run names its device; an unfinished one only its backend (part of its key).
         backend = info.get("key_components", {}).get("toolchain", {}).get("backend")
-        device = info.get("provenance", {}).get("device") or (f"{backend}" if backend else None)
+        device = info.get("provenance", {}).get("device") or backend
         ev = Evidence(entry.key, entry.path, entry.status, info.get("budget", spec.budget), spec,
                       read_rows(entry.path), commit, device)
         if ev.rows:
