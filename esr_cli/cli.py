@@ -17,7 +17,7 @@ from rich.table import Table
 
 from esr_cli import spec as specs
 from esr_cli.artifacts import ensure
-from esr_cli.store import Store, StoreError
+from esr_cli.store import RUN_KIND, Store, StoreError
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -470,7 +470,10 @@ def _field(info, *path):
 @app.command("ls")
 def ls():
     """List the artifacts in the store."""
-    table = Table()
+    from esr_cli.finals import final_return_mean
+
+    table = Table(caption="final return: a run's mean over each seed's last 10% of epochs (so far, if unfinished), "
+                          "averaged over seeds, as in figures and reports; an evaluation's mean episode return")
     for col in ("kind", "name", "key", "budget", "seeds", "status", "final return"):
         table.add_column(col)
     n = damaged = 0
@@ -478,7 +481,9 @@ def ls():
         m = e.manifest or {}
         status = "damaged" if e.status == "complete" and e.manifest is None else e.status  # unreadable manifest
         damaged += status == "damaged"
-        ret, seeds = _field(m, "summary", "return", "mean"), m.get("seeds")
+        seeds = m.get("seeds")
+        # A run's manifest summary is its last 10 epochs; "final" everywhere else is the last 10%.
+        ret = final_return_mean(e.path) if e.kind == RUN_KIND else _field(m, "summary", "return", "mean")
         table.add_row(
             e.kind,
             str(m.get("name", "?")),

@@ -1,5 +1,6 @@
 """The artifact store: keys, atomic commit, locking, verification."""
 
+import json
 import subprocess
 import sys
 import time
@@ -225,3 +226,21 @@ def test_code_digest_follows_what_the_training_path_imports(tmp_path, monkeypatc
     assert changed != before
     (copy / "core" / "extra.py").write_text("SCALE = 3.0\n")
     assert digest(provenance.TRAINING_SOURCES) != changed  # the new module's own edits count now
+
+
+def test_ls_shows_a_runs_final_return_as_figures_and_reports_do(tmp_path):
+    """`esr ls`'s "final return" is each seed's mean over its last 10% of epochs, averaged over
+    seeds (not the manifest's 10-epoch summary), for unfinished runs too."""
+    store = Store(tmp_path)
+    rows = "".join(json.dumps({"epoch": e, "return": [float(e), float(2 * e)]}) + "\n" for e in range(1, 31))
+    done = store.begin("runs", "cd" * 16, {"name": "finished", "key": "cd" * 16})
+    (done / "metrics.jsonl").write_text(rows)
+    store.commit("runs", "cd" * 16, {"kind": "runs", "name": "finished", "key": "cd" * 16, "seeds": [0, 1],
+                                      "summary": {"return": {"mean": 99.0}}})
+    going = store.begin("runs", "ef" * 16, {"name": "going", "key": "ef" * 16})
+    (going / "metrics.jsonl").write_text(rows + '{"epoch": 31, "ret')  # a line cut short by a kill
+    listed = esr("ls", store=tmp_path).stdout
+    # the last 3 of 30 epochs: seed 0 (28+29+30)/3 = 29, seed 1 58; their mean 43.5
+    finished = next(line for line in listed.splitlines() if "finished" in line)
+    assert "43.50" in finished and "99.00" not in finished
+    assert "43.50" in next(line for line in listed.splitlines() if "going" in line)
