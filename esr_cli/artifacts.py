@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Callable, NamedTuple
 
 from esr_cli import provenance
-from esr_cli.store import KINDS, Store, atomic_write_text, content_key
+from esr_cli.store import KINDS, RUN_KIND, Store, atomic_write_text, content_key
 
 SUMMARY_FILE = "summary.json"
 
@@ -75,8 +75,10 @@ def ensure(recipe: Recipe, store: Store) -> Built:
                    "seeds": list(recipe.seeds)}
         # The key components are in pending.json from the start: an unfinished run can then be
         # found by a longer run of the same lineage (runs.adopt_shorter_run).
+        # A run names its device from the start, so a report on it while unfinished can too.
+        where = {"device": provenance.device()} if recipe.kind == RUN_KIND else {}
         out = store.begin(recipe.kind, key, {**pending, "key_components": recipe.components,
-                                             "commit": provenance.git_state()["commit"]})
+                                             "commit": provenance.git_state()["commit"], **where})
         started = time.time()
         summary = recipe.build(out, store)
         if recipe.summary_file:

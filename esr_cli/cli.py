@@ -647,20 +647,28 @@ def export_(
 
 
 @app.command("import")
-def import_(archives: List[Path] = typer.Argument(..., help="archives written by `esr export`", show_default=False)):
+def import_(
+    archives: List[Path] = typer.Argument(..., help="archives written by `esr export`", show_default=False),
+    without_checkpoint: bool = typer.Option(False, "--without-checkpoint", help="also accept an unfinished run "
+                                            "whose checkpoint did not travel: its logged epochs, for reports and "
+                                            "figures; training it again starts from epoch 0"),
+):
     """Put artifacts exported from another store into this one, each checked and then added in
     one step; an unfinished run continues with the command that started it."""
+    from esr_cli.checkpoint_files import verified_steps
     from esr_cli.transfer import import_archive
 
     missing = [str(a) for a in archives if not a.is_file()]
     if missing:
         raise Exit(2, f"no archive {', '.join(missing)}")
     for archive in archives:
-        moved = import_archive(STATE.store, archive)
+        moved = import_archive(STATE.store, archive, without_checkpoint)
         if moved.files == 0:
             err.print(f"{moved.kind} {moved.key[:12]} is already in the store: nothing to import")
         else:
-            err.print(f"[green]imported[/] {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files)")
+            record = moved.status == "partial" and not verified_steps(moved.path)
+            note = "; a record without a checkpoint: training it again starts from epoch 0" if record else ""
+            err.print(f"[green]imported[/] {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files{note})")
         out.print(str(moved.path), soft_wrap=True, highlight=False)
 
 

@@ -21,6 +21,7 @@ import numpy as np
 
 from esr_cli import spec as specs, yamlio
 from esr_cli.artifacts import ensure
+from esr_cli.checkpoint_files import verified_steps
 from esr_cli.finals import FINAL_FRACTION, final_per_seed, read_rows, series
 from esr_cli.stats import describe, format_summary, probability_of_improvement
 from esr_cli.store import RUN_KIND, Store, atomic_write_bytes, atomic_write_text
@@ -52,6 +53,9 @@ class Evidence:
     rows: list[dict]
     commit: Optional[str]
     device: Optional[str] = None  # where it ran, e.g. 'gpu:NVIDIA H200'; None: unknown
+    # False for an unfinished run whose checkpoint is not in this store (a record of its
+    # logged epochs, `esr import --without-checkpoint`): training it again starts from epoch 0.
+    resumable: bool = True
     _finals: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -72,7 +76,8 @@ class Evidence:
         return self.epochs_done >= COMPARABLE_EPOCHS.get(self.spec.env.kind, PAPER_EPOCHS)
 
     def describe_length(self) -> str:
-        state = "" if self.status == "complete" else f" of {self.spec.train.epochs:,} (unfinished)"
+        state = ("" if self.status == "complete" else f" of {self.spec.train.epochs:,} (unfinished)" if self.resumable
+                 else f" of {self.spec.train.epochs:,} (unfinished; its checkpoint is not in this store)")
         return f"{self.epochs_done:,} epochs{state}, {self.seeds} seed{'s' if self.seeds != 1 else ''}"
 
 
@@ -94,11 +99,13 @@ def index_store(store: Store) -> dict[str, list[Evidence]]:
             continue  # made by code whose spec fields this version no longer reads
         info = entry.manifest or {}
         commit = info.get("provenance", {}).get("git", {}).get("commit") or info.get("commit")
-        # A finished run names its device; an unfinished one only its backend (part of its key).
+        # A finished run names its device; an unfinished one too, unless made by an esr whose
+        # pending.json named only its backend (part of its key).
         backend = info.get("key_components", {}).get("toolchain", {}).get("backend")
-        device = info.get("provenance", {}).get("device") or backend
+        device = info.get("provenance", {}).get("device") or info.get("device") or backend
+        resumable = entry.status == "complete" or bool(verified_steps(entry.path))
         ev = Evidence(entry.key, entry.path, entry.status, info.get("budget", spec.budget), spec,
-                      read_rows(entry.path), commit, device)
+                      read_rows(entry.path), commit, device, resumable)
         if ev.rows:
             out.setdefault(_without_train(spec), []).append(ev)
     return out
@@ -474,10 +481,15 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
         lines += ["## The runs behind this report", "",
                   "Each was made by the command beside it, run from a checkout of its commit (the training code is part of a "
                   "run's key: docs/store.md). An unfinished run continues from its last checkpoint with the same command; a "
-                  "finished one grows with a larger `train.epochs`, starting from its last epoch (docs/store.md).", "",
+                  "finished one grows with a larger `train.epochs`, starting from its last epoch (docs/store.md). A run "
+                  "made on an accelerator continues on one with the same jax (the backend and jax version are part of its "
+                  "key); one whose checkpoint is not in this store (its logged epochs only, `esr import "
+                  "--without-checkpoint`) starts again from epoch 0.", "",
                   "| run | spec | status | commit | command |", "|---|---|---|---|---|"]
         for ev in sorted(behind.values(), key=lambda e: (e.status == "complete", e.spec.name, e.key)):
             state = f"finished: {ev.describe_length()}" if ev.status == "complete" else f"**{ev.describe_length()}**"
+            if ev.device and not ev.device.startswith("cpu"):
+                state += f", on {ev.device}"
             lines.append(f"| `{ev.key[:8]}` | {ev.spec.name} | {state} | "
                          f"{(ev.commit or 'unknown')[:7]} | `{train_command(ev, store)}` |")
         lines.append("")

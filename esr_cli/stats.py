@@ -29,6 +29,27 @@ def _pooled_iqm(*samples, axis=-1):
     return iqm(np.concatenate(samples, axis=axis), axis=axis)
 
 
+def _bootstrap_ci(statistic, samples: Sequence[np.ndarray], confidence: float, resamples: int,
+                  seed: int) -> tuple[float, float]:
+    """scipy's percentile bootstrap of `statistic(*samples, axis=-1)`, each sample resampled on
+    its own. A sample of one value is held fixed: resampling it can only return it again, and
+    scipy refuses samples of fewer than two values (a 10-seed run against a 1-seed baseline)."""
+    varying = [i for i, s in enumerate(samples) if len(s) >= 2]
+
+    def with_fixed(*drawn, axis=-1):
+        batch = np.moveaxis(drawn[0], axis, -1).shape[:-1]
+        full = list(samples)
+        for i, d in zip(varying, drawn):
+            full[i] = np.moveaxis(d, axis, -1)
+        full = [f if i in varying else np.broadcast_to(f, batch + f.shape) for i, f in enumerate(full)]
+        return statistic(*full, axis=-1)
+
+    res = sps.bootstrap(tuple(samples[i] for i in varying), with_fixed, paired=False, vectorized=True,
+                        confidence_level=confidence, n_resamples=resamples, method="percentile",
+                        rng=np.random.default_rng(seed))
+    return float(res.confidence_interval.low), float(res.confidence_interval.high)
+
+
 def iqm_ci(samples: Sequence[Sequence[float]], confidence: float = CONFIDENCE, resamples: int = RESAMPLES,
            seed: int = 0) -> tuple[float, float, float] | None:
     """(IQM over all runs, low, high): a stratified bootstrap interval with one sample (the
@@ -37,9 +58,7 @@ def iqm_ci(samples: Sequence[Sequence[float]], confidence: float = CONFIDENCE, r
     if not samples or max(len(s) for s in samples) < 2:
         return None
     point = float(_pooled_iqm(*samples))
-    res = sps.bootstrap(tuple(samples), _pooled_iqm, paired=False, vectorized=True, confidence_level=confidence,
-                        n_resamples=resamples, method="percentile", rng=np.random.default_rng(seed))
-    return point, float(res.confidence_interval.low), float(res.confidence_interval.high)
+    return (point, *_bootstrap_ci(_pooled_iqm, samples, confidence, resamples, seed))
 
 
 def _improvement(x, y, axis=-1):
@@ -54,14 +73,12 @@ def probability_of_improvement(x: Sequence[float], y: Sequence[float], confidenc
                                resamples: int = RESAMPLES, seed: int = 0) -> tuple[float, float | None, float | None]:
     """(P(X > Y), low, high): the probability that a run of X scores above a run of Y (ties
     count half), with a bootstrap interval that resamples each method's seeds separately
-    (None, None when both have a single seed)."""
+    (None, None when both have a single seed; a method with one seed is held fixed)."""
     x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
     point = float(_improvement(x, y))
     if max(len(x), len(y)) < 2:
         return point, None, None
-    res = sps.bootstrap((x, y), _improvement, paired=False, vectorized=True, confidence_level=confidence,
-                        n_resamples=resamples, method="percentile", rng=np.random.default_rng(seed))
-    return point, float(res.confidence_interval.low), float(res.confidence_interval.high)
+    return (point, *_bootstrap_ci(_improvement, [x, y], confidence, resamples, seed))
 
 
 def describe(per_seed: Sequence[float]) -> dict:

@@ -88,7 +88,7 @@ def _find(store: Store, ref: str) -> tuple[str, str, Path, str]:
 def _snapshot_partial(src: Path, stage: Path) -> None:
     """Copy an unfinished run with only its newest verified checkpoint. The run may be saving a
     newer one meanwhile (and deleting the oldest), so a copy that changed under it is retried."""
-    from esr_cli.core.loop import CHECKPOINT_DIR, verified_steps
+    from esr_cli.checkpoint_files import CHECKPOINT_DIR, verified_steps
 
     for _ in range(SNAPSHOT_TRIES):
         shutil.rmtree(stage, ignore_errors=True)
@@ -115,8 +115,12 @@ def _keep_checkpoint(ckpt: Path, step: int):
 
 
 # ---------------------------------------------------------------- import
-def import_archive(store: Store, archive: Path) -> Moved:
-    """Put the artifact in `archive` into the store: atomically, after checking every member."""
+def import_archive(store: Store, archive: Path, without_checkpoint: bool = False) -> Moved:
+    """Put the artifact in `archive` into the store: atomically, after checking every member.
+
+    without_checkpoint: also accept an unfinished run that has no intact checkpoint (a record of
+    its logged epochs, e.g. what came back from a machine that could not send its checkpoint),
+    so that reports and figures read it; training it again starts from epoch 0."""
     archive = Path(archive)
     if not archive.is_file():
         raise StoreError(f"no archive {archive}")
@@ -127,7 +131,7 @@ def import_archive(store: Store, archive: Path) -> Moved:
     made = [] if store.root.is_dir() else [store.root]  # folders to remove again if it is refused
     try:
         with tar:
-            return _import(store, tar, archive, made)
+            return _import(store, tar, archive, made, without_checkpoint)
     except BaseException:
         for d in reversed(made):  # innermost first; rmdir leaves a folder another process filled
             try:
@@ -137,7 +141,7 @@ def import_archive(store: Store, archive: Path) -> Moved:
         raise
 
 
-def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path]) -> Moved:
+def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path], without_checkpoint: bool) -> Moved:
     store.ensure_writable()
     try:
         kind, dirname, members = _checked_members(tar, archive)
@@ -155,7 +159,7 @@ def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path])
         except (tarfile.TarError, OSError, EOFError, zlib.error) as e:
             raise StoreError(f"{archive} could not be read to the end ({_first_line(e)})") from None
         stage = Path(tmp) / kind / key[:2] / dirname
-        _check_contents(store, stage, kind, key, status, archive)
+        _check_contents(store, stage, kind, key, status, archive, without_checkpoint)
         with store.lock(kind, key, wait=False):
             if store.lookup(kind, key):
                 return Moved(kind, key, "complete", 0, final)
@@ -209,7 +213,8 @@ def _checked_members(tar: tarfile.TarFile, archive: Path) -> tuple[str, str, lis
     return kind, dirname, members
 
 
-def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str, archive: Path) -> None:
+def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str, archive: Path,
+                    without_checkpoint: bool = False) -> None:
     if not stage.is_dir():
         raise StoreError(f"{archive} holds no files for {kind} {key[:12]}")
     if status == "complete":
@@ -221,9 +226,16 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
             more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
             raise StoreError(f"{archive}: {kind}/{key[:2]}/{key}: {problems[0]}{more}; nothing imported")
         return
-    from esr_cli.core.loop import verified_steps
+    from esr_cli.checkpoint_files import verified_steps
+    from esr_cli.finals import read_rows
 
     if not (stage / "pending.json").is_file():
         raise StoreError(f"{archive}: unfinished run {key[:12]} has no pending.json; nothing imported")
-    if not verified_steps(stage):
-        raise StoreError(f"{archive}: unfinished run {key[:12]} has no checkpoint matching its recorded digests; nothing imported")
+    if verified_steps(stage):
+        return
+    if not without_checkpoint:
+        raise StoreError(f"{archive}: unfinished run {key[:12]} has no checkpoint matching its recorded digests; "
+                         "nothing imported (`esr import --without-checkpoint` keeps its logged epochs for reports; "
+                         "training it again would start from epoch 0)")
+    if not read_rows(stage):
+        raise StoreError(f"{archive}: unfinished run {key[:12]} has neither an intact checkpoint nor a logged epoch; nothing imported")

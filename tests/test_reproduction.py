@@ -62,6 +62,23 @@ def test_a_run_cell_names_an_accelerator_and_leaves_the_cpu_unsaid():
     assert rep._run_cell(ev).endswith("10 seeds, commit e60b1a1)")
 
 
+def test_a_run_without_its_checkpoint_says_it_starts_again(tmp_path):
+    ev = _evidence("grid_10", finals=(6.0,) * 10, epochs=1200, status="partial")
+    ev.resumable = False
+    assert "1,200 epochs of 10,000 (unfinished; its checkpoint is not in this store), 10 seeds" in rep._run_cell(ev)
+
+
+def test_several_seeds_against_one_hold_the_single_seed_fixed():
+    """A 10-seed GPU run against a 1-seed CPU baseline: the interval resamples the 10 seeds only."""
+    above = _claim("N = 10: ESR ends above Random")
+    esr10 = _evidence("grid_10", finals=(5.0, 7.0, 2.0, 11.0, 10.0, 6.0, 5.0, 4.0, 8.0, 9.0), epochs=3000)
+    finding = rep.judge(above, _index(esr10, _evidence("grid_10_random", finals=(3.5,))))
+    # 9 of 10 seeds above 3.5: a resample's P is k/10, k ~ Binomial(10, 0.9); P(k <= 6) = 0.013
+    # and P(k <= 7) = 0.070 put the 2.5% quantile at 0.7, so the lower end is above 0.5
+    assert "P(improvement) 0.90 [0.70, 1.00]" in finding.measured
+    assert finding.verdict == "reproduced (1 seed)"  # one side has a single seed, and says so
+
+
 def test_the_longest_matching_run_is_used_whatever_its_length_or_seeds():
     above = _claim("N = 5: ESR ends above Random")
     index = _index(_evidence("grid_5", finals=(1.0,), epochs=600), _evidence("grid_5", finals=(20.0,), epochs=3000),

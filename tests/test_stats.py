@@ -61,3 +61,19 @@ def test_describe_keeps_per_seed_values_and_formats_several_seeds():
     assert d["per_seed"] == [1, 2, 3, 4, 10] and d["mean"] == 4.0
     assert d["iqm"] == 3.0 and d["iqm_low"] <= 3.0 <= d["iqm_high"]
     assert stats.format_summary(d).startswith("4.00 ± 1.58; IQM 3.00 [")
+
+
+def test_a_one_seed_method_is_held_fixed_against_several_seeds():
+    """A 10-seed run against a 1-seed baseline: resampling one value returns it, so only the
+    other method's seeds vary. Hand count: resamples of x = (3, 1) against y = (2) give
+    P = 1 for (3,3) (p 1/4), 0 for (1,1) (p 1/4), 0.5 otherwise: the interval is [0, 1]."""
+    assert stats.probability_of_improvement([3.0, 1.0], [2.0]) == (0.5, 0.0, 1.0)
+    assert stats.probability_of_improvement([2.0], [3.0, 1.0]) == (0.5, 0.0, 1.0)
+    # every resample of x = (5, 6, 7) lies above y = (4): the interval has no width
+    assert stats.probability_of_improvement([5.0, 6.0, 7.0], [4.0]) == (1.0, 1.0, 1.0)
+    # a fixed task in a stratified IQM: the pooled runs are always (0, 0, 9), IQM 3
+    assert stats.iqm_ci([[0.0, 0.0], [9.0]]) == (3.0, 3.0, 3.0)
+    # the two-seed task still varies: (0, 1) with a fixed 0.5 pools to IQMs 0.5 - ... as by hand:
+    # (0,0,.5) -> mean 1/6, (0,1,.5) -> 0.5, (1,1,.5) -> 5/6 with probabilities 1/4, 1/2, 1/4
+    point, low, high = stats.iqm_ci([[0.0, 1.0], [0.5]])
+    assert point == 0.5 and low == pytest.approx(1 / 6) and high == pytest.approx(5 / 6)

@@ -120,6 +120,25 @@ def test_a_bad_archive_is_refused_and_changes_nothing(tmp_path, members, message
     assert not (tmp_path / "store").exists() and not (tmp_path / "evil").exists()  # not even empty folders
 
 
+def test_a_run_without_its_checkpoint_is_imported_only_when_asked_as_a_record(tmp_path):
+    """What came back from a machine that could not send a checkpoint: pending.json and the
+    logged epochs. Refused by default (it cannot continue), kept with --without-checkpoint for
+    reports; never without a logged epoch."""
+    pending = json.dumps({"kind": "runs", "key": KEY, "name": "grid_10", "seeds": [0, 1]}).encode()
+    rows = b"".join(json.dumps({"epoch": e, "return": [1.0, 2.0]}).encode() + b"\n" for e in (1, 2))
+    record = [(f"{RUN_DIR}.partial/pending.json", pending), (f"{RUN_DIR}.partial/metrics.jsonl", rows)]
+    store = Store(tmp_path / "store")
+    with pytest.raises(StoreError, match="no checkpoint matching.*--without-checkpoint"):
+        import_archive(store, _archive(tmp_path, record))
+    with pytest.raises(StoreError, match="neither an intact checkpoint nor a logged epoch"):
+        import_archive(store, _archive(tmp_path, record[:1], "empty.tar.gz"), without_checkpoint=True)
+    assert not (tmp_path / "store").exists()
+    proc = esr("import", "--without-checkpoint", str(_archive(tmp_path, record)), store=tmp_path / "store")
+    assert "a record without a checkpoint: training it again starts from epoch 0" in " ".join(proc.stderr.split())
+    path = Path(proc.stdout.strip())
+    assert path == tmp_path / "store" / f"{RUN_DIR}.partial" and (path / "metrics.jsonl").read_bytes() == rows
+
+
 def test_a_refused_import_removes_only_the_folders_it_made(tmp_path):
     store = Store(tmp_path / "store")
     other = tmp_path / "store" / "runs" / "ff" / "kept"

@@ -25,14 +25,13 @@ import orbax.checkpoint as ocp
 
 from esr_cli import faults
 from esr_cli.finals import read_rows
-from esr_cli.store import atomic_write_text, digest_file
+from esr_cli.checkpoint_files import (
+    CHECKPOINT_DIGESTS, CHECKPOINT_DIR, read_digests, record_digests, step_digests, verified_steps,
+)
+from esr_cli.store import atomic_write_text
 from esr_cli.core.train import TrainState, Trainer, compiled_chunk, compiled_init
 
 METRICS_FILE = "metrics.jsonl"
-CHECKPOINT_DIR = "checkpoints"
-# Digests of every checkpoint's files, written after the checkpoint is saved: a resume uses
-# only checkpoints that verify, so a damaged newest checkpoint falls back to the one before.
-CHECKPOINT_DIGESTS = "checkpoint_digests.json"
 
 
 class Interrupted(Exception):
@@ -81,26 +80,6 @@ def checkpoint_manager(run_dir: Path) -> ocp.CheckpointManager:
     )
 
 
-def _step_digests(run_dir: Path, step: int) -> dict[str, str]:
-    root = Path(run_dir) / CHECKPOINT_DIR / str(step)
-    return {f.relative_to(root).as_posix(): digest_file(f) for f in sorted(root.rglob("*")) if f.is_file()}
-
-
-def _read_digests(run_dir: Path) -> dict:
-    try:
-        return json.loads((Path(run_dir) / CHECKPOINT_DIGESTS).read_text())
-    except (OSError, json.JSONDecodeError):
-        return {}
-
-
-def _record_digests(run_dir: Path, steps, saved: int) -> None:
-    """Record the just-saved step's digests; keep those of older steps still present."""
-    known = _read_digests(run_dir)
-    digests = {str(s): known.get(str(s)) for s in steps if s != saved and known.get(str(s))}
-    digests[str(saved)] = _step_digests(run_dir, saved)
-    atomic_write_text(Path(run_dir) / CHECKPOINT_DIGESTS, json.dumps(digests, sort_keys=True))
-
-
 def restore_latest(trainer: Trainer, run_dir: Path, seeds, repair: bool = True) -> tuple[TrainState, int]:
     """The newest checkpoint in `run_dir` whose files verify (or a fresh state) and its epoch.
 
@@ -115,8 +94,8 @@ def restore_latest(trainer: Trainer, run_dir: Path, seeds, repair: bool = True) 
         if not steps:
             return template, 0
         if (Path(run_dir) / CHECKPOINT_DIGESTS).exists():
-            digests = _read_digests(run_dir)
-            good = [s for s in steps if digests.get(str(s)) and _step_digests(run_dir, s) == digests[str(s)]]
+            digests = read_digests(run_dir)
+            good = [s for s in steps if digests.get(str(s)) and step_digests(run_dir, s) == digests[str(s)]]
         else:  # a run written before checkpoint digests were recorded: trust orbax alone
             good = steps
         if not good:
@@ -142,16 +121,6 @@ def restore_latest(trainer: Trainer, run_dir: Path, seeds, repair: bool = True) 
     return state, int(step)
 
 
-def verified_steps(run_dir: Path) -> list[int]:
-    """The checkpoint steps of `run_dir` whose files match their recorded digests, newest first."""
-    root = Path(run_dir) / CHECKPOINT_DIR
-    if not root.is_dir():
-        return []
-    digests = _read_digests(run_dir)
-    steps = sorted((int(d.name) for d in root.iterdir() if d.is_dir() and d.name.isdigit()), reverse=True)
-    return [s for s in steps if digests.get(str(s)) and _step_digests(run_dir, s) == digests[str(s)]]
-
-
 def adopt_checkpoint(source_dir: Path, run_dir: Path, at_most: int) -> int:
     """Start `run_dir` (empty) from the newest verified checkpoint of `source_dir` at epoch <=
     `at_most`: its checkpoint, its digests and its metrics up to that epoch are copied, so
@@ -166,7 +135,7 @@ def adopt_checkpoint(source_dir: Path, run_dir: Path, at_most: int) -> int:
     shutil.copytree(Path(source_dir) / CHECKPOINT_DIR / str(step), target)
     rows = [r for r in read_rows(source_dir) if r["epoch"] <= step]
     atomic_write_text(Path(run_dir) / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in rows))
-    _record_digests(run_dir, [step], step)
+    record_digests(run_dir, [step], step)
     return step
 
 
@@ -274,7 +243,7 @@ def train(
             faults.reached("after_metrics", chunks_done)
             mngr.save(epoch, args=ocp.args.StandardSave(state))
             mngr.wait_until_finished()
-            _record_digests(run_dir, mngr.all_steps(), epoch)
+            record_digests(run_dir, mngr.all_steps(), epoch)
             faults.reached("after_checkpoint", chunks_done)
             if on_chunk:
                 on_chunk(epoch, total, rows[-1], n * steps_per_epoch * len(seeds) / max(elapsed, 1e-9))
@@ -300,7 +269,7 @@ def keep_newest_checkpoint(run_dir: Path) -> None:
     newest = steps[0]
     # Digests first: a kill between the two steps leaves older directories that verify as
     # nothing, so they are never restored, and the next call removes them.
-    atomic_write_text(Path(run_dir) / CHECKPOINT_DIGESTS, json.dumps({str(newest): _read_digests(run_dir)[str(newest)]}))
+    atomic_write_text(Path(run_dir) / CHECKPOINT_DIGESTS, json.dumps({str(newest): read_digests(run_dir)[str(newest)]}))
     for d in (Path(run_dir) / CHECKPOINT_DIR).iterdir():
         if d.is_dir() and d.name.isdigit() and int(d.name) != newest:
             shutil.rmtree(d)
