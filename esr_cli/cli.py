@@ -470,20 +470,26 @@ def _field(info, *path):
 @app.command("ls")
 def ls():
     """List the artifacts in the store."""
-    from esr_cli.finals import final_return_mean
+    from esr_cli.finals import run_progress
 
     table = Table(caption="final return: a run's mean over each seed's last 10% of epochs (so far, if unfinished), "
                           "averaged over seeds, as in figures and reports; an evaluation's mean episode return")
-    for col in ("kind", "name", "key", "budget", "seeds", "status", "final return"):
-        table.add_column(col)
+    for col in ("kind", "name", "key", "budget", "seeds", "status", "epochs", "final return"):
+        table.add_column(col, no_wrap=col in ("key", "epochs"))
     n = damaged = 0
     for e in STATE.store.entries():
         m = e.manifest or {}
         status = "damaged" if e.status == "complete" and e.manifest is None else e.status  # unreadable manifest
         damaged += status == "damaged"
         seeds = m.get("seeds")
-        # A run's manifest summary is its last 10 epochs; "final" everywhere else is the last 10%.
-        ret = final_return_mean(e.path) if e.kind == RUN_KIND else _field(m, "summary", "return", "mean")
+        epochs = ""
+        if e.kind == RUN_KIND:
+            # A run's manifest summary is its last 10 epochs; "final" everywhere else is the last 10%.
+            done, ret = run_progress(e.path)
+            target = _field(m, "key_components", "spec", "train", "epochs")
+            epochs = f"{done:,}" if e.status == "complete" or not isinstance(target, int) else f"{done:,} of {target:,}"
+        else:
+            ret = _field(m, "summary", "return", "mean")
         table.add_row(
             e.kind,
             str(m.get("name", "?")),
@@ -491,6 +497,7 @@ def ls():
             str(m.get("budget", "?")),
             str(len(seeds)) if seeds and isinstance(seeds, list) else "?",
             status,
+            epochs,
             f"{ret:.2f}" if isinstance(ret, (int, float)) else "",
         )
         n += 1

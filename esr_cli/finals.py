@@ -34,15 +34,18 @@ def final_per_seed(rows: list[dict], name: str = "return") -> np.ndarray:
     return np.nanmean(vals[-k:], axis=0)
 
 
-def final_return_mean(run_path: Path) -> float | None:
-    """The mean across seeds of each seed's final return; None while no epoch is logged, or
-    where the rows are not a run's (a damaged or foreign file: listing must not fail on it)."""
+def run_progress(run_path: Path) -> tuple[int, float | None]:
+    """(epochs logged, the mean across seeds of each seed's final return); (0, None) while no
+    epoch is logged or where the rows are not a run's (a damaged or foreign file: listing a
+    store must not fail on it)."""
     try:
         rows = read_rows(run_path)
-        per_seed = final_per_seed(rows) if rows else np.array([])
+        if not rows:
+            return 0, None
+        epochs, per_seed = int(rows[-1]["epoch"]), final_per_seed(rows)
     except (KeyError, TypeError, ValueError, AttributeError, OSError):
-        return None
-    return float(np.nanmean(per_seed)) if np.isfinite(per_seed).any() else None
+        return 0, None
+    return epochs, float(np.nanmean(per_seed)) if np.isfinite(per_seed).any() else None
 
 
 def run_finals(run_path: Path, names: tuple[str, ...] = ("return", "success")) -> dict:

@@ -237,10 +237,12 @@ def test_ls_shows_a_runs_final_return_as_figures_and_reports_do(tmp_path):
     (done / "metrics.jsonl").write_text(rows)
     store.commit("runs", "cd" * 16, {"kind": "runs", "name": "finished", "key": "cd" * 16, "seeds": [0, 1],
                                       "summary": {"return": {"mean": 99.0}}})
-    going = store.begin("runs", "ef" * 16, {"name": "going", "key": "ef" * 16})
+    going = store.begin("runs", "ef" * 16, {"name": "going", "key": "ef" * 16,
+                                            "key_components": {"spec": {"train": {"epochs": 3000}}}})
     (going / "metrics.jsonl").write_text(rows + '{"epoch": 31, "ret')  # a line cut short by a kill
     listed = esr("ls", store=tmp_path).stdout
     # the last 3 of 30 epochs: seed 0 (28+29+30)/3 = 29, seed 1 58; their mean 43.5
-    finished = next(line for line in listed.splitlines() if "finished" in line)
+    finished = next(line for line in listed.splitlines() if "cdcdcd" in line)
     assert "43.50" in finished and "99.00" not in finished
-    assert "43.50" in next(line for line in listed.splitlines() if "going" in line)
+    assert "43.50" in next(line for line in listed.splitlines() if "efefef" in line)
+    assert "30 of 3,000" in next(line for line in listed.splitlines() if "efefef" in line)
