@@ -237,5 +237,11 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
         raise StoreError(f"{archive}: unfinished run {key[:12]} has no checkpoint matching its recorded digests; "
                          "nothing imported (`esr import --without-checkpoint` keeps its logged epochs for reports; "
                          "training it again would start from epoch 0)")
-    if not read_rows(stage):
+    rows = read_rows(stage)
+    if not rows:
         raise StoreError(f"{archive}: unfinished run {key[:12]} has neither an intact checkpoint nor a logged epoch; nothing imported")
+    # A record is read only for its rows: each must be an epoch's, as training writes them.
+    for i, row in enumerate(rows, 1):
+        if not (isinstance(row, dict) and type(row.get("epoch")) is int and isinstance(row.get("return"), list)):
+            raise StoreError(f"{archive}: unfinished run {key[:12]}: line {i} of metrics.jsonl is not an epoch's "
+                             "metrics (an object with an integer 'epoch' and a 'return' list); nothing imported")

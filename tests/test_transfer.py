@@ -132,6 +132,9 @@ def test_a_run_without_its_checkpoint_is_imported_only_when_asked_as_a_record(tm
         import_archive(store, _archive(tmp_path, record))
     with pytest.raises(StoreError, match="neither an intact checkpoint nor a logged epoch"):
         import_archive(store, _archive(tmp_path, record[:1], "empty.tar.gz"), without_checkpoint=True)
+    bad = [record[0], (f"{RUN_DIR}.partial/metrics.jsonl", rows + b'{"epoch": "3", "return": [1.0]}\n')]
+    with pytest.raises(StoreError, match="line 3 of metrics.jsonl is not an epoch's metrics"):
+        import_archive(store, _archive(tmp_path, bad, "bad.tar.gz"), without_checkpoint=True)
     assert not (tmp_path / "store").exists()
     proc = esr("import", "--without-checkpoint", str(_archive(tmp_path, record)), store=tmp_path / "store")
     assert "a record without a checkpoint: training it again starts from epoch 0" in " ".join(proc.stderr.split())
