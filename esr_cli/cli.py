@@ -674,7 +674,8 @@ def import_(
             err.print(f"{moved.kind} {moved.key[:12]} is already in the store: nothing to import")
         else:
             record = moved.status == "partial" and not verified_steps(moved.path)
-            note = "; a record without a checkpoint: training it again starts from epoch 0" if record else ""
+            note = ("; a record without a checkpoint: training it again starts from epoch 0" if record else
+                    "; it replaces this store's unfinished run of the same key" if moved.replaced_partial else "")
             err.print(f"[green]imported[/] {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files{note})")
         out.print(str(moved.path), soft_wrap=True, highlight=False)
 

@@ -38,6 +38,7 @@ class Moved:
     status: str  # complete | partial
     files: int
     path: Path  # the archive written (export) or the artifact's directory (import)
+    replaced_partial: bool = False  # import: a finished archive took the place of a local unfinished run
 
 
 # ---------------------------------------------------------------- export
@@ -163,14 +164,20 @@ def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path],
         with store.lock(kind, key, wait=False):
             if store.lookup(kind, key):
                 return Moved(kind, key, "complete", 0, final)
-            if partial.exists():
+            if partial.exists() and status != "complete":
                 raise StoreError(f"{kind} {key[:12]} is already unfinished in store {store.root} ({partial}); "
                                  "remove that directory first to replace it with the archive's")
             target = final if status == "complete" else partial
             stage.rename(target)
             fsync_dir(target.parent)
+            # One key is one computation: the finished artifact supersedes the local unfinished
+            # run of the same key (not training now: this process holds its lock). Removed only
+            # after the finished one is in place, so a kill between leaves both, never neither.
+            replaced = status == "complete" and partial.exists()
+            if replaced:
+                shutil.rmtree(partial)
     files = sum(1 for p in target.rglob("*") if p.is_file())
-    return Moved(kind, key, status, files, target)
+    return Moved(kind, key, status, files, target, replaced)
 
 
 def _first_line(e: Exception) -> str:

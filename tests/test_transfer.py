@@ -36,6 +36,21 @@ def test_a_finished_run_moves_to_another_store(smoke_run, tmp_path):
     assert "already in the store" in again.stderr and Path(again.stdout.strip()) == copy
 
 
+def test_a_finished_archive_replaces_an_idle_unfinished_run_of_the_same_key(smoke_run, tmp_path):
+    """The same key is the same computation: the run finished elsewhere takes the place of the
+    local copy that stopped part-way (an unfinished archive over it is still refused)."""
+    store, path, _ = smoke_run
+    archive = tmp_path / "run.tar.gz"
+    esr("export", path.name[:8], "--out", str(archive), store=store)
+    other = Store(tmp_path / "other")
+    local = other.begin("runs", path.name, {"kind": "runs", "name": "grid_2", "key": path.name})
+    (local / "metrics.jsonl").write_text('{"epoch": 1, "return": [0.0]}\n')
+    proc = esr("import", str(archive), store=tmp_path / "other")
+    assert "replaces this store's unfinished run" in " ".join(proc.stderr.split())
+    assert Path(proc.stdout.strip()) == other.lookup("runs", path.name) and not local.exists()
+    assert esr("verify", store=tmp_path / "other").returncode == 0
+
+
 def test_an_unfinished_run_moves_and_resumes_to_the_uninterrupted_result(smoke_run, tmp_path):
     _, reference, _ = smoke_run
     here = tmp_path / "here"
