@@ -1,0 +1,92 @@
+#!/usr/bin/env bash
+# One short lease of a GPU machine, prepared in advance: record the machine, optionally
+# measure the benchmark, then train (or continue) one run until shortly before the lease's
+# time is up, and write what must come back into $OUT: the run's archive in parts small enough
+# to travel (to continue it next time), and a record of its logged epochs (for the report even
+# when the parts cannot be kept). Run from the repository root.
+#
+#   RUN="experiments/grid_10.yaml --budget paper --set train.seeds=10 --set train.epochs=3000" \
+#   BUDGET_S=540 BENCH_SEEDS="1 20" bash evidence/gpu/lease.sh
+#
+# Environment:
+#   RUN          `esr train` arguments (spec file, --budget, --set ...); empty: no run
+#   BUDGET_S     seconds the whole script may take (default 540, inside a 600 s call)
+#   BENCH_SEEDS  seed counts for benchmarks/bench.py (empty: no benchmark)
+#   BENCH_CONFIG the benchmark's configuration (default: the gridworld paper configuration)
+#   BENCH_S      seconds the benchmark may take (default 240)
+#   OUT          where results go (the device tool sets it; default ./out)
+# Inputs it uses when present: .whl/*.whl (Python packages the machine lacks, installed into
+# /tmp/site), .dev/*.part-* (an archive written by a previous lease, joined and imported, so
+# the run continues from its checkpoint). Needs jax with an accelerator plugin already there.
+set -uo pipefail
+OUT=${OUT:-out}
+BUDGET_S=${BUDGET_S:-540}
+BENCH_S=${BENCH_S:-240}
+BENCH_CONFIG=${BENCH_CONFIG:-"gridworld grid_2 (paper)"}
+PART_BYTES=${PART_BYTES:-15M}  # under the 16 MiB a returned file may have
+started=$(date +%s)
+left() { echo $((BUDGET_S - ($(date +%s) - started))); }
+mkdir -p "$OUT"
+log() { echo "[$(date -u +%T)] $*" | tee -a "$OUT/lease.log"; }
+
+if compgen -G ".whl/*.whl" >/dev/null; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+        || { log "installing .whl failed"; exit 1; }
+    export PYTHONPATH="/tmp/site:$PWD${PYTHONPATH:+:$PYTHONPATH}"
+else
+    export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+fi
+esr() { python3 -c 'import sys; from esr_cli.cli import main; sys.exit(main(sys.argv[1:]))' "$@"; }
+STORE=${STORE:-/tmp/esr_store}
+
+{
+    date -u
+    nvidia-smi 2>&1 || echo "no nvidia-smi"
+    env | grep -E '^(XLA_|JAX_|CUDA_VISIBLE)' || true
+    python3 -c 'import jax; print("jax", jax.__version__, jax.devices())'
+} >"$OUT/machine.txt" 2>&1
+log "machine: $(grep -m1 '^jax' "$OUT/machine.txt")"
+
+if [ -n "${BENCH_SEEDS:-}" ]; then
+    log "bench: $BENCH_CONFIG, seeds $BENCH_SEEDS"
+    # shellcheck disable=SC2086 # seed counts are separate arguments
+    timeout "$BENCH_S" python3 benchmarks/bench.py --configs "$BENCH_CONFIG" --seeds $BENCH_SEEDS \
+        --out "$OUT/bench.json" >>"$OUT/lease.log" 2>&1
+    log "bench: exit $?"
+fi
+
+[ -n "${RUN:-}" ] || { log "no RUN given"; exit 0; }
+for first in .dev/*.part-aa; do
+    [ -e "$first" ] || continue
+    cat "${first%aa}"* >/tmp/continue.tar.gz
+    esr --store "$STORE" import /tmp/continue.tar.gz >>"$OUT/lease.log" 2>&1 || log "import of ${first%.part-aa} failed"
+done
+
+# Stop at a chunk boundary with time left to export and split (a 10-seed archive: ~30 s).
+limit=$(($(left) - 60))
+log "train $RUN (stop after ${limit}s)"
+# shellcheck disable=SC2086 # RUN is a list of arguments
+esr --store "$STORE" train $RUN --stop-after "${limit}s" >"$OUT/run_path.txt" 2>>"$OUT/lease.log"
+rc=$?
+log "train: exit $rc (0 finished, 75 stopped at the time limit: resumable)"
+
+run_dir=$(tail -n 1 "$OUT/run_path.txt" 2>/dev/null)
+if [ -z "$run_dir" ] || [ ! -d "$run_dir" ]; then  # stopped runs print no path: the newest run
+    run_dir=$(ls -td "$STORE"/runs/*/*/ 2>/dev/null | head -n 1)
+    run_dir=${run_dir%/}
+fi
+[ -n "$run_dir" ] && [ -d "$run_dir" ] || { log "no run directory"; exit 1; }
+name=$(basename "$run_dir")
+key=${name%.partial}
+# An unfinished run's record: every logged epoch, small, laid out as in a store
+# (`esr import --without-checkpoint`), for the report even if the parts below are not kept.
+if [ "$name" != "$key" ]; then
+    rel=${run_dir#"$STORE"/}
+    tar -czf "$OUT/record_${key:0:8}.tar.gz" -C "$STORE" "$rel/metrics.jsonl" "$rel/spec.yaml" "$rel/pending.json"
+fi
+# The archive with its newest checkpoint, in parts (`cat PARTS > RUN.tar.gz`, then `esr import`).
+if esr --store "$STORE" export "$key" --out "/tmp/${key:0:8}.tar.gz" >>"$OUT/lease.log" 2>&1; then
+    split -b "$PART_BYTES" "/tmp/${key:0:8}.tar.gz" "$OUT/${key:0:8}.tar.gz.part-"
+fi
+log "sent back: $(cd "$OUT" && ls | tr '\n' ' ')"
+exit $((rc == 75 ? 0 : rc))
