@@ -22,10 +22,17 @@ def step_digests(run_dir: Path, step: int) -> dict[str, str]:
 
 
 def read_digests(run_dir: Path) -> dict:
+    """{step: {file: digest}}; {} where the file is missing, unreadable or not an object."""
     try:
-        return json.loads((Path(run_dir) / CHECKPOINT_DIGESTS).read_text())
+        digests = json.loads((Path(run_dir) / CHECKPOINT_DIGESTS).read_text())
     except (OSError, json.JSONDecodeError):
         return {}
+    return digests if isinstance(digests, dict) else {}
+
+
+def step_intact(run_dir: Path, step: int, digests: dict) -> bool:
+    """Whether checkpoint `step`'s files match the digests recorded for it."""
+    return bool(digests.get(str(step))) and step_digests(run_dir, step) == digests[str(step)]
 
 
 def record_digests(run_dir: Path, steps, saved: int) -> None:
@@ -42,7 +49,5 @@ def verified_steps(run_dir: Path) -> list[int]:
     if not root.is_dir():
         return []
     digests = read_digests(run_dir)
-    if not isinstance(digests, dict):
-        return []
     steps = sorted((int(d.name) for d in root.iterdir() if d.is_dir() and d.name.isdigit()), reverse=True)
-    return [s for s in steps if digests.get(str(s)) and step_digests(run_dir, s) == digests[str(s)]]
+    return [s for s in steps if step_intact(run_dir, s, digests)]

@@ -662,7 +662,6 @@ def import_(
 ):
     """Put artifacts exported from another store into this one, each checked and then added in
     one step; an unfinished run continues with the command that started it."""
-    from esr_cli.checkpoint_files import verified_steps
     from esr_cli.transfer import import_archive
 
     missing = [str(a) for a in archives if not a.is_file()]
@@ -673,8 +672,7 @@ def import_(
         if moved.files == 0:
             err.print(f"{moved.kind} {moved.key[:12]} is already in the store: nothing to import")
         else:
-            record = moved.status == "partial" and not verified_steps(moved.path)
-            note = ("; a record without a checkpoint: training it again starts from epoch 0" if record else
+            note = ("; a record without a checkpoint: training it again starts from epoch 0" if moved.record else
                     "; it replaces this store's unfinished run of the same key" if moved.replaced_partial else "")
             err.print(f"[green]imported[/] {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files{note})")
         out.print(str(moved.path), soft_wrap=True, highlight=False)

@@ -75,9 +75,16 @@ class Evidence:
     def comparable(self) -> bool:
         return self.epochs_done >= COMPARABLE_EPOCHS.get(self.spec.env.kind, PAPER_EPOCHS)
 
+    @property
+    def accelerator(self) -> Optional[str]:
+        """The device where it is not a CPU (the default, left unsaid), else None."""
+        return self.device if self.device and not self.device.startswith("cpu") else None
+
     def describe_length(self) -> str:
-        state = ("" if self.status == "complete" else f" of {self.spec.train.epochs:,} (unfinished)" if self.resumable
-                 else f" of {self.spec.train.epochs:,} (unfinished; its checkpoint is not in this store)")
+        state = ""
+        if self.status != "complete":
+            lost = "" if self.resumable else "; its checkpoint is not in this store"
+            state = f" of {self.spec.train.epochs:,} (unfinished{lost})"
         return f"{self.epochs_done:,} epochs{state}, {self.seeds} seed{'s' if self.seeds != 1 else ''}"
 
 
@@ -292,7 +299,7 @@ def _run_cell(ev: Optional[Evidence]) -> str:
         return "—"
     commit = f", commit {ev.commit[:7]}" if ev.commit else ""
     # The CPU is the default and goes unsaid; an accelerator's figures are marked as such.
-    device = f", on {ev.device}" if ev.device and not ev.device.startswith("cpu") else ""
+    device = f", on {ev.accelerator}" if ev.accelerator else ""
     return f"`{ev.key[:8]}` ({ev.budget}; {ev.describe_length()}{commit}{device})"
 
 
@@ -488,8 +495,8 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
                   "| run | spec | status | commit | command |", "|---|---|---|---|---|"]
         for ev in sorted(behind.values(), key=lambda e: (e.status == "complete", e.spec.name, e.key)):
             state = f"finished: {ev.describe_length()}" if ev.status == "complete" else f"**{ev.describe_length()}**"
-            if ev.device and not ev.device.startswith("cpu"):
-                state += f", on {ev.device}"
+            if ev.accelerator:
+                state += f", on {ev.accelerator}"
             lines.append(f"| `{ev.key[:8]}` | {ev.spec.name} | {state} | "
                          f"{(ev.commit or 'unknown')[:7]} | `{train_command(ev, store)}` |")
         lines.append("")

@@ -39,6 +39,7 @@ class Moved:
     files: int
     path: Path  # the archive written (export) or the artifact's directory (import)
     replaced_partial: bool = False  # import: a finished archive took the place of a local unfinished run
+    record: bool = False  # import: an unfinished run without an intact checkpoint (--without-checkpoint)
 
 
 # ---------------------------------------------------------------- export
@@ -160,7 +161,7 @@ def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path],
         except (tarfile.TarError, OSError, EOFError, zlib.error) as e:
             raise StoreError(f"{archive} could not be read to the end ({_first_line(e)})") from None
         stage = Path(tmp) / kind / key[:2] / dirname
-        _check_contents(store, stage, kind, key, status, archive, without_checkpoint)
+        record = _check_contents(store, stage, kind, key, status, archive, without_checkpoint)
         with store.lock(kind, key, wait=False):
             if store.lookup(kind, key):
                 return Moved(kind, key, "complete", 0, final)
@@ -177,7 +178,7 @@ def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path],
             if replaced:
                 shutil.rmtree(partial)
     files = sum(1 for p in target.rglob("*") if p.is_file())
-    return Moved(kind, key, status, files, target, replaced)
+    return Moved(kind, key, status, files, target, replaced, record)
 
 
 def _first_line(e: Exception) -> str:
@@ -221,7 +222,8 @@ def _checked_members(tar: tarfile.TarFile, archive: Path) -> tuple[str, str, lis
 
 
 def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str, archive: Path,
-                    without_checkpoint: bool = False) -> None:
+                    without_checkpoint: bool = False) -> bool:
+    """Refuse what cannot be imported; -> whether it is a record (no intact checkpoint)."""
     if not stage.is_dir():
         raise StoreError(f"{archive} holds no files for {kind} {key[:12]}")
     if status == "complete":
@@ -232,14 +234,14 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
         if problems:
             more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
             raise StoreError(f"{archive}: {kind}/{key[:2]}/{key}: {problems[0]}{more}; nothing imported")
-        return
+        return False
     from esr_cli.checkpoint_files import verified_steps
     from esr_cli.finals import read_rows
 
     if not (stage / "pending.json").is_file():
         raise StoreError(f"{archive}: unfinished run {key[:12]} has no pending.json; nothing imported")
     if verified_steps(stage):
-        return
+        return False
     if not without_checkpoint:
         raise StoreError(f"{archive}: unfinished run {key[:12]} has no checkpoint matching its recorded digests; "
                          "nothing imported (`esr import --without-checkpoint` keeps its logged epochs for reports; "
@@ -252,3 +254,4 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
         if not (isinstance(row, dict) and type(row.get("epoch")) is int and isinstance(row.get("return"), list)):
             raise StoreError(f"{archive}: unfinished run {key[:12]}: line {i} of metrics.jsonl is not an epoch's "
                              "metrics (an object with an integer 'epoch' and a 'return' list); nothing imported")
+    return True

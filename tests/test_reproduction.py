@@ -62,7 +62,7 @@ def test_a_run_cell_names_an_accelerator_and_leaves_the_cpu_unsaid():
     assert rep._run_cell(ev).endswith("10 seeds, commit e60b1a1)")
 
 
-def test_a_run_without_its_checkpoint_says_it_starts_again(tmp_path):
+def test_a_run_without_its_checkpoint_says_it_starts_again():
     ev = _evidence("grid_10", finals=(6.0,) * 10, epochs=1200, status="partial")
     ev.resumable = False
     assert "1,200 epochs of 10,000 (unfinished; its checkpoint is not in this store), 10 seeds" in rep._run_cell(ev)

@@ -26,7 +26,7 @@ import orbax.checkpoint as ocp
 from esr_cli import faults
 from esr_cli.finals import read_rows
 from esr_cli.checkpoint_files import (
-    CHECKPOINT_DIGESTS, CHECKPOINT_DIR, read_digests, record_digests, step_digests, verified_steps,
+    CHECKPOINT_DIGESTS, CHECKPOINT_DIR, read_digests, record_digests, step_intact, verified_steps,
 )
 from esr_cli.store import atomic_write_text
 from esr_cli.core.train import TrainState, Trainer, compiled_chunk, compiled_init
@@ -95,7 +95,7 @@ def restore_latest(trainer: Trainer, run_dir: Path, seeds, repair: bool = True) 
             return template, 0
         if (Path(run_dir) / CHECKPOINT_DIGESTS).exists():
             digests = read_digests(run_dir)
-            good = [s for s in steps if digests.get(str(s)) and step_digests(run_dir, s) == digests[str(s)]]
+            good = [s for s in steps if step_intact(run_dir, s, digests)]
         else:  # a run written before checkpoint digests were recorded: trust orbax alone
             good = steps
         if not good:
