@@ -280,33 +280,65 @@ def exact(
 
 @app.command()
 def diagnose(
-    run: str = typer.Argument(..., help="a gridworld training run (key, key prefix or path)", show_default=False),
+    run: str = typer.Argument(..., help="a training run (key, key prefix or path), finished or not", show_default=False),
     seed_index: int = typer.Option(0, "--seed-index", help="which seed of the run"),
-    batches: int = typer.Option(40, "--batches", min=1, help="critic batches of the buffer to score"),
+    batches: int = typer.Option(40, "--batches", min=1, help="critic batches to score"),
+    episodes: int = typer.Option(16, "--episodes", min=1, max=1024, help="episodes each robot plays for the play check"),
     as_json: bool = typer.Option(False, "--json", help="print JSON instead of tables"),
 ):
-    """Why a gridworld robot helps or not: its reward by the human's situation, and its critic
-    and policy at the trapped corner start."""
+    """Why a robot helps or not: its own reward on its play against a uniform robot's, and on
+    the gridworld its reward by the human's situation and its critic and policy at the trapped
+    corner start. An unfinished run is read at its newest checkpoint."""
     import jax
 
-    from esr_cli.analysis import diagnose as dg
-    from esr_cli.runs import load_run, seed_slice
+    from esr_cli.analysis import diagnose as dg, play_check as pc
+    from esr_cli.runs import load_run_so_far, run_record, seed_slice
 
-    path, manifest, trainer, state = load_run(STATE.store, run)
-    if trainer.spec.env.kind != "gridworld":
-        raise Exit(2, "esr diagnose reads gridworld runs only")
-    if not 0 <= seed_index < len(manifest["seeds"]):
-        raise Exit(2, f"--seed-index: the run has {len(manifest['seeds'])} seed(s)")
+    path, record, finished = run_record(STATE.store, run)
+    if not 0 <= seed_index < len(record["seeds"]):
+        raise Exit(2, f"--seed-index: the run has {len(record['seeds'])} seed(s)")
+    trainer, state, epoch = load_run_so_far(STATE.store, path, finished)
     one = seed_slice(state, seed_index)
-    rewards = dg.reward_by_situation(trainer, one, jax.random.PRNGKey(0), batches)
-    starts = dg.corner_start_policy(trainer, one, jax.random.PRNGKey(1)) if trainer.method.learns_policy else []
-    reprs = dg.representation_check(trainer, one, jax.random.PRNGKey(2), batches) if trainer.spec.method.kind == "esr" else None
-    contrast = dg.free_trapped_contrast(rewards)
+    learns = trainer.method.learns_policy and not trainer.acts_by_rule
+    play = pc.play_check(trainer, one, jax.random.PRNGKey(3), episodes, batches) if learns else None
+    report = {"run": str(path), "finished": finished, "epoch": epoch, "epochs": trainer.spec.train.epochs,
+              "seed_index": seed_index, "play": play}
+    if trainer.spec.env.kind == "gridworld":
+        rewards = dg.reward_by_situation(trainer, one, jax.random.PRNGKey(0), batches)
+        report.update({
+            "reward": rewards,
+            "free_vs_trapped": dg.free_trapped_contrast(rewards),
+            "corner_starts": dg.corner_start_policy(trainer, one, jax.random.PRNGKey(1)) if learns else [],
+            "representations": dg.representation_check(trainer, one, jax.random.PRNGKey(2), batches)
+            if trainer.spec.method.kind == "esr" else None,
+        })
     if as_json:
-        out.print_json(json.dumps({"run": str(path), "seed_index": seed_index, "reward": rewards, "corner_starts": starts,
-                                   "free_vs_trapped": contrast, "representations": reprs}))
+        out.print_json(json.dumps(report))
         return
-    table = Table(title=f"{manifest['name']} ({manifest['budget']} budget), seed index {seed_index}: reward by the human's situation")
+    when = "" if finished else f", unfinished: checkpoint at epoch {epoch:,} of {trainer.spec.train.epochs:,}"
+    out.print(f"{record['name']} ({record['budget']} budget, {trainer.spec.method.kind}), seed index {seed_index}{when}")
+    if play:
+        _print_play_check(play)
+    if trainer.spec.env.kind == "gridworld":
+        _print_gridworld_diagnosis(report)
+
+
+def _print_play_check(play: dict) -> None:
+    table = Table(title="the run's reward on its robot's play and on a uniform robot's (same human)")
+    for col in ("robot", "episodes", "return", "reward: mean", "sd", "MI estimate (nats)", "steps the human moves"):
+        table.add_column(col)
+    for player, r in play.items():
+        mi = r["reward"].get("mi_estimate")
+        table.add_row(player, str(r["episodes"]), f"{r['return']:.2f}", f"{r['reward']['mean']:+.3f}", f"{r['reward']['sd']:.3f}",
+                      "" if mi is None else f"{mi:+.4f}", f"{r['human_moves']:.3f}")
+    out.print(table)
+
+
+def _print_gridworld_diagnosis(report: dict) -> None:
+    from esr_cli.analysis import diagnose as dg
+
+    rewards, contrast, starts, reprs = (report[k] for k in ("reward", "free_vs_trapped", "corner_starts", "representations"))
+    table = Table(title="reward by the human's situation (the run's buffer)")
     for col in ("situation", "transitions", "mean reward", "sd"):
         table.add_column(col)
     for name, r in rewards.items():

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import tempfile
 from pathlib import Path
 
 import jax
@@ -320,6 +321,41 @@ def load_run(store: Store, ref: str):
         raise StoreError(f"{ref} is not a training run")
     trainer = build_trainer(run_spec(path), store)
     return path, manifest, trainer, loop.final_state(trainer, path)
+
+
+def run_record(store: Store, ref: str) -> tuple[Path, dict, bool]:
+    """(path, manifest or pending record, finished) of a training run, finished or not; reads
+    two small files, so a caller can check its options against the run before loading it."""
+    entry = store.find(ref, include_partial=True)
+    if entry.kind != RUN_KIND:
+        raise StoreError(f"{ref} is not a training run")
+    finished = entry.status == "complete"
+    record = store.read_manifest(entry.path) if finished else entry.manifest
+    if not isinstance(record, dict) or not isinstance(record.get("seeds"), list):
+        raise StoreError(f"{entry.path}: its pending.json cannot be read; the run cannot be inspected")
+    return entry.path, record, finished
+
+
+def load_run_so_far(store: Store, path: Path, finished: bool):
+    """(trainer, newest state, that state's epoch) of a run from `run_record`. An unfinished run
+    is read at its newest verified checkpoint, copied aside first: a run being trained in
+    another process is never touched (opening its checkpoint folder in place would clear a save
+    in progress)."""
+    trainer = build_trainer(run_spec(path), store)
+    seeds = list(trainer.spec.train.seeds)
+    if finished:
+        state, epoch = loop.restore_latest(trainer, path, seeds, repair=False)
+        return trainer, state, epoch
+    with tempfile.TemporaryDirectory(prefix="esr-inspect-") as aside:
+        try:
+            epoch = loop.adopt_checkpoint(path, Path(aside), at_most=trainer.spec.train.epochs)
+        except OSError as e:  # the trainer replaced that checkpoint while it was being copied
+            raise StoreError(f"{path}: its checkpoint changed while being read ({e.strerror or e}); "
+                             "run the command again") from None
+        if not epoch:
+            raise StoreError(f"{path} has no verified checkpoint yet: nothing to inspect")
+        state, _ = loop.restore_latest(trainer, Path(aside), seeds, repair=False)
+    return trainer, state, epoch
 
 
 def seed_slice(tree, i: int):

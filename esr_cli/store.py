@@ -180,7 +180,7 @@ class Store:
         p = Path(ref)
         key, status = parse_dirname(p.name)
         if (p / MANIFEST).is_file() or (include_partial and status == "partial" and p.is_dir()):
-            return Entry(p.parent.parent.name, key, p, status, None)
+            return Entry(p.parent.parent.name, key, p, status, _try_json(p / "pending.json") if status == "partial" else None)
         if not re.fullmatch(r"[0-9a-f]{4,32}", ref):
             raise StoreError(f"no artifact {ref!r}: give a path to an artifact directory or a key (at least 4 hex digits)")
         hits = [e for e in self.entries() if e.key.startswith(ref) and (include_partial or e.status == "complete")]

@@ -51,8 +51,60 @@ def test_diagnose_reads_a_trained_run(smoke_run):
                           "within_layout_phi_prime", "mi_estimate"}
     assert all(0 <= reprs[k] <= 1 for k in reprs if k != "mi_estimate")
     assert reprs["layout_only"] >= reprs["chance"] - 1e-6  # knowing the layout never hurts
+    assert report["finished"] is True and report["epoch"] == report["epochs"] == 2
+    play = report["play"]  # the run's robot and a uniform one, scored by the run's own reward
+    assert set(play) == {"robot", "uniform"}
+    for side in play.values():
+        assert side["episodes"] == 16 and 0 <= side["human_moves"] <= 1 and side["return"] >= 0
+        # ESR's reward is the phi minus phi' logit before its 1/d: over equal batches its mean is
+        # d times the mean MI estimate
+        assert abs(side["reward"]["mean"] - 32 * side["reward"]["mi_estimate"]) < 1e-3 * (1 + abs(side["reward"]["mean"]))
     bad = esr("diagnose", str(path), "--seed-index", "3", store=store, check=False)
     assert bad.returncode == 2 and "seed" in bad.stderr
+
+
+def test_diagnose_reads_an_unfinished_run_without_touching_it(tmp_path):
+    store = tmp_path / "store"
+    stopped = esr("train", "experiments/grid_2.yaml", "--budget", "smoke", "--stop-after", "0s", store=store, check=False)
+    assert stopped.returncode == 75, stopped.stderr
+    (part,) = (store / "runs").glob("*/*.partial")
+    before = sorted((p.relative_to(part), p.read_bytes()) for p in part.rglob("*") if p.is_file())
+    proc = esr("diagnose", part.name.split(".")[0][:8], "--batches", "2", "--episodes", "4", "--json", store=store)
+    report = json.loads(proc.stdout)
+    assert report["finished"] is False and (report["epoch"], report["epochs"]) == (1, 2)
+    assert report["play"]["robot"]["episodes"] == 4
+    after = sorted((p.relative_to(part), p.read_bytes()) for p in part.rglob("*") if p.is_file())
+    assert after == before  # read from a copy: the run resumes as if never read
+    text = esr("diagnose", str(part), "--batches", "1", "--episodes", "2", store=store).stdout
+    assert "unfinished: checkpoint at epoch 1 of 2" in text
+
+
+def test_human_moves_counts_steps_that_change_the_humans_own_part():
+    from esr_cli.analysis.play_check import human_moves
+    from esr_cli.envs import gridworld
+    from esr_cli import spec as specs
+
+    env = gridworld.make(specs.load("experiments/grid_2.yaml", "smoke").env)
+    obs = np.zeros((2, 4, 5, 5, 2), np.uint8)
+    cells = [[(0, 0), (0, 1), (0, 1), (1, 1)], [(2, 2), (2, 2), (2, 2), (2, 2)]]
+    for e, path in enumerate(cells):
+        for t, (r, c) in enumerate(path):
+            obs[e, t, r, c, 0] = 1
+    obs[1, 2, 4, 4, 1] = 1  # a block moves: not the human's own part
+    assert abs(human_moves(env, obs) - 2 / 6) < 1e-6
+
+
+def test_play_check_needs_a_robot_that_learns_a_policy():
+    import jax
+    import pytest
+
+    from esr_cli import spec as specs
+    from esr_cli.analysis.play_check import play_check
+    from esr_cli.core.train import make_trainer
+
+    trainer = make_trainer(specs.load("experiments/grid_2_random.yaml", "smoke"))
+    with pytest.raises(ValueError, match="learns no robot policy"):
+        play_check(trainer, None, jax.random.PRNGKey(0))
 
 
 def test_representation_scores_of_hand_made_representations():
