@@ -284,6 +284,8 @@ def diagnose(
     seed_index: int = typer.Option(0, "--seed-index", help="which seed of the run"),
     batches: int = typer.Option(40, "--batches", min=1, help="critic batches to score"),
     episodes: int = typer.Option(16, "--episodes", min=1, max=1024, help="episodes each robot plays for the play check"),
+    refit: int = typer.Option(0, "--refit", min=0, max=100_000, help="ESR: also fit fresh representations to each robot's "
+                              "play for this many updates and compare their MI estimates (0: off)"),
     as_json: bool = typer.Option(False, "--json", help="print JSON instead of tables"),
 ):
     """Why a robot helps or not: its own reward on its play against a uniform robot's, and on
@@ -292,15 +294,20 @@ def diagnose(
     import jax
 
     from esr_cli.analysis import diagnose as dg, play_check as pc
-    from esr_cli.runs import load_run_so_far, run_record, seed_slice
+    from esr_cli.runs import load_run_so_far, run_record, run_spec, seed_slice
 
     path, record, finished = run_record(STATE.store, run)
     if not 0 <= seed_index < len(record["seeds"]):
         raise Exit(2, f"--seed-index: the run has {len(record['seeds'])} seed(s)")
+    method = run_spec(path).method.kind
+    if refit and method != "esr":
+        raise Exit(2, f"--refit fits ESR's representations; this run's method is {method}")
+    if refit and episodes < 2:
+        raise Exit(2, "--refit holds one episode in four out of the fit: give --episodes 2 or more")
     trainer, state, epoch = load_run_so_far(STATE.store, path, finished)
     one = seed_slice(state, seed_index)
     learns = trainer.method.learns_policy and not trainer.acts_by_rule
-    play = pc.play_check(trainer, one, jax.random.PRNGKey(3), episodes, batches) if learns else None
+    play = pc.play_check(trainer, one, jax.random.PRNGKey(3), episodes, batches, refit) if learns else None
     report = {"run": str(path), "finished": finished, "epoch": epoch, "epochs": trainer.spec.train.epochs,
               "seed_index": seed_index, "play": play}
     if trainer.spec.env.kind == "gridworld":
@@ -325,12 +332,17 @@ def diagnose(
 
 def _print_play_check(play: dict) -> None:
     table = Table(title="the run's reward on its robot's play and on a uniform robot's (same human)")
-    for col in ("robot", "episodes", "return", "reward: mean", "sd", "MI estimate (nats)", "steps the human moves"):
+    refit = all("refit" in r for r in play.values())
+    columns = ["robot", "episodes", "return", "reward: mean", "sd", "MI estimate (nats)", "steps the human moves"]
+    for col in columns + (["refit MI: fit", "held out"] if refit else []):
         table.add_column(col)
     for player, r in play.items():
         mi = r["reward"].get("mi_estimate")
-        table.add_row(player, str(r["episodes"]), f"{r['return']:.2f}", f"{r['reward']['mean']:+.3f}", f"{r['reward']['sd']:.3f}",
-                      "" if mi is None else f"{mi:+.4f}", f"{r['human_moves']:.3f}")
+        cells = [player, str(r["episodes"]), f"{r['return']:.2f}", f"{r['reward']['mean']:+.3f}", f"{r['reward']['sd']:.3f}",
+                 "" if mi is None else f"{mi:+.4f}", f"{r['human_moves']:.3f}"]
+        if refit:
+            cells += [f"{r['refit']['fit']:+.4f}", f"{r['refit']['held_out']:+.4f}"]
+        table.add_row(*cells)
     out.print(table)
 
 

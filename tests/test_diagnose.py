@@ -69,10 +69,11 @@ def test_diagnose_reads_an_unfinished_run_without_touching_it(tmp_path):
     assert stopped.returncode == 75, stopped.stderr
     (part,) = (store / "runs").glob("*/*.partial")
     before = sorted((p.relative_to(part), p.read_bytes()) for p in part.rglob("*") if p.is_file())
-    proc = esr("diagnose", part.name.split(".")[0][:8], "--batches", "2", "--episodes", "4", "--json", store=store)
+    proc = esr("diagnose", part.name.split(".")[0][:8], "--batches", "2", "--episodes", "4", "--refit", "3", "--json", store=store)
     report = json.loads(proc.stdout)
     assert report["finished"] is False and (report["epoch"], report["epochs"]) == (1, 2)
     assert report["play"]["robot"]["episodes"] == 4
+    assert all(np.isfinite(side["refit"][k]) for side in report["play"].values() for k in ("fit", "held_out"))
     after = sorted((p.relative_to(part), p.read_bytes()) for p in part.rglob("*") if p.is_file())
     assert after == before  # read from a copy: the run resumes as if never read
     text = esr("diagnose", str(part), "--batches", "1", "--episodes", "2", store=store).stdout
@@ -147,3 +148,34 @@ def test_stored_effects_counts_the_transitions_out_of_a_trapped_corner():
                         reward=np.zeros((4, 2), np.float32), ptr=np.int32(3), count=np.int32(3))
     assert stored_effects(buf, (0, 0)) == {"trapped": 1, "free": 2, "dead": 1}
     assert stored_effects(buf, (2, 2)) == {"trapped": 0, "free": 0, "dead": 0}
+
+
+def test_refit_recovers_log_4_when_the_next_state_names_one_of_4_human_actions():
+    """Next observations place the human in the row its action names (4 rows, uniform) and a
+    random column; with the future the next state, I(aH; s' | s, aR) = log 4 exactly. Labels
+    drawn independently of the observations carry nothing: 0."""
+    import jax
+    import jax.numpy as jnp
+
+    from esr_cli import replay, spec as specs
+    from esr_cli.analysis.play_check import refit_mi_estimate
+    from esr_cli.core.train import make_trainer
+
+    trainer = make_trainer(specs.load("experiments/grid_2.yaml", "smoke", ["method.future_gamma=0.01", "learner.batch_size=64"]))
+    rng = np.random.default_rng(0)
+    n, steps = 32, 20
+    actions = rng.integers(0, 4, (n, steps))
+    obs = np.zeros((n, steps + 1, 5, 5, 2), np.uint8)
+    obs[:, 0, 2, 2, 0] = 1
+    for e in range(n):
+        for t in range(steps):
+            obs[e, t + 1, actions[e, t], rng.integers(0, 5), 0] = 1
+
+    def episodes(human_action):
+        return replay.Episodes(obs=jnp.asarray(obs), robot_action=jnp.zeros((n, steps), jnp.int32),
+                               human_action=jnp.asarray(human_action, jnp.int32), reward=jnp.zeros((n, steps)))
+
+    told = refit_mi_estimate(trainer, episodes(actions), jax.random.PRNGKey(0), 300)
+    assert abs(told["held_out"] - np.log(4)) < 0.15 and abs(told["fit"] - np.log(4)) < 0.15
+    unrelated = refit_mi_estimate(trainer, episodes(rng.integers(0, 4, (n, steps))), jax.random.PRNGKey(0), 300)
+    assert abs(unrelated["held_out"]) < 0.15 and abs(unrelated["fit"]) < 0.15

@@ -63,11 +63,61 @@ def reward_on_episodes(trainer, method_state, episodes: replay.Episodes, key, ba
     return out
 
 
-def play_check(trainer, state, key, episodes: int = 16, batches: int = 40) -> dict:
-    """{player: {"return", "reward": {...}, "human_moves"}} for the run's robot and a uniform
-    one, each `episodes` episodes with the run's human. `state` is one seed's TrainState."""
+# The refit's representation learning rate: fast enough to fit a few thousand updates (the
+# paper's 3e-5 is tuned for 10,000 epochs of slowly changing data).
+REFIT_LR = 1e-3
+REFIT_HELD_OUT = 4  # one episode in REFIT_HELD_OUT is held out of the refit
+
+
+def refit_mi_estimate(trainer, episodes: replay.Episodes, key, updates: int, batches: int = 40, lr: float = REFIT_LR) -> dict:
+    """Fresh ESR representations (the run's architecture and loss, new parameters, rate `lr`)
+    fitted for `updates` steps to these episodes alone, then their MI estimate on them and on
+    held-out episodes: {"fit", "held_out"} (nats). Unlike the run's own representations, which
+    were fitted to the robot's recent play, this estimate is fitted to the play it measures, so
+    two robots' numbers compare like with like."""
+    n, steps = episodes.robot_action.shape
+    if n < 2:
+        raise ValueError("the refit needs at least 2 episodes (one is held out)")
+    method = trainer.method._replace(spec=trainer.method.spec.model_copy(update={"repr_lr": lr}))
+    held = max(1, n // REFIT_HELD_OUT)
+    buffers = []
+    for part in (slice(0, n - held), slice(n - held, n)):
+        ep = jax.tree.map(lambda x: x[part], episodes)
+        buf = replay.add(replay.init(ep.obs.shape[0], steps, ep.obs.shape[2:], ep.obs.dtype), ep)
+        buffers.append(replay.post_step_view(buf) if trainer.post_step_pairing else buf)
+    fit_buf, held_buf = buffers
+    batch_size, gamma, group = trainer.spec.learner.batch_size, trainer.future_gamma, trainer.repr_episode_group
+    k_init, k_fit, k_eval = jax.random.split(key, 3)
+
+    @jax.jit
+    def fit(k_init, k_fit):
+        def step(mstate, k):
+            k_batch, k_update = jax.random.split(k)
+            mstate, _ = method.update(mstate, replay.sample(fit_buf, k_batch, batch_size, gamma, group), k_update)
+            return mstate, None
+
+        mstate, _ = jax.lax.scan(step, method.init(k_init, episodes.obs[0, 0]), jax.random.split(k_fit, updates))
+        return mstate
+
+    mstate = fit(k_init, k_fit)
+
+    @jax.jit
+    def estimate(buf, k):
+        batch = replay.sample(buf, k, batch_size, gamma, group)
+        return mutual_information_estimate(*method.represent_batch(mstate.params, batch))
+
+    keys = jax.random.split(k_eval, batches)
+    return {name: float(np.mean([float(estimate(buf, k)) for k in keys])) for name, buf in (("fit", fit_buf), ("held_out", held_buf))}
+
+
+def play_check(trainer, state, key, episodes: int = 16, batches: int = 40, refit: int = 0) -> dict:
+    """{player: {"return", "reward": {...}, "human_moves"[, "refit"]}} for the run's robot and a
+    uniform one, each `episodes` episodes with the run's human. `state` is one seed's
+    TrainState. refit > 0 (ESR only): also `refit_mi_estimate` with that many updates."""
     if not trainer.method.learns_policy or trainer.acts_by_rule:
         raise ValueError(f"{trainer.spec.method.kind} learns no robot policy: there is no trained play to compare")
+    if refit and trainer.spec.method.kind != "esr":
+        raise ValueError(f"the refit fits ESR's representations; {trainer.spec.method.kind} has none")
     out = {}
     for i, player in enumerate(PLAYERS):
         k_roll, k_score = jax.random.split(jax.random.fold_in(key, i))
@@ -80,4 +130,6 @@ def play_check(trainer, state, key, episodes: int = 16, batches: int = 40) -> di
             "reward": reward_on_episodes(trainer, state.method, ep, k_score, batches),
             "human_moves": human_moves(trainer.env, ep.obs),
         }
+        if refit:
+            out[player]["refit"] = refit_mi_estimate(trainer, ep, jax.random.fold_in(k_score, 1), refit, batches)
     return out
