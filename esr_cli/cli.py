@@ -326,6 +326,8 @@ def diagnose(
     out.print(f"{record['name']} ({record['budget']} budget, {trainer.spec.method.kind}), seed index {seed_index}{when}")
     if play:
         _print_play_check(play)
+    else:
+        out.print(f"{trainer.spec.method.kind} learns no robot policy: no play check")
     if trainer.spec.env.kind == "gridworld":
         _print_gridworld_diagnosis(report)
 
