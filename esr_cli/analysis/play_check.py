@@ -9,8 +9,9 @@ sampling policy) and a uniformly acting robot with the same human, scores the tr
 both with the run's own reward (futures drawn as in training), and sets beside that two things
 the estimate does not decide: the environment's return, and how often the human's own part of
 the state (its position, and on Overcooked its orientation) changes from one step to the next.
-A robot whose reward climbs while the human moves less and the task fails is maximising an
-estimator that no longer measures the human's influence (docs/results.md, coordination ring).
+A robot whose reward climbs while the human moves less and the task fails is following the
+estimate somewhere it no longer tracks the human's influence (docs/results.md, coordination
+ring).
 """
 
 from __future__ import annotations
@@ -33,14 +34,19 @@ def human_moves(env, obs: jax.Array) -> float:
     return float(jnp.mean(changed))
 
 
+def _buffer(trainer, episodes: replay.Episodes) -> replay.Buffer:
+    """`episodes` as a replay buffer, read as the run's updates read theirs (ESR's `pairing:
+    original`: the post-step view)."""
+    n, steps = episodes.robot_action.shape
+    buf = replay.add(replay.init(n, steps, episodes.obs.shape[2:], episodes.obs.dtype), episodes)
+    return replay.post_step_view(buf) if trainer.post_step_pairing else buf
+
+
 def reward_on_episodes(trainer, method_state, episodes: replay.Episodes, key, batches: int) -> dict:
     """The method's reward on `batches` critic batches drawn from `episodes` as training draws
     them (geometric futures; ESR's `pairing: original` reads the post-step view):
     {"mean", "sd"} and, for ESR, "mi_estimate" (the phi minus phi' diagonal logit, nats)."""
-    n, steps = episodes.robot_action.shape
-    buf = replay.add(replay.init(n, steps, episodes.obs.shape[2:], episodes.obs.dtype), episodes)
-    if trainer.post_step_pairing:
-        buf = replay.post_step_view(buf)
+    buf = _buffer(trainer, episodes)
     batch_size, gamma = trainer.spec.learner.batch_size, trainer.future_gamma
     method = trainer.method
     is_esr = trainer.spec.method.kind == "esr"
@@ -75,17 +81,13 @@ def refit_mi_estimate(trainer, episodes: replay.Episodes, key, updates: int, bat
     held-out episodes: {"fit", "held_out"} (nats). Unlike the run's own representations, which
     were fitted to the robot's recent play, this estimate is fitted to the play it measures, so
     two robots' numbers compare like with like."""
-    n, steps = episodes.robot_action.shape
+    n = episodes.robot_action.shape[0]
     if n < 2:
         raise ValueError("the refit needs at least 2 episodes (one is held out)")
     method = trainer.method._replace(spec=trainer.method.spec.model_copy(update={"repr_lr": lr}))
     held = max(1, n // REFIT_HELD_OUT)
-    buffers = []
-    for part in (slice(0, n - held), slice(n - held, n)):
-        ep = jax.tree.map(lambda x: x[part], episodes)
-        buf = replay.add(replay.init(ep.obs.shape[0], steps, ep.obs.shape[2:], ep.obs.dtype), ep)
-        buffers.append(replay.post_step_view(buf) if trainer.post_step_pairing else buf)
-    fit_buf, held_buf = buffers
+    fit_buf, held_buf = (_buffer(trainer, jax.tree.map(lambda x: x[part], episodes))
+                         for part in (slice(0, n - held), slice(n - held, n)))
     batch_size, gamma, group = trainer.spec.learner.batch_size, trainer.future_gamma, trainer.repr_episode_group
     k_init, k_fit, k_eval = jax.random.split(key, 3)
 
