@@ -282,7 +282,7 @@ def exact(
 def diagnose(
     run: str = typer.Argument(..., help="a training run (key, key prefix or path), finished or not", show_default=False),
     seed_index: int = typer.Option(0, "--seed-index", help="which seed of the run"),
-    batches: int = typer.Option(40, "--batches", min=1, help="critic batches to score"),
+    batches: int = typer.Option(40, "--batches", min=1, max=10_000, help="critic batches to score"),
     episodes: int = typer.Option(16, "--episodes", min=1, max=1024, help="episodes each robot plays for the play check"),
     refit: int = typer.Option(0, "--refit", min=0, max=100_000, help="ESR: also fit fresh representations to each robot's "
                               "play for this many updates and compare their MI estimates (0: off)"),
