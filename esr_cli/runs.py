@@ -338,24 +338,26 @@ def run_record(store: Store, ref: str) -> tuple[Path, dict, bool]:
 
 def load_run_so_far(store: Store, path: Path, finished: bool):
     """(trainer, newest state, that state's epoch) of a run from `run_record`. An unfinished run
-    is read at its newest verified checkpoint, copied aside first: a run being trained in
-    another process is never touched (opening its checkpoint folder in place would clear a save
-    in progress)."""
+    is read at its newest verified checkpoint from a snapshot (`transfer.snapshot_partial`, as
+    `esr export` takes one): a run being trained in another process is never touched (opening
+    its checkpoint folder in place would clear a save in progress)."""
+    from esr_cli.transfer import snapshot_partial
+
     trainer = build_trainer(run_spec(path), store)
     seeds = list(trainer.spec.train.seeds)
     if finished:
-        state, epoch = loop.restore_latest(trainer, path, seeds, repair=False)
-        return trainer, state, epoch
+        return (trainer, *_restore_newest(trainer, path, seeds))
     with tempfile.TemporaryDirectory(prefix="esr-inspect-") as aside:
-        try:
-            epoch = loop.adopt_checkpoint(path, Path(aside), at_most=trainer.spec.train.epochs)
-        except OSError as e:  # the trainer replaced that checkpoint while it was being copied
-            raise StoreError(f"{path}: its checkpoint changed while being read ({e.strerror or e}); "
-                             "run the command again") from None
-        if not epoch:
-            raise StoreError(f"{path} has no verified checkpoint yet: nothing to inspect")
-        state, _ = loop.restore_latest(trainer, Path(aside), seeds, repair=False)
-    return trainer, state, epoch
+        snapshot = Path(aside) / path.name
+        snapshot_partial(path, snapshot)
+        return (trainer, *_restore_newest(trainer, snapshot, seeds))
+
+
+def _restore_newest(trainer, run_dir: Path, seeds):
+    state, epoch = loop.restore_latest(trainer, run_dir, seeds, repair=False)
+    if not epoch:
+        raise StoreError(f"{run_dir} has no checkpoint: nothing to inspect")
+    return state, epoch
 
 
 def seed_slice(tree, i: int):

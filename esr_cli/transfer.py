@@ -63,7 +63,7 @@ def export(store: Store, ref: str, out: Path | None = None) -> Moved:
             if problems:
                 raise StoreError(f"{kind} {key[:12]} fails its manifest ({problems[0]}); `esr verify {key[:12]}` lists every problem")
         else:
-            _snapshot_partial(src, stage)
+            snapshot_partial(src, stage)
         files = sorted(p for p in stage.rglob("*") if p.is_file())
         part = out.with_name(f".{out.name}.part")
         try:
@@ -87,7 +87,7 @@ def _find(store: Store, ref: str) -> tuple[str, str, Path, str]:
     return e.kind, e.key, e.path, e.status
 
 
-def _snapshot_partial(src: Path, stage: Path) -> None:
+def snapshot_partial(src: Path, stage: Path) -> None:
     """Copy an unfinished run with only its newest verified checkpoint. The run may be saving a
     newer one meanwhile (and deleting the oldest), so a copy that changed under it is retried."""
     from esr_cli.checkpoint_files import CHECKPOINT_DIR, verified_steps
