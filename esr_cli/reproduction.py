@@ -118,9 +118,17 @@ def index_store(store: Store) -> dict[str, list[Evidence]]:
     return out
 
 
+def _rank(e: Evidence) -> tuple:
+    return (e.epochs_done, e.seeds, e.status == "complete")
+
+
 def best(index: dict[str, list[Evidence]], spec: specs.Spec) -> Optional[Evidence]:
-    found = index.get(_without_train(spec), [])
-    return max(found, key=lambda e: (e.epochs_done, e.seeds, e.status == "complete"), default=None)
+    return max(index.get(_without_train(spec), []), key=_rank, default=None)
+
+
+def others(index: dict[str, list[Evidence]], spec: specs.Spec, chosen: Evidence) -> list[Evidence]:
+    """The runs of `spec` besides `chosen`, longest first."""
+    return sorted((e for e in index.get(_without_train(spec), []) if e.key != chosen.key), key=_rank, reverse=True)
 
 
 # ---------------------------------------------------------------- claims
@@ -202,6 +210,9 @@ class Finding:
     verdict: str
     measured: str
     variants: list[tuple[str, Optional[Evidence], str]] = field(default_factory=list)
+    # The other stored runs of the first spec (fewer epochs, another seed set or device), with
+    # their own comparison: a one-seed verdict is read beside the several-seed runs that exist.
+    others: list[tuple[Evidence, str]] = field(default_factory=list)
 
 
 def _mi_summary(ev: Evidence) -> tuple[bool, str]:
@@ -281,16 +292,18 @@ def judge(claim: Claim, index: dict[str, list[Evidence]]) -> Finding:
     needed = [a] + ([b] if claim.b else [])
     if any(e is None for e in needed):
         return Finding(claim, a, b, NOT_YET, "not run", variants)
+    more = [(ev, _mi_summary(ev)[1] if claim.kind == "mi_positive" else _compare(claim.kind, ev, b)[1])
+            for ev in others(index, claim_spec(claim.a), a)]
     if claim.kind == "mi_positive":
         holds, measured = _mi_summary(a)
     else:
         holds, measured = _compare(claim.kind, a, b)
     if not all(e.comparable() for e in needed):
-        return Finding(claim, a, b, NOT_YET, measured, variants)
+        return Finding(claim, a, b, NOT_YET, measured, variants, more)
     verdict = INCONCLUSIVE if holds is None else REPRODUCED if holds else NOT_REPRODUCED
     if any(e.seeds == 1 for e in needed):
         verdict += " (1 seed)"
-    return Finding(claim, a, b, verdict, measured, variants)
+    return Finding(claim, a, b, verdict, measured, variants, more)
 
 
 # ---------------------------------------------------------------- the report
@@ -479,11 +492,14 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
         for f in (x for x in findings if x.claim.figure == figure):
             runs = _run_cell(f.a) + ("<br>vs " + _run_cell(f.b) if f.claim.b else "")
             lines.append(f"| {f.claim.text} | {f.claim.paper} | {f.measured} | {runs} | **{f.verdict}** |")
+            for ev, measured in f.others:
+                lines.append(f"| ↳ another run of this spec | | {measured} | {_run_cell(ev)} | |")
             for label, ev, measured in f.variants:
                 if ev is not None:
                     lines.append(f"| ↳ esr's variant `{label}` | | {measured} | {_run_cell(ev)} | |")
         lines.append("")
-    behind = {ev.key: ev for f in findings for ev in [f.a, f.b] + [v[1] for v in f.variants] if ev is not None}
+    behind = {ev.key: ev for f in findings for ev in [f.a, f.b] + [v[1] for v in f.variants] + [o[0] for o in f.others]
+              if ev is not None}
     if behind:
         lines += ["## The runs behind this report", "",
                   "Each was made by the command beside it, run from a checkout of its commit (the training code is part of a "

@@ -83,7 +83,11 @@ def test_the_longest_matching_run_is_used_whatever_its_length_or_seeds():
     above = _claim("N = 5: ESR ends above Random")
     index = _index(_evidence("grid_5", finals=(1.0,), epochs=600), _evidence("grid_5", finals=(20.0,), epochs=3000),
                    _evidence("grid_5_random", finals=(9.0,)))
-    assert rep.judge(above, index).a.epochs_done == 3000
+    finding = rep.judge(above, index)
+    assert finding.a.epochs_done == 3000
+    # the shorter run is not dropped: it is shown beside the verdict with its own comparison
+    [(other, measured)] = finding.others
+    assert other.epochs_done == 600 and measured == "ESR 1.00 (1 seed) against Random 9.00 (1 seed)"
     # esr's quick-budget changes make another spec: they are a variant, never the paper's ESR
     variant = _index(_evidence("grid_5", rep.QUICK_CHANGES, finals=(20.0,)), _evidence("grid_5_random", finals=(9.0,)))
     finding = rep.judge(above, variant)

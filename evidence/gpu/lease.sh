@@ -29,9 +29,29 @@ left() { echo $((BUDGET_S - ($(date +%s) - started))); }
 mkdir -p "$OUT"
 log() { echo "[$(date -u +%T)] $*" | tee -a "$OUT/lease.log"; }
 
+# A wheel whose package the image already has at the same major version is left out: /tmp/site
+# comes first on the path, and the image's builds are the ones made for its jax and numpy.
+missing_wheels() {
+    python3 - .whl/*.whl <<'PY'
+import sys
+from importlib import metadata
+for path in sys.argv[1:]:
+    name, version = path.rsplit("/", 1)[-1].split("-")[:2]
+    try:
+        have = metadata.version(name)
+    except metadata.PackageNotFoundError:
+        have = None
+    if have is None or have.split(".")[0] != version.split(".")[0]:
+        print(path)
+PY
+}
 if compgen -G ".whl/*.whl" >/dev/null; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-        || { log "installing .whl failed"; exit 1; }
+    mapfile -t wheels < <(missing_wheels)
+    log "wheels installed: ${wheels[*]:-none}"
+    if [ ${#wheels[@]} -gt 0 ]; then
+        python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "${wheels[@]}" \
+            || { log "installing .whl failed"; exit 1; }
+    fi
     export PYTHONPATH="/tmp/site:$PWD${PYTHONPATH:+:$PYTHONPATH}"
 else
     export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
@@ -50,7 +70,8 @@ log "machine: $(grep -m1 '^jax' "$OUT/machine.txt")"
 if [ -n "${BENCH_SEEDS:-}" ]; then
     log "bench: $BENCH_CONFIG, seeds $BENCH_SEEDS"
     # shellcheck disable=SC2086 # seed counts are separate arguments
-    timeout "$BENCH_S" python3 benchmarks/bench.py --configs "$BENCH_CONFIG" --seeds $BENCH_SEEDS \
+    # in the run's store, so an Overcooked benchmark's BC human is built once for both
+    ESR_STORE="$STORE" timeout "$BENCH_S" python3 benchmarks/bench.py --configs "$BENCH_CONFIG" --seeds $BENCH_SEEDS \
         --out "$OUT/bench.json" >>"$OUT/lease.log" 2>&1
     log "bench: exit $?"
 fi
@@ -58,6 +79,11 @@ fi
 [ -n "${RUN:-}" ] || { log "no RUN given"; exit 0; }
 for first in .dev/*.part-aa; do
     [ -e "$first" ] || continue
+    key8=$(basename "${first%.tar.gz.part-aa}")
+    if compgen -G "$STORE/runs/*/$key8*" >/dev/null; then  # a warm machine kept it: that copy is newer
+        log "import of $key8 skipped: the store already has it"
+        continue
+    fi
     cat "${first%aa}"* >/tmp/continue.tar.gz
     esr --store "$STORE" import /tmp/continue.tar.gz >>"$OUT/lease.log" 2>&1 || log "import of ${first%.part-aa} failed"
 done
