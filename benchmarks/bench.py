@@ -79,7 +79,7 @@ def epoch_flops(trainer) -> float:
     total = steps * flops(lambda l, k: trainer.rollout(l, k, spec.train.num_envs), state.learner, jax.random.PRNGKey(1))
     m, learner = trainer.method, trainer.learner
     if m.updates_per_epoch:
-        total += m.updates_per_epoch * flops(lambda s, bt: m.update(s, bt, None), state.method, batch)
+        total += m.updates_per_epoch * flops(lambda s, bt: m.update(s, bt, jax.random.PRNGKey(2)), state.method, batch)
     if not m.learns_policy:
         return total
     step = lambda l, r, bt: learner.critic_step(l, bt.obs, bt.robot_action, r, bt.next_obs, bt.done)  # noqa: E731
@@ -90,7 +90,7 @@ def epoch_flops(trainer) -> float:
         )
         critic = lambda l, bt: step(l, bt.reward, bt)  # noqa: E731 - the lookup itself is no flops
     else:
-        critic = lambda l, bt: step(l, m.reward(state.method, bt, None), bt)  # noqa: E731
+        critic = lambda l, bt: step(l, m.reward(state.method, bt, jax.random.PRNGKey(3)), bt)  # noqa: E731
     total += spec.learner.updates_per_epoch * flops(critic, state.learner, batch)
     q = learner.q_values(state.learner.params, batch.obs)
     if trainer.q_table_pays:

@@ -207,6 +207,12 @@ def test_iq_learn_reward_ranks_the_humans_actions_above_random_ones():
     # The taken action beats the average action, on average and in most transitions.
     assert taken.mean() > every.mean() + 0.1
     assert np.mean(taken > every.mean(axis=0)) > 0.75, np.mean(taken > every.mean(axis=0))
+    # The critic phase's table (Q_H of every stored state once) gives the per-batch values,
+    # the episode's last step included (done: no value of the state after it).
+    table = jax.jit(method.reward_table)(state, buf)
+    idx = replay.Index(episode=jnp.array([0, 5, 63, 63]), t=jnp.array([0, 7, 3, steps - 1]), future=jnp.zeros(4, jnp.int32))
+    direct = method.reward(state, replay.gather(buf, idx), key)
+    np.testing.assert_allclose(method.reward_from_table(table, idx), direct, rtol=1e-5, atol=1e-5)
 
 
 def test_oracle_reward_is_the_environments():

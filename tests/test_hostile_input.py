@@ -20,6 +20,12 @@ method: {kind: esr}
 """
 
 
+def cpu_seconds() -> float:
+    """This process's CPU time: an in-process bound on the work a refusal does, which other
+    processes on a loaded machine (the suite's own workers, a training run) cannot stretch."""
+    return time.process_time()
+
+
 def write(tmp_path, text, name="s.yaml"):
     p = tmp_path / name
     p.write_text(text)
@@ -37,10 +43,10 @@ def alias_bomb() -> str:
 def test_alias_bomb_is_refused_at_once_in_little_memory(tmp_path):
     p = write(tmp_path, alias_bomb())
     tracemalloc.start()
-    t0 = time.perf_counter()
+    t0 = cpu_seconds()
     with pytest.raises(specs.SpecError, match=r"line 5: anchors \(&a0\) are not allowed"):
         specs.load(p)
-    elapsed = time.perf_counter() - t0
+    elapsed = cpu_seconds() - t0
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     assert elapsed < 5.0 and peak < 200 * 2**20  # a blow-up takes minutes; a loaded machine, seconds
@@ -87,10 +93,10 @@ def test_non_finite_numbers_are_refused_by_name(tmp_path, field, value):
 
 
 def test_huge_seed_count_is_refused_before_it_is_built(tmp_path):
-    t0 = time.perf_counter()
+    t0 = cpu_seconds()
     with pytest.raises(specs.SpecError, match="train.seeds: 1,000,000,000 seeds: at most 1,024"):
         specs.load(write(tmp_path, VALID), "paper", ["train.seeds=1000000000"])
-    assert time.perf_counter() - t0 < 5.0
+    assert cpu_seconds() - t0 < 5.0
     with pytest.raises(specs.SpecError, match="environment steps"):
         specs.load(write(tmp_path, VALID), "paper", ["train.epochs=10000000", "train.num_envs=100000"])
 
@@ -191,13 +197,13 @@ def test_fuzzed_specs_are_a_clean_spec_or_a_one_line_error(tmp_path, text):
     aliased) loads as a valid spec or raises SpecError with a one-line message, fast."""
     p = tmp_path / "fuzz.yaml"
     p.write_text(text)
-    t0 = time.perf_counter()
+    t0 = cpu_seconds()
     for budget in ("paper", "smoke"):
         try:
             specs.load(p, budget)
         except specs.SpecError as e:
             assert "\n" not in str(e) and str(e).startswith(str(p))
-    assert time.perf_counter() - t0 < 10.0
+    assert cpu_seconds() - t0 < 10.0
 
 
 def test_published_ave_on_overcooked_validates():
@@ -301,12 +307,12 @@ GRID_2 = ROOT / "experiments" / "grid_2.yaml"
 def _refused_fast(fn, match, seconds=3.0, mib=50):
     """fn() raises SuiteError matching `match`, in bounded time and memory."""
     tracemalloc.start()
-    t0 = time.perf_counter()
+    t0 = cpu_seconds()
     try:
         with pytest.raises(suites.SuiteError, match=match) as e:
             fn()
     finally:
-        elapsed = time.perf_counter() - t0
+        elapsed = cpu_seconds() - t0
         _, peak = tracemalloc.get_traced_memory()
         tracemalloc.stop()
     assert "\n" not in str(e.value)

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import optax
 
 from esr_cli.networks import conv_net
+from esr_cli.replay import map_episodes
 
 
 class IQState(NamedTuple):
@@ -54,7 +55,7 @@ class IQLearn(NamedTuple):
     metric_names: tuple = ("iq_loss", "iq_reward_taken", "iq_reward_random")
     all_metric_names = metric_names  # not a field (a class attribute): the same for every spec
     acts_by_rule: bool = False
-    has_reward_table: bool = False
+    has_reward_table: bool = True  # reward_table / reward_from_table (core/train.reward_table_pays)
 
     @classmethod
     def from_spec(cls, spec, env, human):
@@ -101,3 +102,21 @@ class IQLearn(NamedTuple):
         q_s, q_next = self._q_pair(state.params, batch)
         r = recovered_reward(q_s, batch.human_action, q_next, batch.done, self.spec.gamma, self.spec.alpha)
         return jax.lax.stop_gradient(r)
+
+    # Within the critic phase Q_H is fixed: where it pays (a buffer smaller than the phase's
+    # batches, the gridworld's), every stored state is run through Q_H once and the critic's
+    # batches look their rewards up, instead of two forward passes per batch.
+    def reward_table(self, state: IQState, buf) -> jax.Array:
+        steps = buf.robot_action.shape[1]
+        done = (jnp.arange(steps) == steps - 1).astype(jnp.float32)  # as replay.gather marks it
+
+        def episode(args):
+            obs, human_action = args
+            q = self.net.apply(state.params, obs)  # every state of the episode, the last included
+            return recovered_reward(q[:steps], human_action, q[1 : steps + 1], done, self.spec.gamma, self.spec.alpha)
+
+        return jax.lax.stop_gradient(map_episodes(episode, (buf.obs, buf.human_action), steps))
+
+    def reward_from_table(self, table: jax.Array, idx) -> jax.Array:
+        """The reward of the batch at buffer index `idx` (replay.Index)."""
+        return table[idx.episode, idx.t]
