@@ -12,7 +12,7 @@ Nothing here trains; the estimator check computes exact artifacts for a stored r
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cache
 from pathlib import Path
 from typing import Optional
@@ -56,6 +56,8 @@ class Evidence:
     # False for an unfinished run whose checkpoint is not in this store (a record of its
     # logged epochs, `esr import --without-checkpoint`): training it again starts from epoch 0.
     resumable: bool = True
+    # A pooled run (`pooled`): the finished runs whose seeds it joins; () for a stored run.
+    parts: tuple = ()
     _finals: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -126,9 +128,42 @@ def best(index: dict[str, list[Evidence]], spec: specs.Spec) -> Optional[Evidenc
     return max(index.get(_without_train(spec), []), key=_rank, default=None)
 
 
+def _train_but_seeds(e: Evidence) -> str:
+    train = e.spec.training_part()["train"]
+    train.pop("seeds")
+    return json.dumps(train, sort_keys=True)
+
+
+def _join_rows(runs: list[Evidence]) -> list[dict]:
+    """Epoch rows of runs of equal length, each per-seed list joined in run order."""
+    return [{k: sum((r[k] for r in rows), []) if isinstance(v, list) else v for k, v in rows[0].items()}
+            for rows in zip(*(e.rows for e in runs))]
+
+
+def pooled(index: dict[str, list[Evidence]], spec: specs.Spec) -> Optional[Evidence]:
+    """The evidence for `spec`: its longest run, or, where several finished runs share that
+    length and differ only in their seeds (same commit, device and every other training
+    field; no seed twice), all of them as one run of their joined seeds. Which of two
+    single-seed runs of one length to believe is otherwise an arbitrary choice."""
+    top = best(index, spec)
+    if top is None or top.status != "complete" or not top.commit:
+        return top
+    mates = [e for e in index.get(_without_train(spec), [])
+             if e.status == "complete" and e.epochs_done == top.epochs_done and e.commit == top.commit
+             and e.device == top.device and _train_but_seeds(e) == _train_but_seeds(top)]
+    seeds = [s for e in mates for s in e.spec.train.seeds]
+    if len(mates) < 2 or len(set(seeds)) != len(seeds):
+        return top
+    mates.sort(key=lambda e: min(e.spec.train.seeds))
+    train = top.spec.train.model_copy(update={"seeds": seeds})
+    return replace(top, key="+".join(e.key[:8] for e in mates), spec=top.spec.model_copy(update={"train": train}),
+                   rows=_join_rows(mates), parts=tuple(mates), _finals={})
+
+
 def others(index: dict[str, list[Evidence]], spec: specs.Spec, chosen: Evidence) -> list[Evidence]:
-    """The runs of `spec` besides `chosen`, longest first."""
-    return sorted((e for e in index.get(_without_train(spec), []) if e.key != chosen.key), key=_rank, reverse=True)
+    """The runs of `spec` besides `chosen` (or the runs it pools), longest first."""
+    used = {p.key for p in chosen.parts} | {chosen.key}
+    return sorted((e for e in index.get(_without_train(spec), []) if e.key not in used), key=_rank, reverse=True)
 
 
 # ---------------------------------------------------------------- claims
@@ -276,8 +311,8 @@ def _compare(kind: str, a: Evidence, b: Evidence) -> tuple[bool | None, str]:
 
 
 def judge(claim: Claim, index: dict[str, list[Evidence]]) -> Finding:
-    a = best(index, claim_spec(claim.a))
-    b = best(index, claim_spec(claim.b)) if claim.b else None
+    a = pooled(index, claim_spec(claim.a))
+    b = pooled(index, claim_spec(claim.b)) if claim.b else None
     variants = []
     for ref in claim.variants:
         ev = best(index, claim_spec(ref))
@@ -310,6 +345,8 @@ def judge(claim: Claim, index: dict[str, list[Evidence]]) -> Finding:
 def _run_cell(ev: Optional[Evidence]) -> str:
     if ev is None:
         return "—"
+    if ev.parts:
+        return "seeds pooled from " + " + ".join(_run_cell(p) for p in ev.parts)
     commit = f", commit {ev.commit[:7]}" if ev.commit else ""
     # The CPU is the default and goes unsaid; an accelerator's figures are marked as such.
     device = f", on {ev.accelerator}" if ev.accelerator else ""
@@ -473,7 +510,9 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
         "How to read it:",
         "- Each row is one statement of the paper, checked on the stored run with the most epochs whose spec matches "
         "(in every field outside `train`, so runs of any length, seed count or checkout count). A run made on an "
-        "accelerator says so ('on gpu:...'); the others ran on a CPU.",
+        "accelerator says so ('on gpu:...'); the others ran on a CPU. Finished runs of that length that differ only in "
+        "their seeds (same commit and device) are pooled into one run of all their seeds; every other run of the spec "
+        "is listed beside the verdict.",
         f"- Final return: each seed's mean over its last {FINAL_FRACTION:.0%} of epochs. Several seeds: mean ± SE, "
         "the interquartile mean (IQM) with its 95% stratified bootstrap interval, and the probability that the first run "
         "improves on the second with its interval. One seed: its value, marked as one seed.",
@@ -498,8 +537,8 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
                 if ev is not None:
                     lines.append(f"| ↳ esr's variant `{label}` | | {measured} | {_run_cell(ev)} | |")
         lines.append("")
-    behind = {ev.key: ev for f in findings for ev in [f.a, f.b] + [v[1] for v in f.variants] + [o[0] for o in f.others]
-              if ev is not None}
+    behind = {part.key: part for f in findings for ev in [f.a, f.b] + [v[1] for v in f.variants] + [o[0] for o in f.others]
+              if ev is not None for part in (ev.parts or (ev,))}
     if behind:
         lines += ["## The runs behind this report", "",
                   "Each was made by the command beside it, run from a checkout of its commit (the training code is part of a "

@@ -177,3 +177,25 @@ def test_the_command_that_made_a_run_resolves_to_its_spec():
     assert rep.train_command(ev, rep.Store(Path("/store"))) == (
         "esr --store /store train experiments/grid_5_ave.yaml --budget paper"
         " --set method.variant=original --set train.epochs=3000 --set train.seeds=1")
+
+
+def test_finished_runs_that_differ_only_in_their_seeds_are_pooled():
+    """Two one-seed runs of one length, one commit and one device, seeds 0 and 1: one run of two
+    seeds, never an arbitrary pick of one; another commit or a repeated seed is not pooled."""
+    above = _claim("coord_ring: ESR ends above Random")
+    seed0 = _evidence("coord_ring", ("train.seeds=[0]",), finals=(0.06,), epochs=10000)
+    seed1 = _evidence("coord_ring", ("train.seeds=[1]",), finals=(19.5,), epochs=10000)
+    random = _evidence("coord_ring_random", ("train.seeds=1",), finals=(16.39,), epochs=10000)
+    seed0.key, seed1.key = "a" * 32, "b" * 32
+    for ev in (seed0, seed1, random):
+        ev.commit = "2b82b53"
+    finding = rep.judge(above, _index(seed1, seed0, random))
+    assert finding.a.seeds == 2 and [p.key for p in finding.a.parts] == [seed0.key, seed1.key]
+    assert finding.a.finals()["per_seed"] == [0.06, 19.5] and finding.others == []
+    assert finding.verdict == "inconclusive (1 seed)"  # P(improvement) 0.5 [0, 1] against one Random seed
+    assert rep._run_cell(finding.a).startswith("seeds pooled from `aaaaaaaa` (paper; 10,000 epochs, 1 seed")
+    seed1.commit = "af75888"
+    finding = rep.judge(above, _index(seed1, seed0, random))
+    assert finding.a.parts == () and len(finding.others) == 1
+    seed1.commit, seed1.spec = "2b82b53", seed0.spec  # the same seed twice
+    assert rep.judge(above, _index(seed1, seed0, random)).a.parts == ()
