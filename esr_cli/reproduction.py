@@ -148,9 +148,10 @@ def pooled(index: dict[str, list[Evidence]], spec: specs.Spec) -> Optional[Evide
     top = best(index, spec)
     if top is None or top.status != "complete" or not top.commit:
         return top
+    train_rest = _train_but_seeds(top)
     mates = [e for e in index.get(_without_train(spec), [])
              if e.status == "complete" and e.epochs_done == top.epochs_done and e.commit == top.commit
-             and e.device == top.device and _train_but_seeds(e) == _train_but_seeds(top)]
+             and e.device == top.device and _train_but_seeds(e) == train_rest]
     seeds = [s for e in mates for s in e.spec.train.seeds]
     if len(mates) < 2 or len(set(seeds)) != len(seeds):
         return top
@@ -315,7 +316,7 @@ def judge(claim: Claim, index: dict[str, list[Evidence]]) -> Finding:
     b = pooled(index, claim_spec(claim.b)) if claim.b else None
     variants = []
     for ref in claim.variants:
-        ev = best(index, claim_spec(ref))
+        ev = pooled(index, claim_spec(ref))
         label = " ".join(ref[1])
         if ev is None:
             variants.append((label, None, "not run"))
