@@ -5,6 +5,7 @@ interrupted (resumable)."""
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import sys
@@ -13,6 +14,7 @@ from typing import List, Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from esr_cli import spec as specs
@@ -107,11 +109,33 @@ def train(
     spec = _load_spec(spec_file, budget, set_)
     built = ensure(runs.run_recipe(spec, err, stop_at=stop_at), STATE.store)
     path, cached = built.path, built.cached
-    err.print(f"[green]{'cache hit' if cached else 'trained'}[/]: {spec.name} ({spec.budget}) -> {path}")
+    err.print(f"[green]{'cache hit' if cached else 'trained'}[/]: {escape(spec.name)} ({spec.budget}) -> {escape(str(path))}", soft_wrap=True)
     out.print(str(path), soft_wrap=True, highlight=False)
 
 
 # ---------------------------------------------------------------- sweep
+def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait, job_opts):
+    """An option that would change nothing is a mistake to name, not to ignore."""
+    if show_status and show_results:
+        raise Exit(2, "--status and --results: choose one")
+    if as_json and markdown:
+        raise Exit(2, "--json and --markdown: choose one")
+    for flag, given in (("--markdown", markdown), ("--metric", metric), ("--plot", plot)):
+        if given and not show_results:
+            raise Exit(2, f"{flag} applies with --results only")
+    if as_json and not (show_status or show_results):
+        raise Exit(2, "--json applies with --status or --results only")
+    # submitit-local uses the time, CPU and memory limits; partition and GPUs are SLURM's alone.
+    used = {"slurm": set(job_opts), "submitit-local": {"--time-min", "--cpus", "--mem-gb"}}.get(executor, set())
+    submits = not (show_status or show_results)
+    ignored = [f for f, v in job_opts.items() if v is not None and (f not in used or not submits)]
+    if ignored:
+        raise Exit(2, f"{', '.join(ignored)}: " + (f"not used by --executor {executor}" if submits else
+                                                   "--status and --results submit nothing"))
+    if wait is not None and (executor == "local" or not submits):
+        raise Exit(2, "--wait/--no-wait: for submitted jobs (--executor slurm or submitit-local)")
+
+
 @app.command()
 def sweep(
     suite_file: Path = typer.Argument(..., help="a suite (YAML): spec files and/or a grid of --set values", show_default=False),
@@ -136,6 +160,9 @@ def sweep(
 
     if executor not in sw.EXECUTORS:
         raise Exit(2, f"--executor: unknown executor {executor!r}; known: {', '.join(sw.EXECUTORS)}")
+    _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait,
+                                  {"--partition": partition, "--time-min": time_min, "--gpus": gpus,
+                                   "--cpus": cpus, "--mem-gb": mem_gb})
     overrides = {"partition": partition, "time_min": time_min, "gpus": gpus, "cpus": cpus, "mem_gb": mem_gb}
     try:
         sw.slurm_options(sw.SlurmOptions(), overrides, "")  # before the suite's runs are built
@@ -163,7 +190,7 @@ def sweep(
                 except figs.MissingRuns as e:
                     raise Exit(2, f"{e}\nor all at once: esr sweep {suite_file} --budget {budget}") from None
                 path = built.path
-                err.print(f"[green]{'cache hit' if built.cached else 'drawn'}[/]: {path / 'suite.png'}  (table: {path / 'table.md'})")
+                err.print(f"[green]{'cache hit' if built.cached else 'drawn'}[/]: {escape(str(path / 'suite.png'))}  (table: {escape(str(path / 'table.md'))})")
             return
         if show_status:
             rows = sw.status(suite, STATE.store)
@@ -182,7 +209,7 @@ def sweep(
             out.print(str(p), soft_wrap=True, highlight=False)
     done = sum(p is not None for p in result.paths)
     err.print(f"[green]{done} of {len(result.paths)} run(s) done[/]; {len(result.submitted)} "
-              f"{'run' if executor == 'local' else 'submitted'} this time; `esr sweep --status {suite_file}` shows each")
+              f"{'run' if executor == 'local' else 'submitted'} this time; `esr sweep --status {escape(str(suite_file))}` shows each")
     if result.failed:
         raise Exit(1, f"{len(result.failed)} run(s) failed: " + "; ".join(f"{r.label}: {m}" for r, m in result.failed))
     if result.stopped:  # saved at their jobs' time budgets: resumable, like `esr train --stop-after`
@@ -219,22 +246,24 @@ def eval_(
             if given:
                 raise Exit(2, f"{option} applies to a spec file target only; {target} names a trained run, "
                               "whose spec and budget are fixed (name the spec file instead)")
+    if runs.is_spec_file(target):  # options that cannot fit the spec are named before "not trained yet"
+        runs.eval_spec(_load_spec(Path(target), budget, set_), human, seat)
     run_path = runs.find_run(target, budget, set_, STATE.store)
     built = ensure(runs.eval_recipe(run_path, STATE.store, episodes, err, human, seat), STATE.store)
     path, summary, cached = built.path, built.summary(), built.cached
     partner = "" if human == "training" else f", with the {human.split(':')[0]} human {summary['human_key'][:8]}"
     if seat is not None and summary.get("robot_seat") is not None:
         partner += f", robot as agent_{summary['robot_seat']}"
-    table = Table(title=f"{summary['name']} ({summary['budget']}, {len(summary['seeds'])} seed(s), {summary['episodes']} episodes each{partner})")
+    table = Table(title=f"{escape(summary['name'])} ({summary['budget']}, {len(summary['seeds'])} seed(s), {summary['episodes']} episodes each{partner})")
     for col in ("policy", "return (mean ± SE; IQM [95% CI] across seeds)", "success"):
         table.add_column(col)
     for mode, r in summary["results"].items():
         table.add_row(mode, format_summary(r["return"]), format_summary(r["success"], 3))
     err.print(table)
-    err.print(f"[green]{'cache hit' if cached else 'evaluated'}[/]: {path}")
+    err.print(f"[green]{'cache hit' if cached else 'evaluated'}[/]: {escape(str(path))}")
     for name in ("rollout.gif", "learning_curve.png"):
         if (path / name).exists():
-            err.print(f"  {name}: {path / name}")
+            err.print(f"  {name}: {escape(str(path / name))}")
     out.print(str(path), soft_wrap=True, highlight=False)
 
 
@@ -274,7 +303,7 @@ def exact(
         v = summary[k]
         table.add_row(k, f"{v:.4f}" if isinstance(v, float) else "— (not every pair computed)" if v is None else str(v))
     err.print(table)
-    err.print(f"[green]{'cache hit' if cached else 'computed'}[/]: {path}")
+    err.print(f"[green]{'cache hit' if cached else 'computed'}[/]: {escape(str(path))}")
     out.print(str(path), soft_wrap=True, highlight=False)
 
 
@@ -323,7 +352,7 @@ def diagnose(
         out.print_json(json.dumps(report))
         return
     when = "" if finished else f", unfinished: checkpoint at epoch {epoch:,} of {trainer.spec.train.epochs:,}"
-    out.print(f"{record['name']} ({record['budget']} budget, {trainer.spec.method.kind}), seed index {seed_index}{when}")
+    out.print(f"{escape(str(record['name']))} ({escape(str(record['budget']))} budget, {trainer.spec.method.kind}), seed index {seed_index}{when}")
     if play:
         _print_play_check(play)
     else:
@@ -429,7 +458,7 @@ def plot(
         except figs.MissingRuns as e:
             raise Exit(2, f"{e}\nor all at once: make paper-figures BUDGET={budget}") from None
         png = built.path / f"{figs.FIGURES[figure][0]}.png"
-    err.print(f"[green]{'cache hit' if built.cached else 'drawn'}[/]: {png}")
+    err.print(f"[green]{'cache hit' if built.cached else 'drawn'}[/]: {escape(str(png))}")
     out.print(str(png), soft_wrap=True, highlight=False)
 
 
@@ -458,10 +487,22 @@ def ablate(
     for p in panels:
         rich_table.add_column(p)
     for label in dict.fromkeys(lab for p in panels for lab in table[p]):
-        rich_table.add_row(label, *[format_summary(table[p][label]) if label in table[p] else "" for p in panels])
+        rich_table.add_row(escape(label), *[format_summary(table[p][label]) if label in table[p] else "" for p in panels])
     err.print(rich_table)
-    err.print(f"[green]comparison[/]: {path / 'ablation.png'}  (table: {path / 'table.md'})")
+    err.print(f"[green]comparison[/]: {escape(str(path / 'ablation.png'))}  (table: {escape(str(path / 'table.md'))})")
     out.print(str(path), soft_wrap=True, highlight=False)
+
+
+def _check_output_file(path: Path, option: str) -> None:
+    """Refuse, before any work, an output path that cannot become a file: a directory, or one
+    below an existing file."""
+    if path.is_dir():
+        raise Exit(2, f"{option}: {path} is a directory; name a file")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise Exit(2, f"{option}: {parent} is a file, not a directory")
+            break
 
 
 @app.command("paper")
@@ -483,12 +524,13 @@ def paper_(
     if report:
         from esr_cli import reproduction
 
+        _check_output_file(report_out, "--out")
         findings = reproduction.report(STATE.store, report_out, err, exact=exact)
         counts: dict[str, int] = {}
         for f in findings:
             counts[f.verdict] = counts.get(f.verdict, 0) + 1
         err.print(", ".join(f"{n} {v}" for v, n in counts.items()))
-        err.print(f"[green]reproduction report[/]: {report_out}")
+        err.print(f"[green]reproduction report[/]: {escape(str(report_out))}")
         if as_json:
             out.print(json.dumps(reproduction.findings_json(findings), indent=2), soft_wrap=True, highlight=False)
         else:
@@ -500,7 +542,7 @@ def paper_(
         raise Exit(2, f"bad suite: {e}") from None
     except (sw.SweepError, figs.MissingRuns) as e:
         raise Exit(1, str(e)) from None
-    err.print(f"[green]report[/]: {path / 'report.md'}")
+    err.print(f"[green]report[/]: {escape(str(path / 'report.md'))}")
     out.print(str(path / "report.md"), soft_wrap=True, highlight=False)
 
 
@@ -538,9 +580,9 @@ def ls():
             ret = _field(m, "summary", "return", "mean")
         table.add_row(
             e.kind,
-            str(m.get("name", "?")),
+            escape(str(m.get("name", "?"))),
             e.key[:12],
-            str(m.get("budget", "?")),
+            escape(str(m.get("budget", "?"))),
             str(len(seeds)) if seeds and isinstance(seeds, list) else "?",
             status,
             epochs,
@@ -548,7 +590,7 @@ def ls():
         )
         n += 1
     if n == 0:
-        err.print(f"store {STATE.store.root} is empty")
+        err.print(f"store {escape(str(STATE.store.root))} is empty")
         return
     out.print(table)
     if damaged:
@@ -582,6 +624,8 @@ def play(
         raise Exit(2, f"--port: between 1024 and 65535 (got {port})")
     if not participant.strip() or len(participant) > 200:
         raise Exit(2, "--participant: a non-empty id of at most 200 characters")
+    if not 0 <= seed <= specs.MAX_SEED - (episodes - 1):  # episode i plays seed + i, an int32 PRNG seed
+        raise Exit(2, f"--seed: between 0 and {specs.MAX_SEED - (episodes - 1):,} for {episodes} episode(s) (got {seed})")
     refs = [r.strip() for r in robots.split(",") if r.strip()] if robots else []
     if robots is not None and not refs:
         raise Exit(2, "--robots: name at least one robot (a run key, path or spec, or `random`)")
@@ -607,11 +651,11 @@ def play(
         played = ps.run_session(spec, opponents, participant, episodes, seed, fps, front, name, STATE.store, err)
         rows = ps.summary_rows(played)
         front.finish([f"session over: {len(played)} episode(s) played. Thank you!"])
-    table = Table(title=f"esr play: participant {participant}, {len(played)} of {episodes} episode(s)")
+    table = Table(title=f"esr play: participant {escape(participant)}, {len(played)} of {episodes} episode(s)")
     for col in ("robot", "key", "episodes (completed)", "return (mean)", "success", "steps (mean)"):
         table.add_column(col)
     for r in rows:
-        table.add_row(r["robot_label"], r["robot"][:12], f"{r['episodes']} ({r['completed']})", f"{r['return_mean']:.2f}",
+        table.add_row(escape(r["robot_label"]), r["robot"][:12], f"{r['episodes']} ({r['completed']})", f"{r['return_mean']:.2f}",
                       f"{r['success_rate']:.2f}", f"{r['steps_mean']:.1f}")
     err.print(table)
     for p in played:
@@ -632,6 +676,8 @@ def plays(
 
     if export is not None and export.suffix not in (".pickle", ".pkl", ".csv"):
         raise Exit(2, f"--export: {export} should end in .pickle or .csv")
+    if export is not None:
+        _check_output_file(export, "--export")
     found = ps.played_episodes(STATE.store, participant, session)
     if not found:
         raise Exit(1, f"no played episodes in {STATE.store.root}" + (" for that selection" if participant or session else ""))
@@ -640,8 +686,8 @@ def plays(
         table.add_column(col)
     for key, header, summary in found:
         env = header["env"]
-        table.add_row(key, header["participant"], header["session"], str(header["episode"]), header["robot"][:12],
-                      env.get("layout", env["kind"]), "yes" if summary["completed"] else "no", str(summary["steps"]),
+        table.add_row(key, escape(str(header["participant"])), escape(str(header["session"])), str(header["episode"]),
+                      escape(str(header["robot"][:12])), escape(str(env.get("layout", env["kind"]))), "yes" if summary["completed"] else "no", str(summary["steps"]),
                       f"{summary['score']:g}")
     out.print(table)
     if export is not None:
@@ -654,7 +700,7 @@ def plays(
         tmp = export.with_name(f".{export.name}.tmp")
         frame.to_csv(tmp, index=False) if export.suffix == ".csv" else frame.to_pickle(tmp)
         tmp.replace(export)
-        err.print(f"[green]exported[/] {count} Overcooked episode(s), {len(frame)} rows: {export}")
+        err.print(f"[green]exported[/] {count} Overcooked episode(s), {len(frame)} rows: {escape(str(export))}")
 
 
 @app.command()
@@ -662,7 +708,7 @@ def show(ref: str = typer.Argument(..., help="artifact key, key prefix or path",
     """Print an artifact's manifest, including every component of its key."""
     path = STATE.store.resolve(ref)
     manifest = STATE.store.read_manifest(path)
-    out.print(f"[bold]{path}[/]", highlight=False)
+    out.print(f"[bold]{escape(str(path))}[/]", highlight=False)
     out.print_json(json.dumps(manifest))
 
 
@@ -675,11 +721,11 @@ def verify(ref: Optional[str] = typer.Argument(None, help="artifact key or path 
         problems = STATE.store.verify(p)
         if problems:
             bad += 1
-            err.print(f"[red]CORRUPT[/] {p}")
+            err.print(f"[red]CORRUPT[/] {escape(str(p))}")
             for prob in problems:
-                err.print(f"  {prob}")
+                err.print(f"  {escape(str(prob))}")
         else:
-            err.print(f"[green]ok[/] {p}")
+            err.print(f"[green]ok[/] {escape(str(p))}")
     if bad:
         raise Exit(1, f"{bad} of {len(paths)} artifact(s) failed verification")
 
@@ -694,6 +740,8 @@ def export_(
     unfinished run travels with its newest verified checkpoint and continues where imported."""
     from esr_cli.transfer import export
 
+    if out_file is not None:
+        _check_output_file(out_file, "--out")
     moved = export(STATE.store, ref, out_file)
     err.print(f"[green]exported[/] {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files)")
     out.print(str(moved.path), soft_wrap=True, highlight=False)
@@ -788,10 +836,13 @@ def main(argv: list[str] | None = None) -> int:
             code, msg = 1, f"run diverged: {e} (the partial run is kept for inspection)"
         elif isinstance(e, KeyboardInterrupt):
             code, msg = 130, "interrupted"
+        elif isinstance(e, OSError) and e.errno == errno.ENAMETOOLONG:  # a path given on the command line
+            name = str(e.filename or "")
+            code, msg = 2, f"file name too long: {name[:60]}{'...' if len(name) > 60 else ''} (at most 255 bytes per component)"
         else:
             code, msg = 1, f"{type(e).__name__}: {e} (run with --debug for a traceback)"
         if msg:
-            err.print(f"[red]error:[/] {msg}", highlight=False, soft_wrap=True)
+            err.print(f"[red]error:[/] {escape(msg)}", highlight=False, soft_wrap=True)
         return code
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Optional
 
 from rich.console import Console
+from rich.markup import escape
 
 from esr_cli import figures as figs
 from esr_cli import provenance, runs, spec as specs, sweep
@@ -58,7 +59,7 @@ def ensure_report(store: Store, budget: str, console: Console) -> Path:
     for name, (figure, _) in figs.FIGURES.items():
         release_compiled()
         built = ensure(figure_recipe(store, budget, name, inputs), store)
-        console.print(f"  {figure}: {'cache hit' if built.cached else 'drawn'} {built.path}")
+        console.print(f"  {figure}: {'cache hit' if built.cached else 'drawn'} {escape(str(built.path))}")
         made[figure] = built.path
     components = {"kind": "report", "budget": budget, "figures": {f: p.name for f, p in made.items()},
                   "code": provenance.code_digest(PLOT_SOURCES)}
@@ -186,11 +187,11 @@ def ablate(spec_paths: list[str], names: list[str], custom: list[str], budget: s
 
     run_paths = []
     for i, (path, v, spec) in enumerate(loaded, 1):
-        console.print(f"[bold]({i}/{len(loaded)})[/] {spec.name} [{v.name}]")
+        console.print(f"[bold]({i}/{len(loaded)})[/] {spec.name} {escape(f'[{v.name}]')}")
         release_compiled()
         built = ensure(runs.run_recipe(spec, console), store)
         if built.cached:
-            console.print(f"  cache hit: {built.path}")
+            console.print(f"  cache hit: {escape(str(built.path))}")
         run_paths.append(built.path)
     keys = [store.read_manifest(p)["key"] for p in run_paths]
     components = {"kind": "ablation", "budget": budget, "variants": [[v.name, list(v.sets)] for v in variants],

@@ -254,6 +254,15 @@ def _eval_seat(spec, seat: int | None):
     return spec.model_copy(update={"env": spec.env.model_copy(update={"robot_seat": seat})}), seat
 
 
+def eval_spec(spec, partner: str = "training", seat: int | None = None):
+    """(the spec an evaluation plays, the seat if it differs from training's, the partner's key
+    or None). Raises StoreError naming the option that does not fit the spec: called on a
+    spec file's spec before its run is looked up, so a bad option is named first."""
+    spec, new_seat = _eval_seat(spec, seat)
+    spec, partner_key = _eval_partner(spec, partner)
+    return spec, new_seat, partner_key
+
+
 def eval_recipe(run_path: Path, store: Store, episodes: int | None, console: Console,
                 partner: str = "training", seat: int | None = None) -> Recipe:
     """The evaluation of a run's final robot with its training human, or with a held-out proxy
@@ -261,8 +270,7 @@ def eval_recipe(run_path: Path, store: Store, episodes: int | None, console: Con
     in `seat` (Overcooked: 1 plays the robot as agent_1, the flipped evaluation). Reads the
     run; never trains."""
     run_manifest = store.read_manifest(run_path)
-    spec, new_seat = _eval_seat(run_spec(run_path), seat)
-    spec, partner_key = _eval_partner(spec, partner)
+    spec, new_seat, partner_key = eval_spec(run_spec(run_path), partner, seat)
     episodes = episodes or spec.eval.episodes
     key, components = eval_key(run_manifest, episodes, partner_key, new_seat)
 

@@ -139,7 +139,7 @@ class OvercookedEnvSpec(_Model):
     kind: Literal["overcooked"]
     layout: Literal[OVERCOOKED_LAYOUTS]
     episode_steps: Int = Field(400, ge=1, le=10_000)
-    robot_seat: Literal[0, 1] = Field(0, description="JaxMARL's agent the robot plays (1: the flipped seats; "
+    robot_seat: Annotated[Literal[0, 1], _a_number("0 or 1")] = Field(0, description="JaxMARL's agent the robot plays (1: the flipped seats; "
                                       "`esr eval --seat 1`)")
 
 
@@ -213,6 +213,7 @@ class BCHumanSpec(_Model):
             return v
         if not v or len(v) > MAX_PLAY_EPISODES:
             raise ValueError(f"between 1 and {MAX_PLAY_EPISODES} played episodes")
+        v = type(v)(k.lower() for k in v)  # a key is hex: ABC... and abc... name the same episode
         bad = [k for k in v if not (len(k) == 32 and all(c in "0123456789abcdef" for c in k))]
         if bad:
             raise ValueError(f"{bad[0][:40]!r} is not a play artifact's key (32 hex digits, as `esr plays` lists them)")
@@ -406,7 +407,7 @@ class EvalSpec(_Model):
 
 
 class Spec(_Model):
-    name: str = Field(..., min_length=1, pattern=r"^[A-Za-z0-9_.\-]+$")
+    name: str = Field(..., min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.\-]+$")
     env: EnvSpec
     human: HumanSpec
     method: MethodSpec
@@ -503,6 +504,13 @@ def _set_path(tree: dict, dotted: str, value: Any, source: str) -> None:
         if not isinstance(nxt, dict):
             raise SpecError(source, ".".join(parts[: i + 1]), "is not a section, cannot set a key inside it")
         node = nxt
+    old = node.get(parts[-1])
+    if isinstance(value, dict) and isinstance(old, dict):
+        # `train={epochs: 5}` means `train.epochs=5`: a mapping sets the keys it names and keeps
+        # the section's others, as a YAML file's own section would not
+        for key, item in value.items():
+            _set_path(old, str(key), item, source)
+        return
     node[parts[-1]] = value
 
 

@@ -65,11 +65,15 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write via a temporary file, fsync, rename: readers see the old file or the new one."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # a failed write (full disk, `path` a directory) leaves nothing behind
+        raise
 
 
 def atomic_write_text(path: Path, text: str) -> None:

@@ -102,7 +102,7 @@ class EntryModel(_Overrides):
 
 
 class SuiteModel(_Overrides):
-    name: Optional[str] = Field(None, min_length=1, pattern=r"^[A-Za-z0-9_.\-]+$")
+    name: Optional[str] = Field(None, min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.\-]+$")
     specs: tuple[EntryModel, ...] = Field(..., min_length=1)
     slurm: SlurmOptions = SlurmOptions()
 

@@ -6,7 +6,13 @@ bounded work, before anything walks the tree (docs/reliability.md):
   laughs" file is never expanded;
 - a key given twice in one mapping is refused, naming the key and both lines (PyYAML would
   silently keep the last one);
-- `1e-4` without a dot is read as a number (YAML 1.1 reads it as a string).
+- scalars are read as YAML 1.2 reads them, not as PyYAML's YAML 1.1: only `true`/`false` are
+  booleans (`yes`, `on`, `off` stay text, which a boolean field then refuses), integers are
+  decimal (`010` is 10, not octal 8; `1:30` is text, not 90), `1e-4` without a dot is a
+  number, and `2020-01-01` is text, not a date;
+- integers longer than MAX_INT_DIGITS digits are refused (Python refuses to read them);
+- tags that build other Python types (`!!binary`, `!!set`, `!!timestamp`, `!!omap`, `!!pairs`)
+  are refused: a spec holds numbers, text, booleans, lists and mappings only.
 """
 
 from __future__ import annotations
@@ -52,12 +58,44 @@ class _BoundedLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
+# YAML 1.2 (core schema) plain scalars, replacing PyYAML's YAML 1.1 ones.
+_BOOL = re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$")
+_INT = re.compile(r"^[-+]?[0-9][0-9_]*$")  # underscores as in 10_000, like the floats
 _FLOAT = re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
     |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
     |\.[0-9_]+(?:[eE][-+][0-9]+)?
     |[-+]?\.(?:inf|Inf|INF)
     |\.(?:nan|NaN|NAN))$""", re.X)
+_REPLACED = {"tag:yaml.org,2002:bool", "tag:yaml.org,2002:int", "tag:yaml.org,2002:float", "tag:yaml.org,2002:timestamp"}
+_BoundedLoader.yaml_implicit_resolvers = {
+    first: [(tag, rx) for tag, rx in resolvers if tag not in _REPLACED]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+_BoundedLoader.add_implicit_resolver("tag:yaml.org,2002:bool", _BOOL, list("tTfF"))
+_BoundedLoader.add_implicit_resolver("tag:yaml.org,2002:int", _INT, list("-+0123456789"))
 _BoundedLoader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT, list("-+0123456789."))
+
+MAX_INT_DIGITS = 4000  # below Python's own limit on reading an integer from text (4300)
+
+
+def _construct_int(loader, node):
+    text = loader.construct_scalar(node).replace("_", "")
+    if not _INT.match(text):  # an explicit `!!int` on something else
+        raise YamlInputError(f"line {node.start_mark.line + 1}: {text[:40]!r} is not a decimal integer")
+    if len(text.lstrip("+-")) > MAX_INT_DIGITS:
+        raise YamlInputError(f"line {node.start_mark.line + 1}: an integer of {len(text.lstrip('+-')):,} digits; "
+                             f"at most {MAX_INT_DIGITS:,}")
+    return int(text)
+
+
+def _refuse_tag(loader, node):
+    raise YamlInputError(f"line {node.start_mark.line + 1}: the tag {node.tag.replace('tag:yaml.org,2002:', '!!')} "
+                         "is not allowed: write a number, text, boolean, list or mapping")
+
+
+_BoundedLoader.add_constructor("tag:yaml.org,2002:int", _construct_int)
+for _tag in ("binary", "timestamp", "set", "omap", "pairs"):
+    _BoundedLoader.add_constructor(f"tag:yaml.org,2002:{_tag}", _refuse_tag)
 
 
 def parse(text: str) -> Any:

@@ -336,3 +336,12 @@ def test_a_failed_exact_build_leaves_no_lock_or_partial_artifact(tmp_path, monke
         pass
     monkeypatch.undo()
     assert ensure(recipe, store).cached is False  # the same command then succeeds
+
+
+def test_a_gridworld_without_blocks_enumerates_the_humans_cells():
+    """No blocks: the robot's actions change nothing, the states are the human's cells, and
+    the human's action alone decides the next state."""
+    env = Gridworld(size=3, num_blocks=0, start="random", episode_steps=10)
+    space = exact.enumerate_states(env, (2, 2), exact.start_states(env, (2, 2), 64))
+    assert space.size == 9
+    assert (space.next_state == space.next_state[:, :1, :]).all()  # whatever the robot does

@@ -156,7 +156,8 @@ def enumerate_states(env: Gridworld, goal, starts: GridState, max_states: int = 
         nh, nb = successors(jnp.asarray(np.stack(humans[batch])), jnp.asarray(np.stack(blockss[batch])))
         nh, nb = np.asarray(nh), np.asarray(nb)
         shape = nh.shape[:3]
-        nh, nb = _canonical(nh.reshape(-1, 2), nb.reshape(-1, *nb.shape[3:]))
+        n = int(np.prod(shape))  # explicit: with no blocks, -1 cannot be inferred from a 0-size array
+        nh, nb = _canonical(nh.reshape(n, 2), nb.reshape(n, *nb.shape[3:]))
         ids = np.empty(len(nh), np.int64)
         for i, (k, h, b) in enumerate(zip(_keys(nh, nb), nh, nb)):
             j = index.get(k)

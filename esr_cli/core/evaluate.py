@@ -21,18 +21,34 @@ def policy_modes(trainer: Trainer) -> tuple[str, ...]:
     return ("sample", "greedy") if trainer.method.learns_policy else ("random",)
 
 
+# Episodes x seeds in one program: memory stays bounded by this many trajectories, whatever
+# `--episodes` asks for (up to a million). Fewer episodes run as one program, as they always have.
+EVAL_BATCH = 2048
+
+
 def evaluate(trainer: Trainer, state: TrainState, episodes: int, seeds) -> dict:
-    """-> {mode: {"return": float[seeds, episodes], "success": bool[seeds, episodes]}} and one rollout."""
+    """-> {mode: {"return": float[seeds, episodes], "success": bool[seeds, episodes],
+    "states": the first chunk's env-state trajectories}}. Episodes run in chunks of at most
+    EVAL_BATCH // seeds per seed; chunk c > 0 draws from the seed's key folded with c."""
     out = {}
     keys = jax.vmap(lambda s: jax.random.PRNGKey(s + EVAL_KEY_SALT))(jnp.asarray(seeds, jnp.int32))
+    chunk = max(1, EVAL_BATCH // len(seeds))
+    sizes = [min(chunk, episodes - start) for start in range(0, episodes, chunk)]
     for mode in policy_modes(trainer):
 
-        def run(lstate, hstate, key, mode=mode):
-            roll = trainer.rollout(lstate, key, episodes, mode, hstate=hstate)
+        def run(lstate, hstate, key, n, mode=mode):
+            roll = trainer.rollout(lstate, key, n, mode, hstate=hstate)
             return roll.episodes.reward.sum(axis=1), roll.states
 
-        returns, states = jax.jit(jax.vmap(run))(state.learner, state.human, keys)
-        returns = np.asarray(returns)
+        program = jax.jit(jax.vmap(run, in_axes=(0, 0, 0, None)), static_argnums=3)  # one compile per chunk size
+        parts, states = [], None
+        for c, n in enumerate(sizes):
+            chunk_keys = keys if c == 0 else jax.vmap(lambda k, c=c: jax.random.fold_in(k, c))(keys)
+            returns, chunk_states = program(state.learner, state.human, chunk_keys, n)
+            parts.append(np.asarray(returns))
+            if c == 0:
+                states = chunk_states  # for the GIF; later chunks' trajectories are dropped
+        returns = np.concatenate(parts, axis=1)
         out[mode] = {"return": returns, "success": returns > 0, "states": states}
     return out
 
