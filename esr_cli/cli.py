@@ -740,8 +740,6 @@ def export_(
     unfinished run travels with its newest verified checkpoint and continues where imported."""
     from esr_cli.transfer import export
 
-    if out_file is not None:
-        _check_output_file(out_file, "--out")
     moved = export(STATE.store, ref, out_file)
     err.print(f"[green]exported[/] {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files)")
     out.print(str(moved.path), soft_wrap=True, highlight=False)
