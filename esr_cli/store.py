@@ -283,6 +283,9 @@ class Store:
         kind, folder = manifest["kind"], path.parent.parent.name
         if manifest["key"] != path.name:
             problems.append(f"{MANIFEST} names key {manifest['key'][:40]!r}, not the directory's {path.name}")
+        key_problem = components_problem(manifest, MANIFEST)
+        if key_problem:
+            problems.append(key_problem)
         if kind not in KINDS:
             problems.append(f"{MANIFEST} names kind {kind[:40]!r}, not one of {', '.join(KINDS)}")
         elif folder in KINDS and kind != folder:  # a directory outside a store has no kind folder
@@ -301,6 +304,23 @@ class Store:
             if f.is_file() and rel != MANIFEST and rel not in listed:
                 problems.append(f"unexpected file {rel}")
         return problems
+
+
+def components_problem(record: dict, name: str) -> str | None:
+    """Why `record` (a manifest or a pending.json) does not name its key's components, or None.
+    A key is a digest of its components, so an artifact whose listed components digest to another
+    key was relabelled or edited: its files may not be what its key says (`esr import` refuses it)."""
+    components = record.get("key_components")
+    if not isinstance(components, dict):
+        return f"{name} lists no key_components (an object), so its key cannot be checked"
+    try:
+        recomputed = content_key(components)
+    except (TypeError, ValueError, RecursionError):
+        return f"{name}'s key_components cannot be digested"
+    if recomputed != record.get("key"):
+        return (f"{name}'s key_components digest to {recomputed}, not its key "
+                f"{str(record.get('key'))[:40]!r}: the artifact was relabelled or its components edited")
+    return None
 
 
 # What every commit writes (artifacts.ensure and Store.commit); readers rely on these.

@@ -7,13 +7,15 @@ them this way: an unfinished run travels with its newest verified checkpoint and
 wherever it is imported (from a checkout of the commit its pending.json names).
 
 Importing treats the archive as untrusted: members must stay inside that one directory and be
-plain files or folders, sizes are bounded, a committed artifact's manifest must name it (its
-key and kind) and match every file, and the artifact appears in the store by one rename, or not
+plain files or folders, sizes are bounded, a committed artifact's manifest (an unfinished run's
+pending.json) must name it (its kind, and a key that its listed key components digest to), a
+manifest must match every file, and the artifact appears in the store by one rename, or not
 at all (a refused import also removes the folders it made).
 """
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import tarfile
@@ -22,13 +24,14 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
-from esr_cli.store import KINDS, MANIFEST, RUN_KIND, Store, StoreError, fsync_dir, parse_dirname
+from esr_cli.store import KINDS, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, parse_dirname
 
 KEY_RE = re.compile(r"[0-9a-f]{32}")
 # Far above any real artifact (a 20-seed Overcooked checkpoint is tens of MiB), low enough that
 # a hostile archive cannot fill a disk or exhaust the inode table.
 MAX_MEMBERS, MAX_BYTES = 100_000, 16 << 30
 SNAPSHOT_TRIES = 5
+MAX_PENDING_BYTES = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -181,6 +184,17 @@ def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path],
     return Moved(kind, key, status, files, target, replaced, record)
 
 
+def _read_pending(path: Path) -> dict | None:
+    """An archived pending.json, read only if it is of a size training writes (a few KiB)."""
+    if path.stat().st_size > MAX_PENDING_BYTES:
+        return None
+    try:
+        value = json.loads(path.read_bytes())
+    except (ValueError, RecursionError):
+        return None
+    return value if isinstance(value, dict) else None
+
+
 def _first_line(e: Exception) -> str:
     return (str(e).splitlines() or [type(e).__name__])[0][:200]
 
@@ -240,6 +254,15 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
 
     if not (stage / "pending.json").is_file():
         raise StoreError(f"{archive}: unfinished run {key[:12]} has no pending.json; nothing imported")
+    pending = _read_pending(stage / "pending.json")
+    if pending is None:
+        raise StoreError(f"{archive}: unfinished run {key[:12]}: its pending.json is not a JSON object; nothing imported")
+    if pending.get("key") != key:
+        raise StoreError(f"{archive}: unfinished run {key[:12]}: its pending.json names key "
+                         f"{str(pending.get('key'))[:40]!r}, not the directory's; nothing imported")
+    problem = components_problem(pending, "pending.json")
+    if problem:
+        raise StoreError(f"{archive}: unfinished run {key[:12]}: {problem}; nothing imported")
     if verified_steps(stage):
         return False
     if not without_checkpoint:

@@ -16,19 +16,25 @@ def test_content_key_is_canonical():
     assert content_key({"a": 1}) != content_key({"a": 2})
 
 
-def make_artifact(store, key="ab" * 16):
-    d = store.begin("runs", key, {"name": "x", "key": key})
+COMPONENTS = {"kind": "runs", "spec": {"name": "x"}}
+
+
+def make_artifact(store, key=None):
+    """A committed run; by default under the key its components digest to, as training makes it
+    (an explicit key, for tests of key prefixes, does not pass `verify`)."""
+    key = key or content_key(COMPONENTS)
+    d = store.begin("runs", key, {"name": "x", "key": key, "key_components": COMPONENTS})
     (d / "metrics.jsonl").write_text('{"epoch": 1}\n')
     (d / "sub").mkdir()
     (d / "sub" / "data.bin").write_bytes(b"\x00\x01\x02")
     assert store.lookup("runs", key) is None  # not visible before commit
-    return store.commit("runs", key, {"kind": "runs", "name": "x", "key": key})
+    return store.commit("runs", key, {"kind": "runs", "name": "x", "key": key, "key_components": COMPONENTS})
 
 
 def test_commit_is_a_rename_with_digests(tmp_path):
     store = Store(tmp_path)
-    key = "ab" * 16
-    path = make_artifact(store, key)
+    key = content_key(COMPONENTS)
+    path = make_artifact(store)
     assert path == store.lookup("runs", key)
     assert not store.partial_path("runs", key).exists()
     m = store.read_manifest(path)
@@ -126,7 +132,10 @@ def test_verify_checks_that_the_manifest_names_its_artifact(tmp_path):
     for change, problem in (({"key": "cd" * 16}, f"names key '{'cd' * 16}', not the directory's {path.name}"),
                             ({"kind": "evals"}, "names kind 'evals', but the artifact is under runs/"),
                             ({"kind": "models"}, "names kind 'models', not one of runs, evals"),
-                            ({"files": {**manifest["files"], "../../x": "00"}}, "lists '../../x', which is not a file inside")):
+                            ({"files": {**manifest["files"], "../../x": "00"}}, "lists '../../x', which is not a file inside"),
+                            # a key is the digest of its components: a relabelled artifact is found out
+                            ({"key_components": {**COMPONENTS, "spec": {"name": "y"}}}, "key_components digest to"),
+                            ({"key_components": None}, "lists no key_components")):
         (path / "manifest.json").write_text(json.dumps({**manifest, **change}))
         assert any(problem in p for p in store.verify(path)), (change, store.verify(path))
 

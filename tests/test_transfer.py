@@ -13,11 +13,12 @@ import numpy as np
 import pytest
 
 from conftest import esr
-from esr_cli.store import Store, StoreError
+from esr_cli.store import Store, StoreError, content_key
 from esr_cli.transfer import import_archive
 from test_reliability import SMOKE, final_arrays, partials
 
-KEY = "0123456789abcdef0123456789abcdef"
+COMPONENTS = {"kind": "runs", "spec": {"name": "x"}}
+KEY = content_key(COMPONENTS)
 
 
 def test_a_finished_run_moves_to_another_store(smoke_run, tmp_path):
@@ -96,7 +97,12 @@ RUN_DIR = f"runs/{KEY[:2]}/{KEY}"
 
 def _manifest(**fields) -> bytes:
     """A committed run's manifest as JSON, with `fields` replaced."""
-    return json.dumps({"kind": "runs", "key": KEY, "name": "x", "files": {}, **fields}).encode()
+    return json.dumps({"kind": "runs", "key": KEY, "key_components": COMPONENTS, "name": "x", "files": {}, **fields}).encode()
+
+
+def _pending(**fields) -> bytes:
+    """An unfinished run's pending.json as JSON, with `fields` replaced."""
+    return json.dumps({"kind": "runs", "key": KEY, "key_components": COMPONENTS, "name": "x", **fields}).encode()
 
 
 @pytest.mark.parametrize(
@@ -124,7 +130,15 @@ def _manifest(**fields) -> bytes:
         ([(f"{RUN_DIR}/manifest.json", _manifest(files={"/proc/self/status": "00"}))], "not a file inside the artifact"),
         ([(f"{RUN_DIR}/manifest.json", _manifest()), (f"{RUN_DIR}/extra", b"x")], "unexpected file extra"),
         ([(f"{RUN_DIR}.partial/metrics.jsonl", b"{}\n")], "no pending.json"),
-        ([(f"{RUN_DIR}.partial/pending.json", b"{}")], "no checkpoint matching"),
+        ([(f"{RUN_DIR}.partial/pending.json", _pending())], "no checkpoint matching"),
+        # a key is the digest of its components: an archive whose components name another key is
+        # relabelled or edited, finished or not
+        ([(f"{RUN_DIR}/manifest.json", _manifest(key_components={"kind": "runs", "spec": {"name": "y"}}))], "key_components digest to"),
+        ([(f"{RUN_DIR}/manifest.json", _manifest(key_components="x"))], "lists no key_components"),
+        ([(f"{RUN_DIR}.partial/pending.json", _pending(key_components={"kind": "runs"}))], "key_components digest to"),
+        ([(f"{RUN_DIR}.partial/pending.json", _pending(key="ab" * 16))], "pending.json names key 'abab"),
+        ([(f"{RUN_DIR}.partial/pending.json", b"[]")], "pending.json is not a JSON object"),
+        ([(f"{RUN_DIR}.partial/pending.json", b"{}")], "pending.json names key 'None'"),
         ([], "holds no artifact"),
     ],
 )
@@ -139,7 +153,7 @@ def test_a_run_without_its_checkpoint_is_imported_only_when_asked_as_a_record(tm
     """What came back from a machine that could not send a checkpoint: pending.json and the
     logged epochs. Refused by default (it cannot continue), kept with --without-checkpoint for
     reports; never without a logged epoch."""
-    pending = json.dumps({"kind": "runs", "key": KEY, "name": "grid_10", "seeds": [0, 1]}).encode()
+    pending = _pending(name="grid_10", seeds=[0, 1])
     rows = b"".join(json.dumps({"epoch": e, "return": [1.0, 2.0]}).encode() + b"\n" for e in (1, 2))
     record = [(f"{RUN_DIR}.partial/pending.json", pending), (f"{RUN_DIR}.partial/metrics.jsonl", rows)]
     store = Store(tmp_path / "store")
