@@ -118,12 +118,11 @@ def measure(spec_path: str, seeds: int, epochs: int, seed_batch: int | None) -> 
     spec = specs.load(ROOT / spec_path, "paper", [f"train.seeds={seeds}", f"train.chunk_epochs={epochs}"])
     store = Store(os.environ.get("ESR_STORE") or ROOT / "artifacts")
     if spec.human.kind == "bc":  # the BC human of an Overcooked spec: built once, then stored
-        from rich.console import Console
-
         from esr_cli.artifacts import ensure
         from esr_cli.human_runs import human_recipe
+        from esr_cli.printing import plain_console
 
-        ensure(human_recipe(spec.human, spec.env.layout, Console(stderr=True)), store)
+        ensure(human_recipe(spec.human, spec.env.layout, plain_console(stderr=True)), store)
     trainer = build_trainer(spec, store)
     state = compiled_init(trainer)(jnp.asarray(spec.train.seeds, jnp.int32))
     chunk = compiled_chunk(trainer, epochs, seed_batch)

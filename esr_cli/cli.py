@@ -13,12 +13,12 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
-from rich.console import Console
-from rich.markup import escape
 from rich.table import Table
+from rich.text import Text
 
 from esr_cli import spec as specs
 from esr_cli.artifacts import ensure
+from esr_cli.printing import plain_console, tagged
 from esr_cli.store import RUN_KIND, Store, StoreError
 
 app = typer.Typer(
@@ -27,8 +27,8 @@ app = typer.Typer(
     add_completion=False,
     help="Experiments on assistive agents: ESR and baselines, with a content-addressed artifact store.",
 )
-out = Console()
-err = Console(stderr=True)
+out = plain_console()
+err = plain_console(stderr=True)
 
 
 class Exit(Exception):
@@ -50,11 +50,13 @@ SetOpt = typer.Option(None, "--set", "-s", help="override a spec field: key.path
 
 @app.callback()
 def main_options(
-    store: Optional[Path] = StoreOpt,
+    store: Optional[str] = StoreOpt,  # text, not Path: Path("") would silently mean the current directory
     debug: bool = typer.Option(False, "--debug", help="show tracebacks"),
 ):
     from esr_cli.provenance import matmul_precision
 
+    if store is not None and not store.strip():
+        raise Exit(2, "--store: an empty path; give the store's directory (or leave --store out for $ESR_STORE or ./artifacts)")
     STATE.store = Store(store or os.environ.get("ESR_STORE") or "artifacts")
     STATE.debug = debug
     # Several esr processes may share one GPU (runs side by side, a sweep's local jobs, which
@@ -109,7 +111,7 @@ def train(
     spec = _load_spec(spec_file, budget, set_)
     built = ensure(runs.run_recipe(spec, err, stop_at=stop_at), STATE.store)
     path, cached = built.path, built.cached
-    err.print(f"[green]{'cache hit' if cached else 'trained'}[/]: {escape(spec.name)} ({spec.budget}) -> {escape(str(path))}", soft_wrap=True)
+    err.print(tagged("cache hit" if cached else "trained", "green", f": {spec.name} ({spec.budget}) -> {path}"), soft_wrap=True)
     out.print(str(path), soft_wrap=True, highlight=False)
 
 
@@ -179,7 +181,7 @@ def sweep(
             if as_json:
                 out.print_json(json.dumps(rows))
             elif markdown:
-                out.print(sw.results_markdown(suite, rows, metrics), soft_wrap=True, highlight=False, markup=False)
+                out.print(sw.results_markdown(suite, rows, metrics), soft_wrap=True, highlight=False)
             else:
                 out.print(sw.results_table(suite, rows, metrics))
             if plot:
@@ -190,7 +192,7 @@ def sweep(
                 except figs.MissingRuns as e:
                     raise Exit(2, f"{e}\nor all at once: esr sweep {suite_file} --budget {budget}") from None
                 path = built.path
-                err.print(f"[green]{'cache hit' if built.cached else 'drawn'}[/]: {escape(str(path / 'suite.png'))}  (table: {escape(str(path / 'table.md'))})")
+                err.print(tagged("cache hit" if built.cached else "drawn", "green", f": {path / 'suite.png'}  (table: {path / 'table.md'})"))
             return
         if show_status:
             rows = sw.status(suite, STATE.store)
@@ -208,8 +210,8 @@ def sweep(
         if p is not None:
             out.print(str(p), soft_wrap=True, highlight=False)
     done = sum(p is not None for p in result.paths)
-    err.print(f"[green]{done} of {len(result.paths)} run(s) done[/]; {len(result.submitted)} "
-              f"{'run' if executor == 'local' else 'submitted'} this time; `esr sweep --status {escape(str(suite_file))}` shows each")
+    err.print(tagged(f"{done} of {len(result.paths)} run(s) done", "green", f"; {len(result.submitted)} "
+                     f"{'run' if executor == 'local' else 'submitted'} this time; `esr sweep --status {suite_file}` shows each"))
     if result.failed:
         raise Exit(1, f"{len(result.failed)} run(s) failed: " + "; ".join(f"{r.label}: {m}" for r, m in result.failed))
     if result.stopped:  # saved at their jobs' time budgets: resumable, like `esr train --stop-after`
@@ -254,16 +256,16 @@ def eval_(
     partner = "" if human == "training" else f", with the {human.split(':')[0]} human {summary['human_key'][:8]}"
     if seat is not None and summary.get("robot_seat") is not None:
         partner += f", robot as agent_{summary['robot_seat']}"
-    table = Table(title=f"{escape(summary['name'])} ({summary['budget']}, {len(summary['seeds'])} seed(s), {summary['episodes']} episodes each{partner})")
+    table = Table(title=f"{summary['name']} ({summary['budget']}, {len(summary['seeds'])} seed(s), {summary['episodes']} episodes each{partner})")
     for col in ("policy", "return (mean ± SE; IQM [95% CI] across seeds)", "success"):
         table.add_column(col)
     for mode, r in summary["results"].items():
         table.add_row(mode, format_summary(r["return"]), format_summary(r["success"], 3))
     err.print(table)
-    err.print(f"[green]{'cache hit' if cached else 'evaluated'}[/]: {escape(str(path))}")
+    err.print(tagged("cache hit" if cached else "evaluated", "green", f": {path}"))
     for name in ("rollout.gif", "learning_curve.png"):
         if (path / name).exists():
-            err.print(f"  {name}: {escape(str(path / name))}")
+            err.print(f"  {name}: {path / name}")
     out.print(str(path), soft_wrap=True, highlight=False)
 
 
@@ -303,7 +305,7 @@ def exact(
         v = summary[k]
         table.add_row(k, f"{v:.4f}" if isinstance(v, float) else "— (not every pair computed)" if v is None else str(v))
     err.print(table)
-    err.print(f"[green]{'cache hit' if cached else 'computed'}[/]: {escape(str(path))}")
+    err.print(tagged("cache hit" if cached else "computed", "green", f": {path}"))
     out.print(str(path), soft_wrap=True, highlight=False)
 
 
@@ -352,7 +354,7 @@ def diagnose(
         out.print_json(json.dumps(report))
         return
     when = "" if finished else f", unfinished: checkpoint at epoch {epoch:,} of {trainer.spec.train.epochs:,}"
-    out.print(f"{escape(str(record['name']))} ({escape(str(record['budget']))} budget, {trainer.spec.method.kind}), seed index {seed_index}{when}")
+    out.print(f"{record['name']} ({record['budget']} budget, {trainer.spec.method.kind}), seed index {seed_index}{when}")
     if play:
         _print_play_check(play)
     else:
@@ -458,7 +460,7 @@ def plot(
         except figs.MissingRuns as e:
             raise Exit(2, f"{e}\nor all at once: make paper-figures BUDGET={budget}") from None
         png = built.path / f"{figs.FIGURES[figure][0]}.png"
-    err.print(f"[green]{'cache hit' if built.cached else 'drawn'}[/]: {escape(str(png))}")
+    err.print(tagged("cache hit" if built.cached else "drawn", "green", f": {png}"))
     out.print(str(png), soft_wrap=True, highlight=False)
 
 
@@ -487,9 +489,9 @@ def ablate(
     for p in panels:
         rich_table.add_column(p)
     for label in dict.fromkeys(lab for p in panels for lab in table[p]):
-        rich_table.add_row(escape(label), *[format_summary(table[p][label]) if label in table[p] else "" for p in panels])
+        rich_table.add_row(label, *[format_summary(table[p][label]) if label in table[p] else "" for p in panels])
     err.print(rich_table)
-    err.print(f"[green]comparison[/]: {escape(str(path / 'ablation.png'))}  (table: {escape(str(path / 'table.md'))})")
+    err.print(tagged("comparison", "green", f": {path / 'ablation.png'}  (table: {path / 'table.md'})"))
     out.print(str(path), soft_wrap=True, highlight=False)
 
 
@@ -530,7 +532,7 @@ def paper_(
         for f in findings:
             counts[f.verdict] = counts.get(f.verdict, 0) + 1
         err.print(", ".join(f"{n} {v}" for v, n in counts.items()))
-        err.print(f"[green]reproduction report[/]: {escape(str(report_out))}")
+        err.print(tagged("reproduction report", "green", f": {report_out}"))
         if as_json:
             out.print(json.dumps(reproduction.findings_json(findings), indent=2), soft_wrap=True, highlight=False)
         else:
@@ -542,7 +544,7 @@ def paper_(
         raise Exit(2, f"bad suite: {e}") from None
     except (sw.SweepError, figs.MissingRuns) as e:
         raise Exit(1, str(e)) from None
-    err.print(f"[green]report[/]: {escape(str(path / 'report.md'))}")
+    err.print(tagged("report", "green", f": {path / 'report.md'}"))
     out.print(str(path / "report.md"), soft_wrap=True, highlight=False)
 
 
@@ -580,9 +582,9 @@ def ls():
             ret = _field(m, "summary", "return", "mean")
         table.add_row(
             e.kind,
-            escape(str(m.get("name", "?"))),
+            str(m.get("name", "?")),
             e.key[:12],
-            escape(str(m.get("budget", "?"))),
+            str(m.get("budget", "?")),
             str(len(seeds)) if seeds and isinstance(seeds, list) else "?",
             status,
             epochs,
@@ -590,7 +592,7 @@ def ls():
         )
         n += 1
     if n == 0:
-        err.print(f"store {escape(str(STATE.store.root))} is empty")
+        err.print(f"store {STATE.store.root} is empty")
         return
     out.print(table)
     if damaged:
@@ -651,11 +653,11 @@ def play(
         played = ps.run_session(spec, opponents, participant, episodes, seed, fps, front, name, STATE.store, err)
         rows = ps.summary_rows(played)
         front.finish([f"session over: {len(played)} episode(s) played. Thank you!"])
-    table = Table(title=f"esr play: participant {escape(participant)}, {len(played)} of {episodes} episode(s)")
+    table = Table(title=f"esr play: participant {participant}, {len(played)} of {episodes} episode(s)")
     for col in ("robot", "key", "episodes (completed)", "return (mean)", "success", "steps (mean)"):
         table.add_column(col)
     for r in rows:
-        table.add_row(escape(r["robot_label"]), r["robot"][:12], f"{r['episodes']} ({r['completed']})", f"{r['return_mean']:.2f}",
+        table.add_row(r["robot_label"], r["robot"][:12], f"{r['episodes']} ({r['completed']})", f"{r['return_mean']:.2f}",
                       f"{r['success_rate']:.2f}", f"{r['steps_mean']:.1f}")
     err.print(table)
     for p in played:
@@ -686,8 +688,8 @@ def plays(
         table.add_column(col)
     for key, header, summary in found:
         env = header["env"]
-        table.add_row(key, escape(str(header["participant"])), escape(str(header["session"])), str(header["episode"]),
-                      escape(str(header["robot"][:12])), escape(str(env.get("layout", env["kind"]))), "yes" if summary["completed"] else "no", str(summary["steps"]),
+        table.add_row(key, str(header["participant"]), str(header["session"]), str(header["episode"]),
+                      str(header["robot"][:12]), str(env.get("layout", env["kind"])), "yes" if summary["completed"] else "no", str(summary["steps"]),
                       f"{summary['score']:g}")
     out.print(table)
     if export is not None:
@@ -700,7 +702,7 @@ def plays(
         tmp = export.with_name(f".{export.name}.tmp")
         frame.to_csv(tmp, index=False) if export.suffix == ".csv" else frame.to_pickle(tmp)
         tmp.replace(export)
-        err.print(f"[green]exported[/] {count} Overcooked episode(s), {len(frame)} rows: {escape(str(export))}")
+        err.print(tagged("exported", "green", f" {count} Overcooked episode(s), {len(frame)} rows: {export}"))
 
 
 @app.command()
@@ -708,7 +710,7 @@ def show(ref: str = typer.Argument(..., help="artifact key, key prefix or path",
     """Print an artifact's manifest, including every component of its key."""
     path = STATE.store.resolve(ref)
     manifest = STATE.store.read_manifest(path)
-    out.print(f"[bold]{escape(str(path))}[/]", highlight=False)
+    out.print(Text(str(path), style="bold"), highlight=False, soft_wrap=True)
     out.print_json(json.dumps(manifest))
 
 
@@ -721,11 +723,11 @@ def verify(ref: Optional[str] = typer.Argument(None, help="artifact key or path 
         problems = STATE.store.verify(p)
         if problems:
             bad += 1
-            err.print(f"[red]CORRUPT[/] {escape(str(p))}")
+            err.print(tagged("CORRUPT", "red", f" {p}"))
             for prob in problems:
-                err.print(f"  {escape(str(prob))}")
+                err.print(f"  {prob}")
         else:
-            err.print(f"[green]ok[/] {escape(str(p))}")
+            err.print(tagged("ok", "green", f" {p}"))
     if bad:
         raise Exit(1, f"{bad} of {len(paths)} artifact(s) failed verification")
 
@@ -741,7 +743,7 @@ def export_(
     from esr_cli.transfer import export
 
     moved = export(STATE.store, ref, out_file)
-    err.print(f"[green]exported[/] {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files)")
+    err.print(tagged("exported", "green", f" {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files)"))
     out.print(str(moved.path), soft_wrap=True, highlight=False)
 
 
@@ -766,7 +768,7 @@ def import_(
         else:
             note = ("; a record without a checkpoint: training it again starts from epoch 0" if moved.record else
                     "; it replaces this store's unfinished run of the same key" if moved.replaced_partial else "")
-            err.print(f"[green]imported[/] {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files{note})")
+            err.print(tagged("imported", "green", f" {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files{note})"))
         out.print(str(moved.path), soft_wrap=True, highlight=False)
 
 
@@ -840,7 +842,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             code, msg = 1, f"{type(e).__name__}: {e} (run with --debug for a traceback)"
         if msg:
-            err.print(f"[red]error:[/] {escape(msg)}", highlight=False, soft_wrap=True)
+            err.print(tagged("error:", "red", f" {msg}"), highlight=False, soft_wrap=True)
         return code
 
 

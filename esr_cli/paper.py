@@ -18,11 +18,11 @@ from pathlib import Path
 from typing import Optional
 
 from rich.console import Console
-from rich.markup import escape
 
 from esr_cli import figures as figs
 from esr_cli import provenance, runs, spec as specs, sweep
 from esr_cli.artifacts import Recipe, ensure
+from esr_cli.printing import tagged
 from esr_cli.core.train import release_compiled
 from esr_cli.stats import format_summary
 from esr_cli.store import FIGURE_KIND, RUN_KIND, Store, atomic_write_text, content_key
@@ -59,7 +59,7 @@ def ensure_report(store: Store, budget: str, console: Console) -> Path:
     for name, (figure, _) in figs.FIGURES.items():
         release_compiled()
         built = ensure(figure_recipe(store, budget, name, inputs), store)
-        console.print(f"  {figure}: {'cache hit' if built.cached else 'drawn'} {escape(str(built.path))}")
+        console.print(f"  {figure}: {'cache hit' if built.cached else 'drawn'} {built.path}")
         made[figure] = built.path
     components = {"kind": "report", "budget": budget, "figures": {f: p.name for f, p in made.items()},
                   "code": provenance.code_digest(PLOT_SOURCES)}
@@ -187,11 +187,11 @@ def ablate(spec_paths: list[str], names: list[str], custom: list[str], budget: s
 
     run_paths = []
     for i, (path, v, spec) in enumerate(loaded, 1):
-        console.print(f"[bold]({i}/{len(loaded)})[/] {spec.name} {escape(f'[{v.name}]')}")
+        console.print(tagged(f"({i}/{len(loaded)})", "bold", f" {spec.name} [{v.name}]"))
         release_compiled()
         built = ensure(runs.run_recipe(spec, console), store)
         if built.cached:
-            console.print(f"  cache hit: {escape(str(built.path))}")
+            console.print(f"  cache hit: {built.path}")
         run_paths.append(built.path)
     keys = [store.read_manifest(p)["key"] for p in run_paths]
     components = {"kind": "ablation", "budget": budget, "variants": [[v.name, list(v.sets)] for v in variants],

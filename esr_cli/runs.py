@@ -16,7 +16,6 @@ import jax
 import numpy as np
 from pydantic import ValidationError
 from rich.console import Console
-from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from esr_cli import human_runs, plots, provenance, spec as specs, yamlio
@@ -100,7 +99,7 @@ def _check_disk(store: Store, spec) -> None:
 
 def _progress(console: Console) -> Progress:
     return Progress(
-        TextColumn("[bold]{task.description}"),
+        TextColumn("{task.description}", style="bold", markup=False),  # a spec's name, as written
         BarColumn(),
         MofNCompleteColumn(),
         TextColumn("{task.fields[stats]}"),
@@ -141,7 +140,7 @@ def run_recipe(spec, console: Console, stop_at: float | None = None) -> Recipe:
         trainer = build_trainer(spec, store)
         label = f"{spec.name} [{spec.budget}]"
         with _progress(console) as bar:
-            task = bar.add_task(escape(label), total=spec.train.epochs, stats="compiling...")
+            task = bar.add_task(label, total=spec.train.epochs, stats="compiling...")
 
             def on_start(epoch, total):
                 if epoch:
@@ -327,6 +326,7 @@ def load_run(store: Store, ref: str):
     manifest = store.read_manifest(path)
     if manifest.get("kind") != RUN_KIND:
         raise StoreError(f"{ref} is not a training run")
+    enable_compile_cache()  # what reads a run (exact, estimator, diagnose) compiles programs on it
     trainer = build_trainer(run_spec(path), store)
     return path, manifest, trainer, loop.final_state(trainer, path)
 
@@ -351,6 +351,7 @@ def load_run_so_far(store: Store, path: Path, finished: bool):
     its checkpoint folder in place would clear a save in progress)."""
     from esr_cli.transfer import snapshot_partial
 
+    enable_compile_cache()
     trainer = build_trainer(run_spec(path), store)
     seeds = list(trainer.spec.train.seeds)
     if finished:

@@ -26,11 +26,12 @@ from pathlib import Path
 from typing import Iterable, Optional
 
 from rich.console import Console
-from rich.markup import escape
 from rich.table import Table
+from rich.text import Text
 
 from esr_cli import spec as specs
 from esr_cli.artifacts import ensure
+from esr_cli.printing import plain_console, tagged
 from esr_cli.store import RUN_KIND, Store, atomic_write_text
 from pydantic import ValidationError
 
@@ -210,12 +211,12 @@ _STYLE = {"done": "green", "running": "cyan", "queued": "blue", "stopped": "mage
 def status_table(suite: Suite, rows: list[RunStatus]) -> Table:
     counts = {s: sum(r.state == s for r in rows) for s in STATES}
     summary = ", ".join(f"{n} {s}" for s, n in counts.items() if n)
-    table = Table(title=f"suite {escape(suite.name)} ({suite.budget}): {summary}")
+    table = Table(title=f"suite {suite.name} ({suite.budget}): {summary}")
     for col in ("run", "key", "state", "detail"):
         table.add_column(col, overflow="fold")
     for r in rows:
         detail = str(r.path) if r.state == "done" else r.note
-        table.add_row(escape(r.run.label), r.run.key[:12], f"[{_STYLE[r.state]}]{r.state}[/]", escape(str(detail)))
+        table.add_row(r.run.label, r.run.key[:12], Text(r.state, style=_STYLE[r.state]), str(detail))
     return table
 
 
@@ -302,9 +303,9 @@ def results_table(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEF
     for r in rows:
         if r["state"] == "done":
             wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
-            table.add_row(escape(r["run"]), r["method"], str(r["seeds"]), *(_cell(r, m) for m in metrics), wall)
+            table.add_row(r["run"], r["method"], str(r["seeds"]), *(_cell(r, m) for m in metrics), wall)
         else:
-            table.add_row(escape(r["run"]), r["method"], "", f"[{_STYLE[r['state']]}]{r['state']}[/]", *[""] * len(metrics))
+            table.add_row(r["run"], r["method"], "", Text(r["state"], style=_STYLE[r["state"]]), *[""] * len(metrics))
     return table
 
 
@@ -357,7 +358,7 @@ def train_job(spec_path: str, budget: str, sets: list[str], store_root: str,
     stop_at = None if stop_after_s is None else time.monotonic() + stop_after_s
     spec = specs.load(spec_path, budget, sets)
     try:
-        return str(ensure(runs.run_recipe(spec, Console(stderr=True), stop_at=stop_at), Store(store_root)).path)
+        return str(ensure(runs.run_recipe(spec, plain_console(stderr=True), stop_at=stop_at), Store(store_root)).path)
     except TimeLimitReached as e:
         return JobStopped(e.epoch, e.total)
 
@@ -407,7 +408,7 @@ def run_suite(
     that replace the suite file's `slurm:` values (partition, time_min, gpus, cpus, mem_gb, ...).
     Raises SuiteError (bad suite or spec; nothing has run) or SweepError.
     """
-    console = console or Console(stderr=True)
+    console = console or plain_console(stderr=True)
     store = store if isinstance(store, Store) else Store(store)
     # The command line's own mistakes first: loading a suite builds every run.
     if executor not in EXECUTORS:
@@ -431,7 +432,7 @@ def run_suite(
     todo_keys = {s.run.key for s in todo}
     result.skipped = [s for s in before if s.run.key not in todo_keys]
     n_done = sum(s.state == "done" for s in before)
-    console.print(f"suite {escape(suite.name)} ({suite.budget}): {len(suite.runs)} run(s); {n_done} done, "
+    console.print(f"suite {suite.name} ({suite.budget}): {len(suite.runs)} run(s); {n_done} done, "
                   f"{len(result.skipped) - n_done} running or queued, {len(todo)} to {'run' if executor == 'local' else 'submit'}"
                   + (f" ({suite.duplicates} duplicate(s) dropped)" if suite.duplicates else ""))
 
@@ -451,7 +452,7 @@ def _run_local(todo: list[RunStatus], store: Store, console: Console, result: Sw
     from esr_cli.core.train import release_compiled
 
     for i, s in enumerate(todo, 1):
-        console.print(f"[bold]({i}/{len(todo)})[/] {escape(s.run.label)}")
+        console.print(tagged(f"({i}/{len(todo)})", "bold", f" {s.run.label}"))
         release_compiled()  # one spec's programs at a time
         try:
             ensure(runs.run_recipe(s.run.spec, console), store)
@@ -459,7 +460,7 @@ def _run_local(todo: list[RunStatus], store: Store, console: Console, result: Sw
         except (Interrupted, KeyboardInterrupt):
             raise  # Ctrl-C ends the sweep; the same command resumes it
         except Exception as e:  # noqa: BLE001 - one failed run must not stop the others
-            console.print(f"[red]failed[/]: {escape(s.run.label)}: {type(e).__name__}: {escape(str(e))}")
+            console.print(tagged("failed", "red", f": {s.run.label}: {type(e).__name__}: {e}"))
             result.failed.append((s.run, f"{type(e).__name__}: {e}"))
 
 
@@ -482,19 +483,19 @@ def _submit(todo, executor, opts, suite, store, console, result, wait) -> None:
         raise SweepError(f"submission failed: {str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__}") from None
     _record_jobs(store, suite, executor, [(s.run, j.job_id, logs / "%j") for s, j in zip(todo, jobs)])
     result.submitted = [(s.run, j.job_id) for s, j in zip(todo, jobs)]
-    console.print(f"submitted {len(jobs)} job(s) ({executor}): {', '.join(j.job_id for j in jobs)}; logs under {escape(str(logs))}")
+    console.print(f"submitted {len(jobs)} job(s) ({executor}): {', '.join(j.job_id for j in jobs)}; logs under {logs}")
     if not wait:
         return
     for s, j in zip(todo, jobs):
         try:
             outcome = j.result()
             if isinstance(outcome, JobStopped):
-                console.print(f"[magenta]stopped[/]: {escape(s.run.label)} (job {j.job_id}): {escape(str(outcome))}")
+                console.print(tagged("stopped", "magenta", f": {s.run.label} (job {j.job_id}): {outcome}"))
                 result.stopped.append((s.run, str(outcome)))
                 continue
-            console.print(f"[green]done[/]: {escape(s.run.label)} (job {j.job_id})")
+            console.print(tagged("done", "green", f": {s.run.label} (job {j.job_id})"))
         except Exception as e:  # noqa: BLE001 - submitit's FailedJobError / UncompletedJobError
             last = [ln for ln in str(e).strip().splitlines() if ln.strip()]
             msg = last[-1].strip() if last else type(e).__name__
-            console.print(f"[red]failed[/]: {escape(s.run.label)} (job {j.job_id}): {escape(msg)}")
+            console.print(tagged("failed", "red", f": {s.run.label} (job {j.job_id}): {msg}"))
             result.failed.append((s.run, msg))

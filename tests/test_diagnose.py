@@ -76,7 +76,8 @@ def test_diagnose_reads_an_unfinished_run_without_touching_it(tmp_path):
     assert all(np.isfinite(side["refit"][k]) for side in report["play"].values() for k in ("fit", "held_out"))
     after = sorted((p.relative_to(part), p.read_bytes()) for p in part.rglob("*") if p.is_file())
     assert after == before  # read from a copy: the run resumes as if never read
-    text = esr("diagnose", str(part), "--batches", "1", "--episodes", "2", store=store).stdout
+    # the same sizes as above: its programs come from the session's compile cache
+    text = esr("diagnose", str(part), "--batches", "2", "--episodes", "4", "--refit", "3", store=store).stdout
     assert "unfinished: checkpoint at epoch 1 of 2" in text
 
 

@@ -492,6 +492,38 @@ def test_rich_markup_in_user_text_is_printed_as_text(tmp_path, capsys):
         assert "[/" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
 
 
+def test_a_store_path_that_looks_like_markup_is_printed_as_written(tmp_path, capsys):
+    """Paths printed for scripts to read are the paths: `[bold]` is not styled away, `[/x]` is
+    not a crash after the work is done."""
+    from esr_cli.cli import main
+    from esr_cli.store import Store, content_key
+
+    components = {"kind": "runs", "spec": {"name": "x"}}
+    key = content_key(components)
+    here = tmp_path / "s[bold]x[/x]"
+    store = Store(here)
+    (store.begin("runs", key, {"name": "x", "key": key, "key_components": components}) / "metrics.jsonl").write_text("")
+    path = store.commit("runs", key, {"kind": "runs", "name": "x", "key": key, "key_components": components})
+    assert main(["--store", str(here), "verify"]) == 0
+    assert "".join(capsys.readouterr().err.split()) == f"ok{path}"  # a long line may be folded
+    archive = tmp_path / "a[red]b.tar.gz"
+    assert main(["--store", str(here), "export", key[:8], "--out", str(archive)]) == 0
+    assert capsys.readouterr().out.strip() == str(archive)
+    there = tmp_path / "t[/]"
+    assert main(["--store", str(there), "import", str(archive)]) == 0
+    assert capsys.readouterr().out.strip() == str(there / "runs" / key[:2] / key)
+    assert main(["--store", str(there), "show", key[:8]]) == 0
+    assert capsys.readouterr().out.splitlines()[0] == str(there / "runs" / key[:2] / key)
+
+
+def test_an_empty_store_path_is_refused_rather_than_read_as_the_current_directory(capsys):
+    from esr_cli.cli import main
+
+    for empty in ("", "  "):
+        assert main(["--store", empty, "ls"]) == 2
+        assert "--store: an empty path" in capsys.readouterr().err
+
+
 def test_a_file_name_too_long_is_a_usage_error(tmp_path, capsys):
     from esr_cli.cli import main
 

@@ -19,7 +19,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from rich.console import Console
-from rich.markup import escape
 
 from esr_cli import spec as specs
 from esr_cli.artifacts import Recipe, ensure
@@ -168,7 +167,7 @@ def recover_abandoned(store: Store, console: Console) -> list[Path]:
 
         built = ensure(Recipe(PLAY_KIND, entry.manifest.get("name", "play"), components, build,
                               record={"recovered": True}), store)
-        console.print(f"an episode left unfinished was kept as incomplete: {escape(str(built.path))}")
+        console.print(f"an episode left unfinished was kept as incomplete: {built.path}")
         recovered.append(built.path)
     return recovered
 

@@ -1,0 +1,22 @@
+"""How esr prints to a terminal.
+
+Consoles print text exactly as written: a store path, spec name, suite label, participant or
+error message that looks like rich markup (`[bold]`, `[/x]`) is neither styled away nor a crash,
+and a path printed for scripts to read is the path. Style is added explicitly, as `Text` spans,
+so a new print site is safe without escaping anything.
+"""
+
+from __future__ import annotations
+
+from rich.console import Console
+from rich.text import Text
+
+
+def plain_console(stderr: bool = False) -> Console:
+    """A console that never reads markup in the text it prints."""
+    return Console(stderr=stderr, markup=False)
+
+
+def tagged(tag: str, style: str, *rest: str) -> Text:
+    """`tag` in `style`, then `rest` as written: tagged("ok", "green", " ", str(path))."""
+    return Text.assemble((tag, style), *rest)
