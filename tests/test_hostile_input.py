@@ -516,6 +516,20 @@ def test_a_store_path_that_looks_like_markup_is_printed_as_written(tmp_path, cap
     assert capsys.readouterr().out.splitlines()[0] == str(there / "runs" / key[:2] / key)
 
 
+def test_only_the_printing_module_makes_consoles():
+    """Every console reads no markup (esr_cli/printing.py), so user text is safe at any print site;
+    a console made elsewhere would read `[/x]` in a path as a closing tag again."""
+    import ast
+
+    package = ROOT / "esr_cli"
+    makers = set()
+    for f in package.rglob("*.py"):
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "id", getattr(node.func, "attr", None)) == "Console":
+                makers.add(f.relative_to(package).as_posix())
+    assert makers == {"printing.py"}
+
+
 def test_an_empty_store_path_is_refused_rather_than_read_as_the_current_directory(capsys):
     from esr_cli.cli import main
 
