@@ -13,8 +13,9 @@ from rich.text import Text
 
 
 def plain_console(stderr: bool = False) -> Console:
-    """A console that never reads markup in the text it prints."""
-    return Console(stderr=stderr, markup=False)
+    """A console that never reads markup in the text it prints, nor folds a long line (a path
+    stays one piece to copy; the terminal wraps it)."""
+    return Console(stderr=stderr, markup=False, soft_wrap=True)
 
 
 def tagged(tag: str, style: str, *rest: str) -> Text:
