@@ -111,8 +111,8 @@ def train(
     spec = _load_spec(spec_file, budget, set_)
     built = ensure(runs.run_recipe(spec, err, stop_at=stop_at), STATE.store)
     path, cached = built.path, built.cached
-    err.print(tagged("cache hit" if cached else "trained", "green", f": {spec.name} ({spec.budget}) -> {path}"), soft_wrap=True)
-    out.print(str(path), soft_wrap=True, highlight=False)
+    err.print(tagged("cache hit" if cached else "trained", "green", f": {spec.name} ({spec.budget}) -> {path}"))
+    out.print(str(path), highlight=False)
 
 
 # ---------------------------------------------------------------- sweep
@@ -181,7 +181,7 @@ def sweep(
             if as_json:
                 out.print_json(json.dumps(rows))
             elif markdown:
-                out.print(sw.results_markdown(suite, rows, metrics), soft_wrap=True, highlight=False)
+                out.print(sw.results_markdown(suite, rows, metrics), highlight=False)
             else:
                 out.print(sw.results_table(suite, rows, metrics))
             if plot:
@@ -208,7 +208,7 @@ def sweep(
         raise Exit(1, str(e)) from None
     for p in result.paths:
         if p is not None:
-            out.print(str(p), soft_wrap=True, highlight=False)
+            out.print(str(p), highlight=False)
     done = sum(p is not None for p in result.paths)
     err.print(tagged(f"{done} of {len(result.paths)} run(s) done", "green", f"; {len(result.submitted)} "
                      f"{'run' if executor == 'local' else 'submitted'} this time; `esr sweep --status {suite_file}` shows each"))
@@ -266,7 +266,7 @@ def eval_(
     for name in ("rollout.gif", "learning_curve.png"):
         if (path / name).exists():
             err.print(f"  {name}: {path / name}")
-    out.print(str(path), soft_wrap=True, highlight=False)
+    out.print(str(path), highlight=False)
 
 
 # ---------------------------------------------------------------- exact / plot
@@ -306,7 +306,7 @@ def exact(
         table.add_row(k, f"{v:.4f}" if isinstance(v, float) else "— (not every pair computed)" if v is None else str(v))
     err.print(table)
     err.print(tagged("cache hit" if cached else "computed", "green", f": {path}"))
-    out.print(str(path), soft_wrap=True, highlight=False)
+    out.print(str(path), highlight=False)
 
 
 @app.command()
@@ -461,7 +461,7 @@ def plot(
             raise Exit(2, f"{e}\nor all at once: make paper-figures BUDGET={budget}") from None
         png = built.path / f"{figs.FIGURES[figure][0]}.png"
     err.print(tagged("cache hit" if built.cached else "drawn", "green", f": {png}"))
-    out.print(str(png), soft_wrap=True, highlight=False)
+    out.print(str(png), highlight=False)
 
 
 @app.command()
@@ -492,7 +492,7 @@ def ablate(
         rich_table.add_row(label, *[format_summary(table[p][label]) if label in table[p] else "" for p in panels])
     err.print(rich_table)
     err.print(tagged("comparison", "green", f": {path / 'ablation.png'}  (table: {path / 'table.md'})"))
-    out.print(str(path), soft_wrap=True, highlight=False)
+    out.print(str(path), highlight=False)
 
 
 def _check_output_file(path: Path, option: str) -> None:
@@ -534,9 +534,9 @@ def paper_(
         err.print(", ".join(f"{n} {v}" for v, n in counts.items()))
         err.print(tagged("reproduction report", "green", f": {report_out}"))
         if as_json:
-            out.print(json.dumps(reproduction.findings_json(findings), indent=2), soft_wrap=True, highlight=False)
+            out.print(json.dumps(reproduction.findings_json(findings), indent=2), highlight=False)
         else:
-            out.print(str(report_out), soft_wrap=True, highlight=False)
+            out.print(str(report_out), highlight=False)
         return
     try:
         path = paper.make_paper(STATE.store, budget, executor, err)
@@ -545,7 +545,7 @@ def paper_(
     except (sw.SweepError, figs.MissingRuns) as e:
         raise Exit(1, str(e)) from None
     err.print(tagged("report", "green", f": {path / 'report.md'}"))
-    out.print(str(path / "report.md"), soft_wrap=True, highlight=False)
+    out.print(str(path / "report.md"), highlight=False)
 
 
 # ---------------------------------------------------------------- ls / show / verify
@@ -661,7 +661,7 @@ def play(
                       f"{r['success_rate']:.2f}", f"{r['steps_mean']:.1f}")
     err.print(table)
     for p in played:
-        out.print(p["path"], soft_wrap=True, highlight=False)
+        out.print(p["path"], highlight=False)
     if played and not played[-1]["completed"]:
         raise Exit(130, "the session was ended early; its last episode is kept as incomplete")
 
@@ -710,7 +710,7 @@ def show(ref: str = typer.Argument(..., help="artifact key, key prefix or path",
     """Print an artifact's manifest, including every component of its key."""
     path = STATE.store.resolve(ref)
     manifest = STATE.store.read_manifest(path)
-    out.print(Text(str(path), style="bold"), highlight=False, soft_wrap=True)
+    out.print(Text(str(path), style="bold"), highlight=False)
     out.print_json(json.dumps(manifest))
 
 
@@ -744,7 +744,7 @@ def export_(
 
     moved = export(STATE.store, ref, out_file)
     err.print(tagged("exported", "green", f" {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files)"))
-    out.print(str(moved.path), soft_wrap=True, highlight=False)
+    out.print(str(moved.path), highlight=False)
 
 
 @app.command("import")
@@ -769,7 +769,7 @@ def import_(
             note = ("; a record without a checkpoint: training it again starts from epoch 0" if moved.record else
                     "; it replaces this store's unfinished run of the same key" if moved.replaced_partial else "")
             err.print(tagged("imported", "green", f" {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files{note})"))
-        out.print(str(moved.path), soft_wrap=True, highlight=False)
+        out.print(str(moved.path), highlight=False)
 
 
 # ---------------------------------------------------------------- entry point
@@ -842,7 +842,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             code, msg = 1, f"{type(e).__name__}: {e} (run with --debug for a traceback)"
         if msg:
-            err.print(tagged("error:", "red", f" {msg}"), highlight=False, soft_wrap=True)
+            err.print(tagged("error:", "red", f" {msg}"), highlight=False)
         return code
 
 
