@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Callable, NamedTuple
 
 from esr_cli import provenance
-from esr_cli.store import KINDS, RUN_KIND, Store, atomic_write_text, content_key
+from esr_cli.store import KINDS, RUN_KIND, Store, atomic_write_text, content_key, read_pending
 
 SUMMARY_FILE = "summary.json"
 
@@ -73,17 +73,22 @@ def ensure(recipe: Recipe, store: Store) -> Built:
     def make() -> Path:
         pending = {"kind": recipe.kind, "name": recipe.name, "key": key, "budget": recipe.budget,
                    "seeds": list(recipe.seeds)}
+        # Every start and resume is a session (checkout, time, a run's device), kept in order:
+        # a run resumed on another machine or from another checkout of the same training code
+        # says so. "commit" and "device" name the first, where it was made.
+        sessions = (provenance.earlier_sessions(read_pending(store.partial_path(recipe.kind, key)))
+                    + [provenance.session(with_device=recipe.kind == RUN_KIND)])
+        first = {k: sessions[0][k] for k in ("commit", "device") if k in sessions[0]}
         # The key components are in pending.json from the start: an unfinished run can then be
         # found by a longer run of the same lineage (runs.adopt_shorter_run).
-        # A run names its device from the start, so a report on it while unfinished can too.
-        where = {"device": provenance.device()} if recipe.kind == RUN_KIND else {}
-        out = store.begin(recipe.kind, key, {**pending, "key_components": recipe.components,
-                                             "commit": provenance.git_state()["commit"], **where})
+        out = store.begin(recipe.kind, key, {**pending, "key_components": recipe.components, **first,
+                                             "sessions": sessions})
         started = time.time()
         summary = recipe.build(out, store)
         if recipe.summary_file:
             atomic_write_text(out / SUMMARY_FILE, json.dumps(summary, indent=2, default=float))
-        manifest = provenance.complete_manifest(pending, recipe.components, summary, started, **recipe.record)
+        manifest = provenance.complete_manifest(pending, recipe.components, summary, started, **first,
+                                                sessions=sessions, **recipe.record)
         return store.commit(recipe.kind, key, manifest)
 
     path, cached = store.get_or_make(recipe.kind, key, make, on_wait=recipe.on_wait)

@@ -27,6 +27,14 @@ from esr_cli.runs import load_run, run_spec, seed_slice
 from esr_cli.store import EXACT_KIND, FIGURE_KIND, RUN_KIND, Store, StoreError
 
 
+# The code behind an exact analysis: the environment, human and evaluation path with the
+# analysis package (their import closure), and this module's own steps, but not the store,
+# checkpoint and figure plumbing it imports: those decide where numbers are read and written,
+# never what they are, and an edit there should not discard hours of exact computation.
+# (The robot's training code is pinned by its run's key, a component of its own.)
+EXACT_CODE = (provenance.EVAL_SOURCES + ("analysis",), ("exact_runs.py",))
+
+
 def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | None, seed_index: int,
                  console: Console) -> Recipe:
     """Exact empowerment of `spec`'s gridworld at `goal` and discount `gamma`, for a uniform
@@ -62,7 +70,7 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
         "goal": list(goal),
         "gamma": gamma,
         "robot": {"run": robot_manifest["key"], "seed_index": seed_index} if robot_manifest else "uniform",
-        "code": provenance.code_digest(provenance.EVAL_SOURCES + ("analysis", "exact_runs.py")),
+        "code": provenance.code_digest(*EXACT_CODE),
         "toolchain": provenance.toolchain(),
     }
 
@@ -132,7 +140,7 @@ def estimator_recipe(exact_ref: str, store: Store, console: Console) -> Recipe:
     if manifest.get("kind") != EXACT_KIND:
         raise StoreError(f"{exact_ref} is not an exact-empowerment artifact (make one with `esr exact SPEC --robot RUN`)")
     components = {"kind": "figure", "figure": "estimator", "exact": manifest["key"],
-                  "code": provenance.code_digest(provenance.EVAL_SOURCES + ("analysis", "exact_runs.py"))}
+                  "code": provenance.code_digest(EXACT_CODE[0], EXACT_CODE[1] + ("plots.py",))}
 
     def build(out: Path, store: Store) -> dict:
         with console.status("computing ESR's estimate for every state and robot action"):

@@ -85,10 +85,12 @@ def module_closure(roots: tuple[str, ...]) -> list[Path]:
 
 
 @cache
-def code_digest(roots: tuple[str, ...] = TRAINING_SOURCES) -> str:
-    """blake2b over the path and bytes of every file in the import closure of `roots`."""
+def code_digest(roots: tuple[str, ...] = TRAINING_SOURCES, alone: tuple[str, ...] = ()) -> str:
+    """blake2b over the path and bytes of every file in the import closure of `roots`, and of
+    the files `alone` without what they import (host code such as an analysis's store and
+    checkpoint plumbing, which decides where numbers are read from, never what they are)."""
     h = hashlib.blake2b(digest_size=16)
-    for f in module_closure(roots):
+    for f in sorted(set(module_closure(roots)) | {PACKAGE_DIR / name for name in alone}):
         h.update(f.relative_to(PACKAGE_DIR).as_posix().encode() + b"\0")
         h.update(f.read_bytes() + b"\0")
     return h.hexdigest()
@@ -154,6 +156,28 @@ def git_state() -> dict:
         return {"commit": None, "dirty": None}
     status = run("status", "--porcelain", "--untracked-files=no", "--", "esr_cli")
     return {"commit": commit, "dirty": bool(status)}
+
+
+def session(with_device: bool) -> dict:
+    """This process's part in making an artifact: the checkout it ran from (and whether its
+    esr_cli/ differed from that commit), when it started, and for a run the device."""
+    git = git_state()
+    record = {"commit": git["commit"], "dirty": git["dirty"], "started_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    if with_device:
+        record["device"] = device()
+    return record
+
+
+def earlier_sessions(pending: dict | None) -> list[dict]:
+    """The sessions that a resumed artifact's pending.json records, oldest first. One written
+    before sessions were recorded names only the session that last resumed it."""
+    if not pending:
+        return []
+    sessions = pending.get("sessions")
+    if isinstance(sessions, list):
+        return [s for s in sessions if isinstance(s, dict)]
+    last = {k: pending[k] for k in ("commit", "device") if isinstance(pending.get(k), str)}
+    return [last] if last else []
 
 
 def package_versions() -> dict:

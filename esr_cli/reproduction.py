@@ -19,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 
-from esr_cli import spec as specs, yamlio
+from esr_cli import provenance, spec as specs, yamlio
 from esr_cli.artifacts import ensure
 from esr_cli.checkpoint_files import verified_steps
 from esr_cli.finals import FINAL_FRACTION, final_per_seed, read_rows, series
@@ -51,11 +51,14 @@ class Evidence:
     budget: str
     spec: specs.Spec
     rows: list[dict]
-    commit: Optional[str]
+    commit: Optional[str]  # the checkout it was started from
     device: Optional[str] = None  # where it ran, e.g. 'gpu:NVIDIA H200'; None: unknown
     # False for an unfinished run whose checkpoint is not in this store (a record of its
     # logged epochs, `esr import --without-checkpoint`): training it again starts from epoch 0.
     resumable: bool = True
+    # True when the checkout it was started from had edits under esr_cli/ (its code digest,
+    # part of the key, still says exactly which training code it ran).
+    modified: bool = False
     # A pooled run (`pooled`): the finished runs whose seeds it joins; () for a stored run.
     parts: tuple = ()
     _finals: dict = field(default_factory=dict, repr=False, compare=False)
@@ -76,6 +79,12 @@ class Evidence:
 
     def comparable(self) -> bool:
         return self.epochs_done >= COMPARABLE_EPOCHS.get(self.spec.env.kind, PAPER_EPOCHS)
+
+    @property
+    def commit_label(self) -> str:
+        if not self.commit:
+            return "unknown"
+        return self.commit[:7] + (" (esr_cli/ modified)" if self.modified else "")
 
     @property
     def accelerator(self) -> Optional[str]:
@@ -107,14 +116,20 @@ def index_store(store: Store) -> dict[str, list[Evidence]]:
         except (specs.SpecError, yamlio.YamlInputError):
             continue  # made by code whose spec fields this version no longer reads
         info = entry.manifest or {}
-        commit = info.get("provenance", {}).get("git", {}).get("commit") or info.get("commit")
-        # A finished run names its device; an unfinished one too, unless made by an esr whose
-        # pending.json named only its backend (part of its key).
+        sessions = provenance.earlier_sessions(info)
+        # The commit a run was started from (its training code is the same at every resume: the
+        # code digest is part of the key); a manifest from before sessions names the last one.
+        commit = next((s["commit"] for s in sessions if s.get("commit")), None) \
+            or info.get("provenance", {}).get("git", {}).get("commit")
+        modified = bool(sessions and sessions[0].get("dirty"))
+        # Every device it ran on, in order; an unfinished run made by an esr whose pending.json
+        # named only its backend (part of its key) says just that.
+        devices = list(dict.fromkeys(s["device"] for s in sessions if isinstance(s.get("device"), str)))
         backend = info.get("key_components", {}).get("toolchain", {}).get("backend")
-        device = info.get("provenance", {}).get("device") or info.get("device") or backend
+        device = ", then ".join(devices) or info.get("provenance", {}).get("device") or backend
         resumable = entry.status == "complete" or bool(verified_steps(entry.path))
         ev = Evidence(entry.key, entry.path, entry.status, info.get("budget", spec.budget), spec,
-                      read_rows(entry.path), commit, device, resumable)
+                      read_rows(entry.path), commit, device, resumable, modified=modified)
         if ev.rows:
             out.setdefault(_without_train(spec), []).append(ev)
     return out
@@ -348,7 +363,7 @@ def _run_cell(ev: Optional[Evidence]) -> str:
         return "—"
     if ev.parts:
         return "seeds pooled from " + " + ".join(_run_cell(p) for p in ev.parts)
-    commit = f", commit {ev.commit[:7]}" if ev.commit else ""
+    commit = f", commit {ev.commit_label}" if ev.commit else ""
     # The CPU is the default and goes unsaid; an accelerator's figures are marked as such.
     device = f", on {ev.accelerator}" if ev.accelerator else ""
     return f"`{ev.key[:8]}` ({ev.budget}; {ev.describe_length()}{commit}{device})"
@@ -554,7 +569,7 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
             if ev.accelerator:
                 state += f", on {ev.accelerator}"
             lines.append(f"| `{ev.key[:8]}` | {ev.spec.name} | {state} | "
-                         f"{(ev.commit or 'unknown')[:7]} | `{train_command(ev, store)}` |")
+                         f"{ev.commit_label} | `{train_command(ev, store)}` |")
         lines.append("")
     img = out.parent / "img" / "reproduction_curves.png"
     if learning_curves(findings, img, f"Runs of at least {MIN_CURVE_EPOCHS:,} epochs behind the report (epochs done in brackets)"):

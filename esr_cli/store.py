@@ -31,6 +31,8 @@ from typing import Callable, Iterator
 from esr_cli import faults
 
 MANIFEST = "manifest.json"
+PENDING = "pending.json"  # an unfinished artifact's record: what it is and who has worked on it
+MAX_PENDING_BYTES = 1 << 20
 # The artifact kinds, each a top-level folder of the store; every module names them from here.
 RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND = "runs", "evals", "exact", "figures", "humandata", "humans"
 PLAY_KIND = "play"  # an episode a person played with a robot (esr play)
@@ -164,7 +166,7 @@ class Store:
                         continue
                     key, status = parse_dirname(d.name)
                     if status == "partial":
-                        yield Entry(kind, key, d, "partial", _try_json(d / "pending.json"))
+                        yield Entry(kind, key, d, "partial", read_pending(d))
                     elif (d / MANIFEST).is_file():
                         yield Entry(kind, key, d, "complete", self._manifest_or_none(d))
 
@@ -184,7 +186,7 @@ class Store:
         p = Path(ref)
         key, status = parse_dirname(p.name)
         if (p / MANIFEST).is_file() or (include_partial and status == "partial" and p.is_dir()):
-            return Entry(p.parent.parent.name, key, p, status, _try_json(p / "pending.json") if status == "partial" else None)
+            return Entry(p.parent.parent.name, key, p, status, read_pending(p) if status == "partial" else None)
         if not re.fullmatch(r"[0-9a-f]{4,32}", ref):
             raise StoreError(f"no artifact {ref!r}: give a path to an artifact directory or a key (at least 4 hex digits)")
         hits = [e for e in self.entries() if e.key.startswith(ref) and (include_partial or e.status == "complete")]
@@ -246,13 +248,13 @@ class Store:
         """The partial directory for `key` (kept if it exists: a resumed run)."""
         path = self.partial_path(kind, key)
         path.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(path / "pending.json", json.dumps(pending, indent=2, sort_keys=True))
+        atomic_write_text(path / PENDING, json.dumps(pending, indent=2, sort_keys=True))
         return path
 
     def commit(self, kind: str, key: str, manifest: dict) -> Path:
         """Digest every file, write the manifest, rename partial -> final (atomic)."""
         partial, final = self.partial_path(kind, key), self.final_path(kind, key)
-        for stale in (partial / "pending.json", partial / MANIFEST):  # MANIFEST: a commit cut short
+        for stale in (partial / PENDING, partial / MANIFEST):  # MANIFEST: a commit cut short
             if stale.exists():
                 stale.unlink()
         files = {}
@@ -348,8 +350,13 @@ def load_manifest(path: Path) -> dict:
     return manifest
 
 
-def _try_json(path: Path) -> dict | None:
+def read_pending(directory: Path) -> dict | None:
+    """An unfinished artifact's pending.json, or None where it is missing, unreadable, not a
+    JSON object, or larger than any esr writes (a few KiB: an archive's copy is read too)."""
+    path = Path(directory) / PENDING
     try:
+        if path.stat().st_size > MAX_PENDING_BYTES:
+            return None
         value = json.loads(path.read_bytes())
     except (OSError, ValueError, RecursionError):
         return None

@@ -15,7 +15,6 @@ at all (a refused import also removes the folders it made).
 
 from __future__ import annotations
 
-import json
 import re
 import shutil
 import tarfile
@@ -24,14 +23,14 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
-from esr_cli.store import KINDS, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, parse_dirname
+from esr_cli.store import (KINDS, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, parse_dirname,
+                           read_pending)
 
 KEY_RE = re.compile(r"[0-9a-f]{32}")
 # Far above any real artifact (a 20-seed Overcooked checkpoint is tens of MiB), low enough that
 # a hostile archive cannot fill a disk or exhaust the inode table.
 MAX_MEMBERS, MAX_BYTES = 100_000, 16 << 30
 SNAPSHOT_TRIES = 5
-MAX_PENDING_BYTES = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -184,17 +183,6 @@ def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path],
     return Moved(kind, key, status, files, target, replaced, record)
 
 
-def _read_pending(path: Path) -> dict | None:
-    """An archived pending.json, read only if it is of a size training writes (a few KiB)."""
-    if path.stat().st_size > MAX_PENDING_BYTES:
-        return None
-    try:
-        value = json.loads(path.read_bytes())
-    except (ValueError, RecursionError):
-        return None
-    return value if isinstance(value, dict) else None
-
-
 def _first_line(e: Exception) -> str:
     return (str(e).splitlines() or [type(e).__name__])[0][:200]
 
@@ -254,9 +242,9 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
 
     if not (stage / "pending.json").is_file():
         raise StoreError(f"{archive}: unfinished run {key[:12]} has no pending.json; nothing imported")
-    pending = _read_pending(stage / "pending.json")
+    pending = read_pending(stage)
     if pending is None:
-        raise StoreError(f"{archive}: unfinished run {key[:12]}: its pending.json is not a JSON object; nothing imported")
+        raise StoreError(f"{archive}: unfinished run {key[:12]}: its pending.json is not a JSON object of at most 1 MiB; nothing imported")
     if pending.get("key") != key:
         raise StoreError(f"{archive}: unfinished run {key[:12]}: its pending.json names key "
                          f"{str(pending.get('key'))[:40]!r}, not the directory's; nothing imported")

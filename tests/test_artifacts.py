@@ -8,7 +8,7 @@ import pytest
 
 from esr_cli import artifacts
 from esr_cli.artifacts import Recipe, ensure
-from esr_cli.store import FIGURE_KIND, MANIFEST, Store, StoreError
+from esr_cli.store import FIGURE_KIND, MANIFEST, RUN_KIND, Store, StoreError
 
 PACKAGE = Path(artifacts.__file__).parent
 
@@ -85,3 +85,49 @@ def test_the_lifecycle_is_written_once():
                     node.func.attr in ("begin", "commit", "get_or_make"):
                 writers.add(f.name)
     assert writers == {"artifacts.py"}
+
+
+def test_every_start_and_resume_is_a_session_and_the_first_names_the_artifact(tmp_path, monkeypatch):
+    """A run resumed from another checkout (same training code: the key holds its digest) or on
+    another device keeps where it was made and adds where it went on, in order."""
+    from esr_cli import provenance
+
+    store, calls = Store(tmp_path / "store"), []
+    components = {"n": "long run"}
+    places = iter([({"commit": "a" * 40, "dirty": False}, "gpu:NVIDIA H100"),
+                   ({"commit": "b" * 40, "dirty": True}, "gpu:NVIDIA H200")])
+
+    def next_place():
+        place = next(places)
+        monkeypatch.setattr(provenance, "git_state", lambda: place[0])
+        monkeypatch.setattr(provenance, "device", lambda: place[1])
+
+    next_place()
+    with pytest.raises(RuntimeError):
+        ensure(Recipe(RUN_KIND, "run", components, _writer(calls, "run", fail=True)), store)
+    key = Recipe(RUN_KIND, "run", components, _writer(calls, "run")).key
+    pending = json.loads((store.partial_path(RUN_KIND, key) / "pending.json").read_text())
+    assert (pending["commit"], pending["device"]) == ("a" * 40, "gpu:NVIDIA H100")
+    assert [s["device"] for s in pending["sessions"]] == ["gpu:NVIDIA H100"]
+    next_place()
+    built = ensure(Recipe(RUN_KIND, "run", components, _writer(calls, "run")), store)
+    manifest = json.loads((built.path / MANIFEST).read_text())
+    assert (manifest["commit"], manifest["device"]) == ("a" * 40, "gpu:NVIDIA H100")  # where it was made
+    assert [(s["commit"][0], s["dirty"], s["device"]) for s in manifest["sessions"]] == \
+        [("a", False, "gpu:NVIDIA H100"), ("b", True, "gpu:NVIDIA H200")]
+    assert all(s["started_at"] for s in manifest["sessions"]) and manifest["provenance"]["device"] == "gpu:NVIDIA H200"
+
+
+def test_a_pending_record_from_before_sessions_counts_as_the_last_session(tmp_path, monkeypatch):
+    from esr_cli import provenance
+
+    monkeypatch.setattr(provenance, "git_state", lambda: {"commit": "c" * 40, "dirty": False})
+    store = Store(tmp_path / "store")
+    recipe = Recipe(FIGURE_KIND, "fig", {"n": "fig"}, _writer([], "fig"))
+    partial = store.partial_path(FIGURE_KIND, recipe.key)
+    partial.mkdir(parents=True)
+    (partial / "pending.json").write_text(json.dumps({"key": recipe.key, "commit": "d" * 40, "device": "gpu:X"}))
+    manifest = json.loads((ensure(recipe, store).path / MANIFEST).read_text())
+    assert [s["commit"][0] for s in manifest["sessions"]] == ["d", "c"] and manifest["commit"] == "d" * 40
+    assert provenance.earlier_sessions({"sessions": [{"commit": "e"}, "junk", 3]}) == [{"commit": "e"}]
+    assert provenance.earlier_sessions(None) == [] == provenance.earlier_sessions({"commit": 5})

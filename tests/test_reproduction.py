@@ -199,3 +199,30 @@ def test_finished_runs_that_differ_only_in_their_seeds_are_pooled():
     assert finding.a.parts == () and len(finding.others) == 1
     seed1.commit, seed1.spec = "2b82b53", seed0.spec  # the same seed twice
     assert rep.judge(above, _index(seed1, seed0, random)).a.parts == ()
+
+
+def test_a_run_resumed_elsewhere_names_where_it_started_and_every_device(tmp_path):
+    """The commit is the one it started from (flagged when that checkout's esr_cli/ had edits);
+    the devices are every one it ran on, in order."""
+    from esr_cli import spec as specs
+    from esr_cli.store import Store
+
+    spec = rep.claim_spec(("grid_10", ()))
+    key = "ab" * 16
+    run = tmp_path / "runs" / key[:2] / key
+    run.mkdir(parents=True)
+    (run / "spec.yaml").write_text(specs.to_yaml(spec))
+    (run / "metrics.jsonl").write_text("".join(json.dumps({"epoch": e, "return": [5.0]}) + "\n" for e in (1, 2)))
+    sessions = [{"commit": "a" * 40, "dirty": True, "device": "gpu:NVIDIA H100"},
+                {"commit": "b" * 40, "dirty": False, "device": "gpu:NVIDIA H200"},
+                {"commit": "b" * 40, "dirty": False, "device": "gpu:NVIDIA H200"}]
+    manifest = {"kind": "runs", "key": key, "files": {}, "budget": "paper", "sessions": sessions,
+                "provenance": {"git": {"commit": "b" * 40}, "device": "gpu:NVIDIA H200"}}
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    [ev] = [e for evs in rep.index_store(Store(tmp_path)).values() for e in evs]
+    assert ev.commit == "a" * 40 and ev.device == "gpu:NVIDIA H100, then gpu:NVIDIA H200"
+    assert rep._run_cell(ev).endswith("commit aaaaaaa (esr_cli/ modified), on gpu:NVIDIA H100, then gpu:NVIDIA H200)")
+    manifest.pop("sessions")  # made before sessions were recorded: the finishing session's commit and device
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    [ev] = [e for evs in rep.index_store(Store(tmp_path)).values() for e in evs]
+    assert (ev.commit, ev.device, ev.commit_label) == ("b" * 40, "gpu:NVIDIA H200", "bbbbbbb")

@@ -237,6 +237,27 @@ def test_code_digest_follows_what_the_training_path_imports(tmp_path, monkeypatc
     assert digest(provenance.TRAINING_SOURCES) != changed  # the new module's own edits count now
 
 
+
+def test_the_exact_analysis_digest_leaves_out_host_plumbing(tmp_path, monkeypatch):
+    """An exact analysis is re-keyed by the environments, humans, analysis and its own module,
+    not by the store or checkpoint code that its module imports (`alone`: not followed)."""
+    import shutil
+
+    from esr_cli import exact_runs, provenance
+
+    copy = tmp_path / "esr_cli"
+    shutil.copytree(provenance.PACKAGE_DIR, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    monkeypatch.setattr(provenance, "PACKAGE_DIR", copy)
+    digest = lambda: provenance.code_digest.__wrapped__(*exact_runs.EXACT_CODE)  # noqa: E731 (uncached)
+    before = digest()
+    for host in ("store.py", "runs.py", "transfer.py", "artifacts.py", "cli.py"):
+        (copy / host).write_text((copy / host).read_text() + "\n# an edit\n")
+    assert digest() == before
+    for computing in ("exact_runs.py", "analysis/exact.py", "envs/gridworld.py"):
+        (copy / computing).write_text((copy / computing).read_text() + "\n# an edit\n")
+        assert digest() != before, computing
+        before = digest()
+
 def test_ls_shows_a_runs_final_return_as_figures_and_reports_do(tmp_path):
     """`esr ls`'s "final return" is each seed's mean over its last 10% of epochs, averaged over
     seeds (not the manifest's 10-epoch summary), for unfinished runs too."""
