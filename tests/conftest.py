@@ -19,8 +19,14 @@ os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_opt
 @pytest.fixture(scope="session", autouse=True)
 def compile_cache(tmp_path_factory):
     """One persistent XLA compilation cache for the session: CLI subprocesses that run the
-    same programs (train, resume, eval) compile them once."""
-    path = tmp_path_factory.mktemp("xla-cache")
+    same programs (train, resume, eval) compile them once. Under pytest-xdist the workers
+    share it (the run's base directory, fresh for each run), so a program one worker compiled
+    is not compiled again by another."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        path = tmp_path_factory.getbasetemp().parent / "xla-cache"
+        path.mkdir(exist_ok=True)
+    else:
+        path = tmp_path_factory.mktemp("xla-cache")
     os.environ["ESR_COMPILE_CACHE"] = str(path)
     yield path
 
