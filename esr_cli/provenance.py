@@ -168,6 +168,19 @@ def session(with_device: bool) -> dict:
     return record
 
 
+MAX_SESSIONS = 100  # a run resumed by many short jobs keeps its first and its latest sessions
+
+
+def with_session(earlier: list[dict], new: dict) -> list[dict]:
+    """`earlier` and then `new`, at most MAX_SESSIONS records: past that the first (where the
+    artifact was made) is kept, then one record counting those left out, then the latest."""
+    sessions = earlier + [new]
+    if len(sessions) <= MAX_SESSIONS:
+        return sessions
+    dropped = sum(s.get("omitted", 1) for s in sessions[1:len(sessions) - MAX_SESSIONS + 2])
+    return [sessions[0], {"omitted": dropped}] + sessions[len(sessions) - MAX_SESSIONS + 2:]
+
+
 def earlier_sessions(pending: dict | None) -> list[dict]:
     """The sessions that a resumed artifact's pending.json records, oldest first. One written
     before sessions were recorded names only the session that last resumed it."""

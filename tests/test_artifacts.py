@@ -131,3 +131,15 @@ def test_a_pending_record_from_before_sessions_counts_as_the_last_session(tmp_pa
     assert [s["commit"][0] for s in manifest["sessions"]] == ["d", "c"] and manifest["commit"] == "d" * 40
     assert provenance.earlier_sessions({"sessions": [{"commit": "e"}, "junk", 3]}) == [{"commit": "e"}]
     assert provenance.earlier_sessions(None) == [] == provenance.earlier_sessions({"commit": 5})
+
+
+def test_a_run_resumed_by_many_jobs_keeps_its_first_and_latest_sessions():
+    from esr_cli import provenance
+
+    sessions = []
+    for i in range(250):
+        sessions = provenance.with_session(sessions, {"commit": str(i)})
+    assert len(sessions) == provenance.MAX_SESSIONS
+    assert sessions[0] == {"commit": "0"} and sessions[-1] == {"commit": "249"}
+    assert sessions[1]["omitted"] + len(sessions) - 1 == 250  # every session is counted once
+    assert [s["commit"] for s in sessions[2:]] == [str(i) for i in range(152, 250)]
