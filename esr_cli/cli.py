@@ -104,11 +104,11 @@ def train(
     """Train a spec (all its seeds in one program); a finished spec is a cache hit."""
     import time
 
-    from esr_cli import runs
-
     # the limit counts from the command's start, as a scheduler's or a lent machine's does
     stop_at = None if stop_after is None else time.monotonic() + parse_duration(stop_after, "--stop-after")
     spec = _load_spec(spec_file, budget, set_)
+    from esr_cli import runs  # JAX and the training code: after the spec is known to be good
+
     built = ensure(runs.run_recipe(spec, err, stop_at=stop_at), STATE.store)
     path, cached = built.path, built.cached
     err.print(tagged("cache hit" if cached else "trained", "green", f": {spec.name} ({spec.budget}) -> {path}"))
@@ -424,8 +424,6 @@ def plot(
     state: Optional[int] = typer.Option(None, "--state", help="geometry: which of the 3 states (default 0)"),
 ):
     """Draw a figure from artifacts (never trains; a missing run is named with its command)."""
-    from esr_cli import exact_runs
-
     if figure not in ("estimator", "geometry", *PAPER_FIGURES):
         raise Exit(2, f"unknown figure {figure!r}; known: estimator, geometry, {', '.join(PAPER_FIGURES)}")
     # Each figure reads some of the options; one it would ignore is a mistake worth naming.
@@ -439,6 +437,8 @@ def plot(
     budget = budget or "paper"
     gamma = 0.2 if gamma is None else gamma
     state = 0 if state is None else state
+    from esr_cli import exact_runs  # JAX, scipy, matplotlib: after the options are checked
+
     if figure == "estimator":
         if ref is None:
             raise Exit(2, "esr plot estimator needs an exact artifact: make one with `esr exact SPEC --robot RUN`")
@@ -798,7 +798,7 @@ def global_options_first(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from esr_cli.core.loop import CorruptCheckpoint, Diverged, Interrupted, TimeLimitReached
+    from esr_cli.core.stops import CorruptCheckpoint, Diverged, Interrupted, TimeLimitReached
     from esr_cli.resources import ResourceError
 
     argv = global_options_first(sys.argv[1:] if argv is None else list(argv))

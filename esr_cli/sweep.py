@@ -353,7 +353,7 @@ def train_job(spec_path: str, budget: str, sets: list[str], store_root: str,
     import time
 
     from esr_cli import runs  # jax and the training core load only where a run is made here
-    from esr_cli.core.loop import TimeLimitReached
+    from esr_cli.core.stops import TimeLimitReached
 
     stop_at = None if stop_after_s is None else time.monotonic() + stop_after_s
     spec = specs.load(spec_path, budget, sets)
@@ -448,7 +448,7 @@ def run_suite(
 
 def _run_local(todo: list[RunStatus], store: Store, console: Console, result: SweepResult) -> None:
     from esr_cli import runs  # jax and the training core load only where a run is made here
-    from esr_cli.core.loop import Interrupted
+    from esr_cli.core.stops import Interrupted
     from esr_cli.core.train import release_compiled
 
     for i, s in enumerate(todo, 1):

@@ -577,3 +577,18 @@ def test_sweep_options_that_would_be_ignored_are_refused(tmp_path, capsys, flags
     assert main(["--store", str(tmp_path / "store"), "sweep", "experiments/suites/gridworld.yaml", *flags]) == 2
     assert problem in capsys.readouterr().err
     assert not (tmp_path / "store").exists()
+
+
+def test_usage_errors_and_help_are_answered_without_loading_jax(tmp_path):
+    """Refusing bad input costs the interpreter's start, not JAX's and orbax's import (seconds):
+    the checks come before the heavy modules are imported."""
+    import subprocess
+    import sys
+
+    probe = ("import sys; from esr_cli.cli import main; code = main(sys.argv[1:]); "
+             "print(code, 'jax' in sys.modules, 'orbax.checkpoint' in sys.modules)")
+    for args in (["--help"], ["train", str(tmp_path / "missing.yaml")], ["train", "experiments/grid_2.yaml", "--set", "nope=1"],
+                 ["train", "experiments/grid_2.yaml", "--stop-after", "9x"], ["plot", "mi", "--gamma", "0.5"]):
+        proc = subprocess.run([sys.executable, "-c", probe, "--store", str(tmp_path / "store"), *args],
+                              cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert proc.stdout.split()[-3:] == ["0" if args == ["--help"] else "2", "False", "False"], (args, proc.stdout, proc.stderr)

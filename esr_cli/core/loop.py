@@ -29,25 +29,10 @@ from esr_cli.checkpoint_files import (
     CHECKPOINT_DIGESTS, CHECKPOINT_DIR, read_digests, record_digests, step_intact, verified_steps,
 )
 from esr_cli.store import atomic_write_text
+from esr_cli.core.stops import CorruptCheckpoint, Diverged, Interrupted, TimeLimitReached  # noqa: F401 (raised here)
 from esr_cli.core.train import TrainState, Trainer, compiled_chunk, compiled_init
 
 METRICS_FILE = "metrics.jsonl"
-
-
-class Interrupted(Exception):
-    """Ctrl-C (SIGINT) or SIGTERM arrived; the run stopped at a chunk boundary after saving."""
-
-    def __init__(self, epoch: int):
-        self.epoch = epoch
-        super().__init__(f"interrupted after epoch {epoch}")
-
-
-class TimeLimitReached(Exception):
-    """The next chunk would end past the run's time limit; the run stopped after saving."""
-
-    def __init__(self, epoch: int, total: int):
-        self.epoch, self.total = epoch, total
-        super().__init__(f"stopped at the time limit after epoch {epoch} of {total}")
 
 
 # Signals that stop a run at its next chunk boundary instead of at once: Ctrl-C, and the
@@ -59,14 +44,6 @@ def next_chunk_fits(now: float, stop_at: float | None, last_chunk_seconds: float
     """Whether a chunk as long as the last one would end by `stop_at` (time.monotonic() values;
     None: no limit). The last chunk's duration is the estimate: chunks of one run are alike."""
     return stop_at is None or now + last_chunk_seconds <= stop_at
-
-
-class CorruptCheckpoint(Exception):
-    """A checkpoint exists but cannot be restored."""
-
-
-class Diverged(Exception):
-    """A non-finite value appeared; the run stops and is not committed."""
 
 
 def checkpoint_manager(run_dir: Path) -> ocp.CheckpointManager:

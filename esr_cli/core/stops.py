@@ -1,0 +1,29 @@
+"""Why a training run ends short of its length. The CLI maps each to an exit code; they live
+apart from the training loop so that a usage error or `--help` is answered without importing
+JAX and orbax (seconds of start-up, paid by every command that only refuses its input)."""
+
+from __future__ import annotations
+
+
+class Interrupted(Exception):
+    """Ctrl-C (SIGINT) or SIGTERM arrived; the run stopped at a chunk boundary after saving."""
+
+    def __init__(self, epoch: int):
+        self.epoch = epoch
+        super().__init__(f"interrupted after epoch {epoch}")
+
+
+class TimeLimitReached(Exception):
+    """The next chunk would end past the run's time limit; the run stopped after saving."""
+
+    def __init__(self, epoch: int, total: int):
+        self.epoch, self.total = epoch, total
+        super().__init__(f"stopped at the time limit after epoch {epoch} of {total}")
+
+
+class CorruptCheckpoint(Exception):
+    """A checkpoint exists but cannot be restored."""
+
+
+class Diverged(Exception):
+    """A non-finite value appeared; the run stops and is not committed."""
