@@ -281,8 +281,6 @@ def exact(
     seed_index: Optional[int] = typer.Option(None, "--seed-index", help="which seed of --robot's run (default 0)"),
 ):
     """Exact effective empowerment of a small gridworld: I(aH; s+ | s, aR) for every state."""
-    from esr_cli import exact_runs
-
     if seed_index is not None and robot is None:
         raise Exit(2, "--seed-index applies to --robot's run only (a uniform robot has no seeds)")
     spec = _load_spec(spec_file, budget, set_)
@@ -293,6 +291,8 @@ def exact(
             assert len(cell) == 2
         except (ValueError, AssertionError):
             raise Exit(2, f"--goal: expected 'row,col', got {goal!r}") from None
+    from esr_cli import exact_runs  # JAX and the analysis: after the options are checked
+
     built = ensure(exact_runs.exact_recipe(spec, STATE.store, cell, gamma, robot, seed_index or 0, err), STATE.store)
     path, summary, cached = built.path, built.summary(), built.cached
     table = Table(title=f"exact empowerment: {spec.name}, goal {tuple(summary['goal'])}, gamma {summary['gamma']}")

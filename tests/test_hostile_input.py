@@ -588,7 +588,8 @@ def test_usage_errors_and_help_are_answered_without_loading_jax(tmp_path):
     probe = ("import sys; from esr_cli.cli import main; code = main(sys.argv[1:]); "
              "print(code, 'jax' in sys.modules, 'orbax.checkpoint' in sys.modules)")
     for args in (["--help"], ["train", str(tmp_path / "missing.yaml")], ["train", "experiments/grid_2.yaml", "--set", "nope=1"],
-                 ["train", "experiments/grid_2.yaml", "--stop-after", "9x"], ["plot", "mi", "--gamma", "0.5"]):
+                 ["train", "experiments/grid_2.yaml", "--stop-after", "9x"], ["plot", "mi", "--gamma", "0.5"],
+                 ["exact", "experiments/grid_2.yaml", "--goal", "x"], ["exact", "experiments/grid_2.yaml", "--seed-index", "1"]):
         proc = subprocess.run([sys.executable, "-c", probe, "--store", str(tmp_path / "store"), *args],
                               cwd=ROOT, capture_output=True, text=True, timeout=120)
         assert proc.stdout.split()[-3:] == ["0" if args == ["--help"] else "2", "False", "False"], (args, proc.stdout, proc.stderr)
