@@ -16,7 +16,7 @@ import typer
 from rich.table import Table
 from rich.text import Text
 
-from esr_cli import spec as specs
+from esr_cli import spec as specs, targets
 from esr_cli.artifacts import ensure
 from esr_cli.printing import plain_console, tagged
 from esr_cli.store import RUN_KIND, Store, StoreError
@@ -234,22 +234,23 @@ def eval_(
                                        "its training seat; 1 flips the seats)"),
 ):
     """Evaluate a trained robot with its human; writes an evaluation artifact, a GIF and a curve."""
-    from esr_cli import runs
-    from esr_cli.stats import format_summary  # scipy: +0.9 s, only where a table needs it
-
-    if human not in runs.EVAL_PARTNERS and not human.startswith(runs.PLAY_PARTNER):
-        raise Exit(2, f"--human: unknown partner {human!r}; known: {', '.join(runs.EVAL_PARTNERS)}, {runs.PLAY_PARTNER}KEY,...")
+    targets.check_partner_name(human)
     most = specs.MAX_EVAL_EPISODES
     if episodes is not None and not 1 <= episodes <= most:
         raise Exit(2, f"--episodes: between 1 and {most:,} (got {episodes:,})")
-    if not runs.is_spec_file(target):
+    if targets.is_spec_file(target):  # options that cannot fit the spec are named before "not trained yet"
+        spec = _load_spec(Path(target), budget, set_)
+    else:
         # A trained run's spec and budget are fixed: these would silently change nothing.
         for given, option in ((set_, "--set"), (budget != "paper", "--budget")):
             if given:
                 raise Exit(2, f"{option} applies to a spec file target only; {target} names a trained run, "
                               "whose spec and budget are fixed (name the spec file instead)")
-    if runs.is_spec_file(target):  # options that cannot fit the spec are named before "not trained yet"
-        runs.eval_spec(_load_spec(Path(target), budget, set_), human, seat)
+        spec = targets.run_spec(targets.stored_run(STATE.store, target))
+    targets.partner_spec(targets.seat_spec(spec, seat)[0], human)
+    from esr_cli import runs  # JAX and the training code: after the options are checked
+    from esr_cli.stats import format_summary  # scipy: +0.9 s, only where a table needs it
+
     run_path = runs.find_run(target, budget, set_, STATE.store)
     built = ensure(runs.eval_recipe(run_path, STATE.store, episodes, err, human, seat), STATE.store)
     path, summary, cached = built.path, built.summary(), built.cached
@@ -322,19 +323,19 @@ def diagnose(
     """Why a robot helps or not: its own reward on its play against a uniform robot's, and on
     the gridworld its reward by the human's situation and its critic and policy at the trapped
     corner start. An unfinished run is read at its newest checkpoint."""
-    import jax
-
-    from esr_cli.analysis import diagnose as dg, play_check as pc
-    from esr_cli.runs import load_run_so_far, run_record, run_spec, seed_slice
-
-    path, record, finished = run_record(STATE.store, run)
+    path, record, finished = targets.run_record(STATE.store, run)
     if not 0 <= seed_index < len(record["seeds"]):
         raise Exit(2, f"--seed-index: the run has {len(record['seeds'])} seed(s)")
-    method = run_spec(path).method.kind
+    method = targets.run_spec(path).method.kind
     if refit and method != "esr":
         raise Exit(2, f"--refit fits ESR's representations; this run's method is {method}")
     if refit and episodes < 2:
         raise Exit(2, "--refit holds one episode in four out of the fit: give --episodes 2 or more")
+    import jax  # and the training code: after the options are checked against the run
+
+    from esr_cli.analysis import diagnose as dg, play_check as pc
+    from esr_cli.runs import load_run_so_far, seed_slice
+
     trainer, state, epoch = load_run_so_far(STATE.store, path, finished)
     one = seed_slice(state, seed_index)
     learns = trainer.method.learns_policy and not trainer.acts_by_rule
@@ -473,12 +474,12 @@ def ablate(
     set_: Optional[List[str]] = SetOpt,
 ):
     """Train (or reuse) base specs and their ablated variants; write one comparison artifact."""
-    from esr_cli import paper, spec as specs
-    from esr_cli.stats import format_summary
-
     names = [n for n, on in (("no_robot_action", no_robot_action), ("greedy", greedy)) if on]
     if not names and not set_:
         raise Exit(2, "name an ablation: --no-robot-action, --greedy and/or --set key.path=value")
+    from esr_cli import paper  # validates every spec before it imports the training code
+    from esr_cli.stats import format_summary
+
     try:
         path, table = paper.ablate([str(p) for p in spec_files or []], names, list(set_ or []), budget, STATE.store, err)
     except specs.SpecError as e:

@@ -369,7 +369,8 @@ def representations(inputs: PaperInputs, out_dir: Path) -> FigureResult:
     import jax
 
     from esr_cli.core import loop
-    from esr_cli.runs import build_trainer, run_spec
+    from esr_cli.runs import build_trainer
+    from esr_cli.targets import run_spec
 
     _style()
     (path,) = inputs.paths("fig6_representations", WANTS["fig6_representations"]())
@@ -413,7 +414,8 @@ def overcooked_filmstrip(inputs: PaperInputs, out_dir: Path, frames: int = 8) ->
     import jax
 
     from esr_cli.core import loop
-    from esr_cli.runs import build_trainer, run_spec
+    from esr_cli.runs import build_trainer
+    from esr_cli.targets import run_spec
 
     _style()
     (path,) = inputs.paths("fig8_filmstrip", WANTS["fig8_filmstrip"]())

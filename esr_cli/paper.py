@@ -20,10 +20,9 @@ from typing import Optional
 from rich.console import Console
 
 from esr_cli import figures as figs
-from esr_cli import provenance, runs, spec as specs, sweep
+from esr_cli import provenance, spec as specs, sweep
 from esr_cli.artifacts import Recipe, ensure
 from esr_cli.printing import tagged
-from esr_cli.core.train import release_compiled
 from esr_cli.stats import format_summary
 from esr_cli.store import FIGURE_KIND, RUN_KIND, Store, atomic_write_text, content_key
 
@@ -54,6 +53,8 @@ def figure_recipe(store: Store, budget: str, name: str, inputs: Optional[figs.Pa
 
 def ensure_report(store: Store, budget: str, console: Console) -> Path:
     """Every figure (artifacts), then the report artifact with them inline."""
+    from esr_cli.core.train import release_compiled  # some figures compile programs (jax)
+
     inputs = figs.PaperInputs(store, budget)
     made = {}
     for name, (figure, _) in figs.FIGURES.items():
@@ -184,6 +185,9 @@ def ablate(spec_paths: list[str], names: list[str], custom: list[str], budget: s
     for path in spec_paths or DEFAULT_ABLATION_SPECS:
         for v in variants:
             loaded.append((path, v, specs.load(path, budget, list(v.sets))))  # all validated before any work
+
+    from esr_cli import runs  # jax and the training core: after every spec is validated
+    from esr_cli.core.train import release_compiled
 
     run_paths = []
     for i, (path, v, spec) in enumerate(loaded, 1):

@@ -14,11 +14,10 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from pydantic import ValidationError
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from esr_cli import human_runs, plots, provenance, spec as specs, yamlio
+from esr_cli import human_runs, plots, provenance, spec as specs
 from esr_cli.artifacts import Recipe
 from esr_cli.core import evaluate as ev, loop
 from esr_cli.core.train import make_trainer
@@ -26,6 +25,7 @@ from esr_cli.finals import read_rows
 from esr_cli.resources import check_run_fits
 from esr_cli.stats import describe
 from esr_cli.store import EVAL_KIND, HUMAN_KIND, LockBusy, RUN_KIND, Store, StoreError, atomic_write_text, content_key
+from esr_cli.targets import is_spec_file, partner_spec, run_spec, seat_spec, stored_run
 
 # Rough upper bound of a checkpoint per seed plus metrics, checked before a run starts.
 MIN_FREE_BYTES_PER_SEED = 32 << 20
@@ -171,12 +171,6 @@ def run_recipe(spec, console: Console, stop_at: float | None = None) -> Recipe:
                   record={"method": spec.method.kind, "env": spec.env.kind}, summary_file=False, on_wait=waiting)
 
 
-def is_spec_file(target: str) -> bool:
-    """Whether a command's target names a spec file rather than an artifact (a key or a path)."""
-    p = Path(target)
-    return p.suffix in (".yaml", ".yml") or p.is_file()
-
-
 def find_run(target: str, budget: str, sets, store: Store) -> Path:
     """A committed run from a spec file (at budget/sets) or an artifact key/path."""
     p = Path(target)
@@ -188,13 +182,7 @@ def find_run(target: str, budget: str, sets, store: Store) -> Path:
             cmd = f"esr train {target} --budget {budget}" + "".join(f" --set {s}" for s in (sets or []))
             raise StoreError(f"{spec.name} ({budget}) is not trained in {store.root}: run `{cmd}` first")
         return hit
-    path = store.resolve(target)
-    if store.read_manifest(path).get("kind") != RUN_KIND:
-        raise StoreError(f"{target} is not a training run")
-    return path
-
-
-EVAL_PARTNERS = ("training", "proxy")
+    return stored_run(store, target)
 
 
 def eval_key(run_manifest: dict, episodes: int, partner_key: str | None = None, seat: int | None = None) -> tuple[str, dict]:
@@ -212,54 +200,15 @@ def eval_key(run_manifest: dict, episodes: int, partner_key: str | None = None, 
     return content_key(components), components
 
 
-PLAY_PARTNER = "play:"  # --human play:KEY,KEY,...: a BC human cloned from played episodes
-
-
-def _eval_partner(spec, partner: str):
-    """(spec with the evaluation's human, that human's key or None for the training partner)."""
-    if partner == "training":
-        return spec, None
-    if partner not in EVAL_PARTNERS and not partner.startswith(PLAY_PARTNER):
-        raise StoreError(f"--human: unknown partner {partner!r}; known: {', '.join(EVAL_PARTNERS)}, {PLAY_PARTNER}KEY,...")
-    if spec.human.kind != "bc":
-        raise StoreError(f"--human {partner.split(':')[0]} is a BC human (Overcooked): this run's human is {spec.human.kind!r}")
-    if spec.human.adapt:
-        raise StoreError(f"--human {partner.split(':')[0]}: this run's human adapted during training, and its state is "
-                         "part of the run's; evaluate it with its training human")
-    if partner == "proxy":
-        other = spec.human.proxy()
-    else:
-        episodes = tuple(k.strip() for k in partner[len(PLAY_PARTNER):].split(",") if k.strip())
-        try:  # the same cloning as the training human's (per seed if it was), from the played episodes
-            other = type(spec.human).model_validate({**spec.human.model_dump(), "data": episodes, "split": "train",
-                                                     "adapt": False})
-        except ValidationError as e:
-            raise StoreError(f"--human {partner[:60]}: {specs.first_problem(e)[1]}") from None
-    other_spec = spec.model_copy(update={"human": other})
-    keys = human_runs.dependencies(other_spec)[HUMAN_KIND]
-    return other_spec, keys if isinstance(keys, str) else content_key({"per_seed_humans": keys})
-
-
-def _eval_seat(spec, seat: int | None):
-    """(spec with the robot in `seat`, the seat if it differs from training's, else None)."""
-    if seat is None:
-        return spec, None
-    if spec.env.kind != "overcooked":
-        raise StoreError("--seat: seats are JaxMARL's Overcooked agents; a gridworld has one robot seat")
-    if seat not in (0, 1):
-        raise StoreError(f"--seat: 0 or 1, got {seat}")
-    if seat == spec.env.robot_seat:
-        return spec, None
-    return spec.model_copy(update={"env": spec.env.model_copy(update={"robot_seat": seat})}), seat
-
-
 def eval_spec(spec, partner: str = "training", seat: int | None = None):
     """(the spec an evaluation plays, the seat if it differs from training's, the partner's key
-    or None). Raises StoreError naming the option that does not fit the spec: called on a
-    spec file's spec before its run is looked up, so a bad option is named first."""
-    spec, new_seat = _eval_seat(spec, seat)
-    spec, partner_key = _eval_partner(spec, partner)
-    return spec, new_seat, partner_key
+    or None for the training human). Raises StoreError naming the option that does not fit."""
+    spec, new_seat = seat_spec(spec, seat)
+    other = partner_spec(spec, partner)
+    if other is spec:
+        return spec, new_seat, None
+    keys = human_runs.dependencies(other)[HUMAN_KIND]
+    return other, new_seat, keys if isinstance(keys, str) else content_key({"per_seed_humans": keys})
 
 
 def eval_recipe(run_path: Path, store: Store, episodes: int | None, console: Console,
@@ -314,12 +263,6 @@ def build_trainer(spec, store: Store):
     return make_trainer(spec, human_runs.humans_params(spec, store) if spec.human.kind == "bc" else None)
 
 
-def run_spec(run_path: Path):
-    """The validated spec a run was trained from (its spec.yaml)."""
-    source = run_path / "spec.yaml"
-    return specs.validate(yamlio.read(source), str(source))
-
-
 def load_run(store: Store, ref: str):
     """(run path, its manifest, its trainer, its final TrainState) for a committed training run."""
     path = store.resolve(ref)
@@ -329,19 +272,6 @@ def load_run(store: Store, ref: str):
     enable_compile_cache()  # what reads a run (exact, estimator, diagnose) compiles programs on it
     trainer = build_trainer(run_spec(path), store)
     return path, manifest, trainer, loop.final_state(trainer, path)
-
-
-def run_record(store: Store, ref: str) -> tuple[Path, dict, bool]:
-    """(path, manifest or pending record, finished) of a training run, finished or not; reads
-    two small files, so a caller can check its options against the run before loading it."""
-    entry = store.find(ref, include_partial=True)
-    if entry.kind != RUN_KIND:
-        raise StoreError(f"{ref} is not a training run")
-    finished = entry.status == "complete"
-    record = store.read_manifest(entry.path) if finished else entry.manifest
-    if not isinstance(record, dict) or not isinstance(record.get("seeds"), list):
-        raise StoreError(f"{entry.path}: its pending.json cannot be read; the run cannot be inspected")
-    return entry.path, record, finished
 
 
 def load_run_so_far(store: Store, path: Path, finished: bool):

@@ -582,14 +582,30 @@ def test_sweep_options_that_would_be_ignored_are_refused(tmp_path, capsys, flags
 def test_usage_errors_and_help_are_answered_without_loading_jax(tmp_path):
     """Refusing bad input costs the interpreter's start, not JAX's and orbax's import (seconds):
     the checks come before the heavy modules are imported."""
+    for args in (["--help"], ["train", str(tmp_path / "missing.yaml")], ["train", "experiments/grid_2.yaml", "--set", "nope=1"],
+                 ["train", "experiments/grid_2.yaml", "--stop-after", "9x"], ["plot", "mi", "--gamma", "0.5"],
+                 ["exact", "experiments/grid_2.yaml", "--goal", "x"], ["exact", "experiments/grid_2.yaml", "--seed-index", "1"],
+                 ["eval", "experiments/grid_2.yaml", "--human", "nope"], ["eval", "experiments/grid_2.yaml", "--seat", "1"],
+                 ["eval", "deadbeef"], ["diagnose", "deadbeef"], ["ablate"],
+                 ["ablate", "experiments/grid_2.yaml", "--greedy", "--set", "nope=1"], ["paper", "--executor", "nope"]):
+        _assert_refused_without_jax(args, tmp_path / "store", 0 if args == ["--help"] else 2)
+
+
+def test_options_that_do_not_fit_a_stored_run_are_refused_without_loading_jax(smoke_run):
+    """`eval` and `diagnose` on a trained run check their options against its spec and record
+    (two small files) before the training code is imported."""
+    store, path, _ = smoke_run
+    for args in (["eval", path.name, "--seat", "1"], ["eval", path.name, "--human", "proxy"],
+                 ["diagnose", path.name, "--seed-index", "7"], ["diagnose", path.name[:8], "--refit", "5", "--episodes", "1"]):
+        _assert_refused_without_jax(args, store, 2)
+
+
+def _assert_refused_without_jax(args, store, code):
     import subprocess
     import sys
 
     probe = ("import sys; from esr_cli.cli import main; code = main(sys.argv[1:]); "
              "print(code, 'jax' in sys.modules, 'orbax.checkpoint' in sys.modules)")
-    for args in (["--help"], ["train", str(tmp_path / "missing.yaml")], ["train", "experiments/grid_2.yaml", "--set", "nope=1"],
-                 ["train", "experiments/grid_2.yaml", "--stop-after", "9x"], ["plot", "mi", "--gamma", "0.5"],
-                 ["exact", "experiments/grid_2.yaml", "--goal", "x"], ["exact", "experiments/grid_2.yaml", "--seed-index", "1"]):
-        proc = subprocess.run([sys.executable, "-c", probe, "--store", str(tmp_path / "store"), *args],
-                              cwd=ROOT, capture_output=True, text=True, timeout=120)
-        assert proc.stdout.split()[-3:] == ["0" if args == ["--help"] else "2", "False", "False"], (args, proc.stdout, proc.stderr)
+    proc = subprocess.run([sys.executable, "-c", probe, "--store", str(store), *args],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.stdout.split()[-3:] == [str(code), "False", "False"], (args, proc.stdout, proc.stderr)

@@ -1,0 +1,93 @@
+"""What a command's target names, and whether its options fit it, without importing JAX.
+
+`eval`, `diagnose` and the play commands take a spec file or a stored training run, plus options
+(the evaluation's human, its seat) that must fit that run's spec. Checking them needs only the
+spec and the store's small files, so a mistake is refused in well under a second; the training
+code (esr_cli/runs.py) is imported after the checks pass.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import ValidationError
+
+from esr_cli import spec as specs, yamlio
+from esr_cli.store import RUN_KIND, Store, StoreError
+
+EVAL_PARTNERS = ("training", "proxy")
+PLAY_PARTNER = "play:"  # --human play:KEY,KEY,...: a BC human cloned from played episodes
+
+
+def is_spec_file(target: str) -> bool:
+    """Whether a command's target names a spec file rather than an artifact (a key or a path)."""
+    p = Path(target)
+    return p.suffix in (".yaml", ".yml") or p.is_file()
+
+
+def check_partner_name(partner: str) -> None:
+    if partner not in EVAL_PARTNERS and not partner.startswith(PLAY_PARTNER):
+        raise StoreError(f"--human: unknown partner {partner!r}; known: {', '.join(EVAL_PARTNERS)}, {PLAY_PARTNER}KEY,...")
+
+
+def partner_spec(spec, partner: str):
+    """The spec with the evaluation's human in place of the training one (the same spec for
+    `training`). Raises StoreError naming why the partner cannot play this spec's run."""
+    if partner == "training":
+        return spec
+    check_partner_name(partner)
+    if spec.human.kind != "bc":
+        raise StoreError(f"--human {partner.split(':')[0]} is a BC human (Overcooked): this run's human is {spec.human.kind!r}")
+    if spec.human.adapt:
+        raise StoreError(f"--human {partner.split(':')[0]}: this run's human adapted during training, and its state is "
+                         "part of the run's; evaluate it with its training human")
+    if partner == "proxy":
+        other = spec.human.proxy()
+    else:
+        episodes = tuple(k.strip() for k in partner[len(PLAY_PARTNER):].split(",") if k.strip())
+        try:  # the same cloning as the training human's (per seed if it was), from the played episodes
+            other = type(spec.human).model_validate({**spec.human.model_dump(), "data": episodes, "split": "train",
+                                                     "adapt": False})
+        except ValidationError as e:
+            raise StoreError(f"--human {partner[:60]}: {specs.first_problem(e)[1]}") from None
+    return spec.model_copy(update={"human": other})
+
+
+def seat_spec(spec, seat: int | None):
+    """(spec with the robot in `seat`, the seat if it differs from training's, else None)."""
+    if seat is None:
+        return spec, None
+    if spec.env.kind != "overcooked":
+        raise StoreError("--seat: seats are JaxMARL's Overcooked agents; a gridworld has one robot seat")
+    if seat not in (0, 1):
+        raise StoreError(f"--seat: 0 or 1, got {seat}")
+    if seat == spec.env.robot_seat:
+        return spec, None
+    return spec.model_copy(update={"env": spec.env.model_copy(update={"robot_seat": seat})}), seat
+
+
+def stored_run(store: Store, ref: str) -> Path:
+    """A committed training run named by its key, a key prefix or its path."""
+    path = store.resolve(ref)
+    if store.read_manifest(path).get("kind") != RUN_KIND:
+        raise StoreError(f"{ref} is not a training run")
+    return path
+
+
+def run_spec(run_path: Path):
+    """The validated spec a run was trained from (its spec.yaml)."""
+    source = run_path / "spec.yaml"
+    return specs.validate(yamlio.read(source), str(source))
+
+
+def run_record(store: Store, ref: str) -> tuple[Path, dict, bool]:
+    """(path, manifest or pending record, finished) of a training run, finished or not; reads
+    two small files, so a caller can check its options against the run before loading it."""
+    entry = store.find(ref, include_partial=True)
+    if entry.kind != RUN_KIND:
+        raise StoreError(f"{ref} is not a training run")
+    finished = entry.status == "complete"
+    record = store.read_manifest(entry.path) if finished else entry.manifest
+    if not isinstance(record, dict) or not isinstance(record.get("seeds"), list):
+        raise StoreError(f"{entry.path}: its pending.json cannot be read; the run cannot be inspected")
+    return entry.path, record, finished
