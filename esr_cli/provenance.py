@@ -34,6 +34,11 @@ EVAL_SOURCES = TRAINING_SOURCES + ("core/evaluate.py",)
 PACKAGES = ("jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy", "esr-cli")
 
 
+def now_iso() -> str:
+    """Local time with its UTC offset, as every record of the store writes it."""
+    return time.strftime("%Y-%m-%dT%H:%M:%S%z")
+
+
 def _module_file(dotted: str) -> Path | None:
     """The file of an `esr_cli...` module (a package's __init__.py), or None."""
     parts = dotted.split(".")
@@ -162,7 +167,7 @@ def session(with_device: bool) -> dict:
     """This process's part in making an artifact: the checkout it ran from (and whether its
     esr_cli/ differed from that commit), when it started, and for a run the device."""
     git = git_state()
-    record = {"commit": git["commit"], "dirty": git["dirty"], "started_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    record = {"commit": git["commit"], "dirty": git["dirty"], "started_at": now_iso()}
     if with_device:
         record["device"] = device()
     return record
@@ -224,7 +229,7 @@ def complete_manifest(pending: dict, components: dict, summary: dict, started: f
     """The manifest every artifact commits with: what `begin` recorded, its key components,
     when it was made (and how long it took, from `started`), the toolchain and its summary."""
     manifest = {**pending, "format": 1, "status": "complete", **extra, "key_components": components,
-                "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+                "created_at": now_iso()}
     if started is not None:
         manifest["wall_time_s"] = round(time.time() - started, 2)
     return {**manifest, "provenance": provenance(), "summary": summary}

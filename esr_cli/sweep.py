@@ -29,7 +29,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from esr_cli import spec as specs
+from esr_cli import provenance, spec as specs
 from esr_cli.artifacts import ensure
 from esr_cli.printing import plain_console, tagged
 from esr_cli.store import RUN_KIND, Store, atomic_write_text
@@ -97,7 +97,7 @@ def _record_jobs(store: Store, suite: Suite, executor: str, submitted: Iterable[
         state = read_state(store, suite)
         state.update({"suite": str(suite.path), "name": suite.name, "budget": suite.budget})
         jobs = state.setdefault("jobs", {})
-        now = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+        now = provenance.now_iso()
         for run, job_id, folder in submitted:
             jobs[run.key] = {"label": run.label, "executor": executor, "job_id": job_id,
                              "folder": str(folder), "submitted_at": now}
