@@ -74,6 +74,18 @@ class SpecError(Exception):
         super().__init__(f"{where}{key}{problem}")
 
 
+def _why_text(value: str) -> str:
+    """Why a number written as text was read as text: quotes around it, or a value that no
+    setting takes (YAML reads `nan` and `inf` as words)."""
+    try:
+        number = float(value)
+    except ValueError:
+        return ""
+    if number != number or number in (float("inf"), float("-inf")):
+        return " (not a finite number)"
+    return " (write it without quotes)"
+
+
 def _a_number(what: str):
     """YAML's `true` and quoted text are not numbers, even where Python would convert them:
     `epochs: true` or `seeds: ["3"]` is a mistake to name, not a 1 or a 3 to guess."""
@@ -82,7 +94,7 @@ def _a_number(what: str):
         if isinstance(value, bool):
             raise ValueError(f"expected {what}, got the boolean {str(value).lower()}")
         if isinstance(value, str):
-            raise ValueError(f"expected {what}, got the text {value[:40]!r} (write it without quotes)")
+            raise ValueError(f"expected {what}, got the text {value[:40]!r}{_why_text(value)}")
         return value
 
     return BeforeValidator(check)
