@@ -435,14 +435,16 @@ def plot(
     for value, option in ((gamma, "--gamma"), (state, "--state")):
         if value is not None and figure != "geometry":
             raise Exit(2, f"{option} applies to `esr plot geometry` only, not to {figure}")
+    if figure == "estimator":
+        if ref is None:
+            raise Exit(2, "esr plot estimator needs an exact artifact: make one with `esr exact SPEC --robot RUN`")
+        targets.exact_artifact(STATE.store, ref)
     budget = budget or "paper"
     gamma = 0.2 if gamma is None else gamma
     state = 0 if state is None else state
     from esr_cli import exact_runs  # JAX, scipy, matplotlib: after the options are checked
 
     if figure == "estimator":
-        if ref is None:
-            raise Exit(2, "esr plot estimator needs an exact artifact: make one with `esr exact SPEC --robot RUN`")
         built = ensure(exact_runs.estimator_recipe(ref, STATE.store, err), STATE.store)
         result = built.summary()
         err.print(f"Spearman rank correlation of ESR's reward with the exact MI: {result['spearman']:.3f} over {result['pairs']} (state, robot action) pairs")

@@ -13,7 +13,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from esr_cli import spec as specs, yamlio
-from esr_cli.store import RUN_KIND, Store, StoreError
+from esr_cli.store import EXACT_KIND, RUN_KIND, Store, StoreError
 
 EVAL_PARTNERS = ("training", "proxy")
 PLAY_PARTNER = "play:"  # --human play:KEY,KEY,...: a BC human cloned from played episodes
@@ -91,3 +91,11 @@ def run_record(store: Store, ref: str) -> tuple[Path, dict, bool]:
     if not isinstance(record, dict) or not isinstance(record.get("seeds"), list):
         raise StoreError(f"{entry.path}: its pending.json cannot be read; the run cannot be inspected")
     return entry.path, record, finished
+
+
+def exact_artifact(store: Store, ref: str) -> Path:
+    """A committed exact-empowerment artifact (`esr exact`) named by its key, prefix or path."""
+    path = store.resolve(ref)
+    if store.read_manifest(path).get("kind") != EXACT_KIND:
+        raise StoreError(f"{ref} is not an exact-empowerment artifact (make one with `esr exact SPEC --robot RUN`)")
+    return path

@@ -590,7 +590,8 @@ def test_usage_errors_and_help_are_answered_without_loading_jax(tmp_path):
                  ["exact", "experiments/grid_2.yaml", "--goal", "x"], ["exact", "experiments/grid_2.yaml", "--seed-index", "1"],
                  ["eval", "experiments/grid_2.yaml", "--human", "nope"], ["eval", "experiments/grid_2.yaml", "--seat", "1"],
                  ["eval", "deadbeef"], ["diagnose", "deadbeef"], ["ablate"],
-                 ["ablate", "experiments/grid_2.yaml", "--greedy", "--set", "nope=1"], ["paper", "--executor", "nope"]):
+                 ["ablate", "experiments/grid_2.yaml", "--greedy", "--set", "nope=1"], ["paper", "--executor", "nope"],
+                 ["plot", "estimator", "deadbeef"]):
         _assert_refused_without_jax(args, tmp_path / "store", 0 if args == ["--help"] else 2)
 
 
@@ -599,7 +600,8 @@ def test_options_that_do_not_fit_a_stored_run_are_refused_without_loading_jax(sm
     (two small files) before the training code is imported."""
     store, path, _ = smoke_run
     for args in (["eval", path.name, "--seat", "1"], ["eval", path.name, "--human", "proxy"],
-                 ["diagnose", path.name, "--seed-index", "7"], ["diagnose", path.name[:8], "--refit", "5", "--episodes", "1"]):
+                 ["diagnose", path.name, "--seed-index", "7"], ["diagnose", path.name[:8], "--refit", "5", "--episodes", "1"],
+                 ["plot", "estimator", path.name]):
         _assert_refused_without_jax(args, store, 2)
 
 
