@@ -17,7 +17,7 @@ import numpy as np
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from esr_cli import human_runs, plots, provenance, spec as specs
+from esr_cli import human_runs, provenance, spec as specs
 from esr_cli.artifacts import Recipe
 from esr_cli.core import evaluate as ev, loop
 from esr_cli.core.train import make_trainer
@@ -154,6 +154,8 @@ def run_recipe(spec, console: Console, stop_at: float | None = None) -> Recipe:
                     console.print(f"{label} epoch {epoch:,}/{total:,}  {stats}", markup=False, highlight=False)
 
             summary = loop.train(trainer, run_dir, on_chunk=on_chunk, on_start=on_start, stop_at=stop_at)
+        from esr_cli import plots  # matplotlib: only once a run is trained
+
         plots.learning_curve(
             read_rows(run_dir),
             run_dir / "figures" / "learning_curve.png",
@@ -223,6 +225,8 @@ def eval_recipe(run_path: Path, store: Store, episodes: int | None, console: Con
     key, components = eval_key(run_manifest, episodes, partner_key, new_seat)
 
     def build(eval_dir: Path, store: Store) -> dict:
+        from esr_cli import plots  # matplotlib: only where an evaluation is made
+
         enable_compile_cache()
         trainer = build_trainer(spec, store)
         with console.status(f"evaluating {spec.name}: {episodes} episodes x {len(spec.train.seeds)} seed(s)"):

@@ -13,7 +13,6 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
-from scipy import stats as sps
 
 CONFIDENCE = 0.95
 RESAMPLES = 2000
@@ -22,6 +21,8 @@ TRIM = 0.25  # the IQM drops the bottom and top quarter of all runs
 
 def iqm(values, axis: int = -1) -> np.ndarray | float:
     """Interquartile mean: the mean of the middle 50% (scipy's 25% trimmed mean)."""
+    from scipy import stats as sps  # about 1 s to import: only where a statistic is computed
+
     return sps.trim_mean(np.asarray(values, dtype=float), TRIM, axis=axis)
 
 
@@ -43,6 +44,8 @@ def _bootstrap_ci(statistic, samples: Sequence[np.ndarray], confidence: float, r
             full[i] = np.moveaxis(d, axis, -1)
         full = [f if i in varying else np.broadcast_to(f, batch + f.shape) for i, f in enumerate(full)]
         return statistic(*full, axis=-1)
+
+    from scipy import stats as sps
 
     res = sps.bootstrap(tuple(samples[i] for i in varying), with_fixed, paired=False, vectorized=True,
                         confidence_level=confidence, n_resamples=resamples, method="percentile",
