@@ -40,8 +40,9 @@ browser:
 	fi
 
 # Compiling dominates the suite and XLA compiles on one thread: one worker per core (xdist).
+# A module's tests go to one worker, so the trained runs its module fixtures share are made once.
 test: install browser
-	$(BIN)/python -m pytest -n auto
+	$(BIN)/python -m pytest -n auto --dist loadscope
 
 # Train what the paper suite lacks (experiments/suites/paper.yaml), draw all eight figures and
 # write the report into the store; prints the report's path. Re-running re-trains nothing.
