@@ -105,21 +105,21 @@ def test_bad_suite_exits_2_before_any_work(tmp_path):
 
 
 def test_sweep_through_submitit_local(smoke_run, tmp_path):
-    # smoke_run compiled grid_2's smoke program into the session cache; the four jobs reuse it.
+    # smoke_run compiled grid_2's smoke program into the session cache; the two jobs reuse it.
     store = tmp_path / "store"
-    path = seeds_suite(tmp_path, 4)
+    path = seeds_suite(tmp_path, 2)
     proc = esr("sweep", str(path), "--budget", "smoke", "--executor", "submitit-local", store=store, **WIDE)
-    assert "0 done, 0 running or queued, 4 to submit" in proc.stderr
-    assert "4 of 4 run(s) done; 4 submitted this time" in proc.stderr
+    assert "0 done, 0 running or queued, 2 to submit" in proc.stderr
+    assert "2 of 2 run(s) done; 2 submitted this time" in proc.stderr
     paths = [Path(p) for p in proc.stdout.split()]
-    assert len(set(paths)) == 4
+    assert len(set(paths)) == 2
     seeds = sorted(json.loads((p / "manifest.json").read_text())["seeds"] for p in paths)
-    assert seeds == [[0], [1], [2], [3]]
+    assert seeds == [[0], [1]]
 
     # Each run went through its own submitit job, recorded in the sweep's state file.
     (state_file,) = (store / "sweeps").glob("seeds-smoke-*.json")
     state = json.loads(state_file.read_text())
-    assert len(state["jobs"]) == 4 and {j["executor"] for j in state["jobs"].values()} == {"submitit-local"}
+    assert len(state["jobs"]) == 2 and {j["executor"] for j in state["jobs"].values()} == {"submitit-local"}
     logs = state_file.parent / "logs" / state_file.stem
     job_dirs = sorted(d.name for d in logs.iterdir() if d.name != "%j")  # submitit's own template dir
     assert job_dirs == sorted(j["job_id"] for j in state["jobs"].values())
@@ -129,7 +129,7 @@ def test_sweep_through_submitit_local(smoke_run, tmp_path):
     # Again: everything is committed, so nothing is submitted and the state file is untouched.
     before = state_file.read_text()
     again = esr("sweep", str(path), "--budget", "smoke", "--executor", "submitit-local", store=store, **WIDE)
-    assert "4 done, 0 running or queued, 0 to submit" in again.stderr
+    assert "2 done, 0 running or queued, 0 to submit" in again.stderr
     assert "0 submitted this time" in again.stderr
     assert [Path(p) for p in again.stdout.split()] == paths
     assert state_file.read_text() == before
@@ -137,54 +137,54 @@ def test_sweep_through_submitit_local(smoke_run, tmp_path):
 
     # --status: all done, as JSON and as a table.
     rows = json.loads(esr("sweep", str(path), "--budget", "smoke", "--status", "--json", store=store).stdout)
-    assert [r["state"] for r in rows] == ["done"] * 4
+    assert [r["state"] for r in rows] == ["done"] * 2
     assert [Path(r["path"]) for r in rows] == paths
     table = esr("sweep", str(path), "--budget", "smoke", "--status", store=store, **WIDE).stdout
-    assert "suite seeds (smoke): 4 done" in table
-    assert sum(" done " in line for line in table.splitlines() if "│" in line) == 4
+    assert "suite seeds (smoke): 2 done" in table
+    assert sum(" done " in line for line in table.splitlines() if "│" in line) == 2
 
-    # The importable API (for paper figures), local executor, one seed more: the four
-    # committed runs are skipped and only the fifth trains, here in this process. Keys are
+    # The importable API (for paper figures), local executor, one seed more: the two
+    # committed runs are skipped and only the third trains, here in this process. Keys are
     # computed afresh, as a new `esr` process would (this one cached its code digest earlier).
     provenance.code_digest.cache_clear()
-    five = seeds_suite(tmp_path, 5, "five.yaml")
-    result = sweep.run_suite(five, "smoke", "local", Store(store), Console(stderr=True, quiet=True))
-    assert result.paths[:4] == paths and result.complete and len(result.skipped) == 4
-    assert [run.spec.train.seeds for run, _ in result.submitted] == [(4,)] and result.failed == []
-    assert json.loads((result.paths[4] / "manifest.json").read_text())["seeds"] == [4]
+    three = seeds_suite(tmp_path, 3, "three.yaml")
+    result = sweep.run_suite(three, "smoke", "local", Store(store), Console(stderr=True, quiet=True))
+    assert result.paths[:2] == paths and result.complete and len(result.skipped) == 2
+    assert [run.spec.train.seeds for run, _ in result.submitted] == [(2,)] and result.failed == []
+    assert json.loads((result.paths[2] / "manifest.json").read_text())["seeds"] == [2]
 
     # --results: each run's final return and success, read from its metrics. A smoke run has 2
     # epochs, so "the last 10% of epochs" is the last one; one seed has no spread.
-    rows = json.loads(esr("sweep", str(five), "--budget", "smoke", "--results", "--json", store=store).stdout)
-    assert [r["state"] for r in rows] == ["done"] * 5 and [r["seeds"] for r in rows] == [1] * 5
+    rows = json.loads(esr("sweep", str(three), "--budget", "smoke", "--results", "--json", store=store).stdout)
+    assert [r["state"] for r in rows] == ["done"] * 3 and [r["seeds"] for r in rows] == [1] * 3
     for r, p in zip(rows, result.paths):
         last = json.loads((p / "metrics.jsonl").read_text().splitlines()[-1])
         assert r["return"] == {"mean": pytest.approx(last["return"][0]), "se": 0.0, "seeds": 1,
                                "per_seed": [pytest.approx(last["return"][0])]}  # one seed: no IQM interval
         assert r["success"]["mean"] == pytest.approx(last["success"][0]) and r["path"] == str(p)
-    md = esr("sweep", str(five), "--budget", "smoke", "--results", "--markdown", store=store).stdout
+    md = esr("sweep", str(three), "--budget", "smoke", "--results", "--markdown", store=store).stdout
     assert "| run | method | seeds | return | success | wall |" in md
-    assert sum(line.startswith("| grid_2 train.seeds=") for line in md.splitlines()) == 5
+    assert sum(line.startswith("| grid_2 train.seeds=") for line in md.splitlines()) == 3
     assert "(1 seed)" in md and "±" not in md.split("|---|")[-1]  # one seed: no standard error shown
     # --metric: any logged metric; one the run does not log (ESR's with inferred human actions)
     # is shown as a dash, not invented; one no run can log is refused.
-    md = esr("sweep", str(five), "--budget", "smoke", "--results", "--markdown", "--metric", "mi_estimate",
+    md = esr("sweep", str(three), "--budget", "smoke", "--results", "--markdown", "--metric", "mi_estimate",
              "--metric", "code_accuracy", store=store).stdout
     assert "| run | method | seeds | mi_estimate | code_accuracy | wall |" in md
-    bad = esr("sweep", str(five), "--budget", "smoke", "--results", "--metric", "no_such_metric", store=store, check=False)
+    bad = esr("sweep", str(three), "--budget", "smoke", "--results", "--metric", "no_such_metric", store=store, check=False)
     assert bad.returncode == 2 and "unknown metric 'no_such_metric'; known: return, success" in bad.stderr
     last = json.loads((result.paths[0] / "metrics.jsonl").read_text().splitlines()[-1])
     first_row = next(line for line in md.splitlines() if line.startswith("| grid_2 train.seeds="))
     assert f"| {last['mi_estimate'][0]:.3f} (1 seed) | — |" in first_row
 
     # --plot: their learning curves and table as a figures artifact naming every run it read.
-    proc = esr("sweep", str(five), "--budget", "smoke", "--results", "--plot", store=store, **WIDE)
+    proc = esr("sweep", str(three), "--budget", "smoke", "--results", "--plot", store=store, **WIDE)
     fig_dir = Path(proc.stderr.split("drawn: ")[1].split()[0]).parent
     side = json.loads((fig_dir / "suite.json").read_text())
     assert side["artifacts"]["runs"] == [p.name for p in result.paths] and side["budget"] == "smoke"
     assert (fig_dir / "suite.png").stat().st_size > 0 and (fig_dir / "suite.pdf").exists()
-    assert sum(line.startswith("| grid_2 train.seeds=") for line in (fig_dir / "table.md").read_text().splitlines()) == 5
-    again = esr("sweep", str(five), "--budget", "smoke", "--results", "--plot", store=store, **WIDE)
+    assert sum(line.startswith("| grid_2 train.seeds=") for line in (fig_dir / "table.md").read_text().splitlines()) == 3
+    again = esr("sweep", str(three), "--budget", "smoke", "--results", "--plot", store=store, **WIDE)
     assert f"cache hit: {fig_dir / 'suite.png'}" in again.stderr
 
 
