@@ -352,9 +352,16 @@ def judge(claim: Claim, index: dict[str, list[Evidence]]) -> Finding:
     if not all(e.comparable() for e in needed):
         return Finding(claim, a, b, NOT_YET, measured, variants, more)
     verdict = INCONCLUSIVE if holds is None else REPRODUCED if holds else NOT_REPRODUCED
-    if any(e.seeds == 1 for e in needed):
-        verdict += " (1 seed)"
-    return Finding(claim, a, b, verdict, measured, variants, more)
+    return Finding(claim, a, b, verdict + _seed_note([e.seeds for e in needed]), measured, variants, more)
+
+
+def _seed_note(seeds: list[int]) -> str:
+    """A verdict resting on a single seed says so, and against how many on the other side."""
+    if min(seeds) > 1:
+        return ""
+    if max(seeds) == 1:
+        return " (1 seed)"
+    return " (" + " against ".join(f"{n:,} seed{'s' if n > 1 else ''}" for n in seeds) + ")"
 
 
 # ---------------------------------------------------------------- the report

@@ -76,7 +76,7 @@ def test_several_seeds_against_one_hold_the_single_seed_fixed():
     # 9 of 10 seeds above 3.5: a resample's P is k/10, k ~ Binomial(10, 0.9); P(k <= 6) = 0.013
     # and P(k <= 7) = 0.070 put the 2.5% quantile at 0.7, so the lower end is above 0.5
     assert "P(improvement) 0.90 [0.70, 1.00]" in finding.measured
-    assert finding.verdict == "reproduced (1 seed)"  # one side has a single seed, and says so
+    assert finding.verdict == "reproduced (10 seeds against 1 seed)"  # one side has a single seed, and says so
 
 
 def test_the_longest_matching_run_is_used_whatever_its_length_or_seeds():
@@ -192,7 +192,7 @@ def test_finished_runs_that_differ_only_in_their_seeds_are_pooled():
     finding = rep.judge(above, _index(seed1, seed0, random))
     assert finding.a.seeds == 2 and [p.key for p in finding.a.parts] == [seed0.key, seed1.key]
     assert finding.a.finals()["per_seed"] == [0.06, 19.5] and finding.others == []
-    assert finding.verdict == "inconclusive (1 seed)"  # P(improvement) 0.5 [0, 1] against one Random seed
+    assert finding.verdict == "inconclusive (2 seeds against 1 seed)"  # P(improvement) 0.5 [0, 1] against one Random seed
     assert rep._run_cell(finding.a).startswith("seeds pooled from `aaaaaaaa` (paper; 10,000 epochs, 1 seed")
     seed1.commit = "af75888"
     finding = rep.judge(above, _index(seed1, seed0, random))
