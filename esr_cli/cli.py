@@ -531,10 +531,7 @@ def paper_(
 
         _check_output_file(report_out, "--out")
         findings = reproduction.report(STATE.store, report_out, err, exact=exact)
-        counts: dict[str, int] = {}
-        for f in findings:
-            counts[f.verdict] = counts.get(f.verdict, 0) + 1
-        err.print(", ".join(f"{n} {v}" for v, n in counts.items()))
+        err.print(", ".join(f"{n} {v}" for v, n in reproduction.verdict_counts(findings).items()))
         err.print(tagged("reproduction report", "green", f": {report_out}"))
         if as_json:
             out.print(json.dumps(reproduction.findings_json(findings), indent=2), highlight=False)
