@@ -157,7 +157,7 @@ def panels_figure(panels: list[tuple[str, list[tuple[str, str, list[dict]]]]], t
             ax.axvspan(0.5, warmup_epochs + 0.5, color="0.5", alpha=0.15, lw=0, label="warm-up (learners act uniformly)")
         for label, color, rows in lines:
             _band(ax, rows, "return", color, label, "--" if label == "Random" else "-")
-            table[panel][label] = describe(final_per_seed(rows)) if rows else {"mean": float("nan"), "se": 0.0, "seeds": 0}
+            table[panel][label] = describe(final_per_seed(rows) if rows else [])
         ax.set_title(panel)
         ax.set_xlabel("epoch")
         ax.grid(alpha=0.3)

@@ -7,6 +7,7 @@ paper's learning curves end. Reading only; nothing here trains.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -22,16 +23,27 @@ def read_rows(run_path: Path) -> list[dict]:
 
 
 def series(rows: list[dict], name: str) -> tuple[np.ndarray, np.ndarray]:
-    """(epochs [E], values [E, seeds]) with NaN where a metric is undefined."""
+    """(epochs [E], values [E, seeds]) with NaN where a metric is undefined, including an epoch
+    whose row lacks the metric altogether (the seed count is the widest row's)."""
     epochs = np.array([r["epoch"] for r in rows])
-    vals = np.array([[np.nan if v is None else v for v in r.get(name, [None])] for r in rows], dtype=float)
+    per_row = [r.get(name) or [] for r in rows]
+    width = max((len(v) for v in per_row), default=0) or 1
+    vals = np.full((len(rows), width), np.nan)
+    for i, v in enumerate(per_row):
+        if v and len(v) != width:
+            raise ValueError(f"epoch {rows[i]['epoch']} logs {name} for {len(v)} seeds, other epochs for {width}")
+        vals[i, :len(v)] = [np.nan if x is None else x for x in v]
     return epochs, vals
 
 
 def final_per_seed(rows: list[dict], name: str = "return") -> np.ndarray:
+    """Each seed's mean over the last 10% of epochs (at least one); NaN for a seed whose final
+    epochs never logged the metric."""
     _, vals = series(rows, name)
     k = max(1, int(round(len(rows) * FINAL_FRACTION)))
-    return np.nanmean(vals[-k:], axis=0)
+    with warnings.catch_warnings():  # "mean of empty slice": exactly the seeds that get NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmean(vals[-k:], axis=0)
 
 
 def run_progress(run_path: Path) -> tuple[int, float | None]:
@@ -56,5 +68,5 @@ def run_finals(run_path: Path, names: tuple[str, ...] = ("return", "success")) -
     rows = read_rows(run_path)
     out: dict = {"seeds": len(rows[-1]["return"]) if rows else 0, "epochs": rows[-1]["epoch"] if rows else 0}
     for name in names:
-        out[name] = describe(final_per_seed(rows, name)) if rows else {"mean": float("nan"), "se": 0.0, "seeds": 0}
+        out[name] = describe(final_per_seed(rows, name) if rows else [])
     return out

@@ -23,7 +23,7 @@ from esr_cli import provenance, spec as specs, yamlio
 from esr_cli.artifacts import ensure
 from esr_cli.checkpoint_files import verified_steps
 from esr_cli.finals import FINAL_FRACTION, final_per_seed, read_rows, series
-from esr_cli.stats import describe, format_summary, probability_of_improvement
+from esr_cli.stats import describe, format_summary, probability_of_improvement, scored_seeds
 from esr_cli.store import RUN_KIND, Store, atomic_write_bytes, atomic_write_text
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
@@ -314,7 +314,9 @@ def _compare(kind: str, a: Evidence, b: Evidence) -> tuple[bool | None, str]:
     """(holds, text): True / False, or None where several seeds leave it open."""
     fa, fb = a.finals(), b.finals()
     text = f"{run_label(a.spec)} {format_summary(fa)} against {run_label(b.spec)} {format_summary(fb)}"
-    if fa["seeds"] >= 2 or fb["seeds"] >= 2:
+    if not scored_seeds(fa) or not scored_seeds(fb):  # a side without a finite final score decides nothing
+        return None, text
+    if scored_seeds(fa) >= 2 or scored_seeds(fb) >= 2:
         p, low, high = probability_of_improvement(fa["per_seed"], fb["per_seed"])
         text += f"; P(improvement) {p:.2f} [{low:.2f}, {high:.2f}]"
         if kind == "above":

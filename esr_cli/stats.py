@@ -72,12 +72,22 @@ def _improvement(x, y, axis=-1):
     return ((diff > 0) + 0.5 * (diff == 0)).mean(axis=(-2, -1))
 
 
+def finite(values: Sequence[float]) -> np.ndarray:
+    """The values that are numbers: a seed whose final score is NaN (no epoch in its final window
+    logged the metric) has no score to rank, and counting it as a loss or a win would invent one."""
+    values = np.asarray(values, dtype=float).ravel()
+    return values[np.isfinite(values)]
+
+
 def probability_of_improvement(x: Sequence[float], y: Sequence[float], confidence: float = CONFIDENCE,
                                resamples: int = RESAMPLES, seed: int = 0) -> tuple[float, float | None, float | None]:
     """(P(X > Y), low, high): the probability that a run of X scores above a run of Y (ties
     count half), with a bootstrap interval that resamples each method's seeds separately
-    (None, None when both have a single seed; a method with one seed is held fixed)."""
-    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    (None, None when both have a single seed; a method with one seed is held fixed). Seeds
+    without a finite score are left out; (nan, None, None) when a side has none."""
+    x, y = finite(x), finite(y)
+    if not len(x) or not len(y):
+        return float("nan"), None, None
     point = float(_improvement(x, y))
     if max(len(x), len(y)) < 2:
         return point, None, None
@@ -86,25 +96,42 @@ def probability_of_improvement(x: Sequence[float], y: Sequence[float], confidenc
 
 def describe(per_seed: Sequence[float]) -> dict:
     """Everything a table prints about one run's per-seed final scores: mean, standard error,
-    IQM with its bootstrap interval (from two seeds), and the per-seed values themselves so that
-    any other statistic can be computed later without retraining."""
-    values = np.asarray(per_seed, dtype=float)
-    n = len(values)
-    out = {"seeds": n, "per_seed": [round(float(v), 6) for v in values],
-           "mean": round(float(values.mean()), 6) if n else float("nan"),
-           "se": round(float(values.std(ddof=1) / np.sqrt(n)), 6) if n > 1 else 0.0}
-    ci = iqm_ci([values])
+    IQM with its bootstrap interval (from two seeds), and the per-seed values themselves (as
+    computed, NaN included) so that any other statistic can be computed later without
+    retraining. The statistics are over the seeds with a finite score; `missing` counts the
+    others (absent when there are none), so that a seed without a score is shown, not hidden."""
+    values = np.asarray(per_seed, dtype=float).ravel()
+    scored = finite(values)
+    n = len(scored)
+    out = {"seeds": len(values), "per_seed": [float(v) for v in values],
+           "mean": round(float(scored.mean()), 6) if n else float("nan"),
+           "se": round(float(scored.std(ddof=1) / np.sqrt(n)), 6) if n > 1 else 0.0}
+    if n < len(values):
+        out["missing"] = len(values) - n
+    ci = iqm_ci([scored])
     if ci is not None:
         out["iqm"], out["iqm_low"], out["iqm_high"] = (round(v, 6) for v in ci)
     return out
 
 
+def scored_seeds(d: dict) -> int:
+    """How many seeds of a `describe` summary have a finite score."""
+    return d.get("seeds", 0) - d.get("missing", 0)
+
+
 def format_summary(d: dict, digits: int = 2) -> str:
     """"m ± se; IQM i [lo, hi]" for several seeds, "m (1 seed)" for one: a single seed has no
-    spread to show, and an SE of 0 would claim one."""
-    if d.get("seeds", 0) <= 1:
-        return f"{d['mean']:.{digits}f} (1 seed)"
-    text = f"{d['mean']:.{digits}f} ± {d['se']:.{digits}f}"
-    if "iqm" in d:
-        text += f"; IQM {d['iqm']:.{digits}f} [{d['iqm_low']:.{digits}f}, {d['iqm_high']:.{digits}f}]"
+    spread to show, and an SE of 0 would claim one. Seeds without a score are counted after
+    the figures; a run with none says "no value"."""
+    total, n = d.get("seeds", 0), scored_seeds(d)
+    if n == 0:
+        return "no value" + (f" ({total} seed{'s' if total > 1 else ''} without a final score)" if total else "")
+    if n == 1:
+        text = f"{d['mean']:.{digits}f} (1 seed)"
+    else:
+        text = f"{d['mean']:.{digits}f} ± {d['se']:.{digits}f}"
+        if "iqm" in d:
+            text += f"; IQM {d['iqm']:.{digits}f} [{d['iqm_low']:.{digits}f}, {d['iqm_high']:.{digits}f}]"
+    if n < total:
+        text += f" ({total - n} of {total} seeds without a final score)"
     return text

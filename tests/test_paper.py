@@ -25,6 +25,21 @@ def test_final_return_is_the_last_tenth_per_seed_then_mean_and_se():
     assert d["mean"] == 9.0 and d["se"] == pytest.approx(np.std([15.0, 3.0], ddof=1) / np.sqrt(2))
 
 
+def test_an_epoch_without_the_metric_counts_as_undefined_not_as_damage():
+    """A metric some epochs do not log (success before the first episode ends, a metric added
+    on resume) is NaN there; a seed with no value in its final tenth has no final score."""
+    rows = rows_of([[1.0, 2.0]] * 20)
+    for r in rows[:19]:
+        r["success"] = [0.0, 1.0]
+    rows[19]["success"] = [None, 1.0]
+    epochs, vals = figs.series(rows, "success")
+    assert vals.shape == (20, 2) and epochs.tolist() == list(range(1, 21))
+    rows[18].pop("success")  # epochs 19 and 20 are the final tenth: seed 0 never logged there
+    per_seed = figs.final_per_seed(rows, "success")
+    assert np.isnan(per_seed[0]) and per_seed[1] == 1.0
+    assert figs.final_per_seed(rows_of([[1.0]] * 5), "success").shape == (1,)
+
+
 def test_panels_figure_tables_every_line(tmp_path):
     a = rows_of([[1.0, 3.0]] * 10)
     b = rows_of([[5.0, 5.0]] * 10)

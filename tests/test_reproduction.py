@@ -5,6 +5,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from conftest import esr
 from esr_cli import reproduction as rep
@@ -191,7 +192,7 @@ def test_finished_runs_that_differ_only_in_their_seeds_are_pooled():
         ev.commit = "2b82b53"
     finding = rep.judge(above, _index(seed1, seed0, random))
     assert finding.a.seeds == 2 and [p.key for p in finding.a.parts] == [seed0.key, seed1.key]
-    assert finding.a.finals()["per_seed"] == [0.06, 19.5] and finding.others == []
+    assert finding.a.finals()["per_seed"] == pytest.approx([0.06, 19.5]) and finding.others == []
     assert finding.verdict == "inconclusive (2 seeds against 1 seed)"  # P(improvement) 0.5 [0, 1] against one Random seed
     assert rep._run_cell(finding.a).startswith("seeds pooled from `aaaaaaaa` (paper; 10,000 epochs, 1 seed")
     seed1.commit = "af75888"
@@ -226,3 +227,13 @@ def test_a_run_resumed_elsewhere_names_where_it_started_and_every_device(tmp_pat
     (run / "manifest.json").write_text(json.dumps(manifest))
     [ev] = [e for evs in rep.index_store(Store(tmp_path)).values() for e in evs]
     assert (ev.commit, ev.device, ev.commit_label) == ("b" * 40, "gpu:NVIDIA H200", "bbbbbbb")
+
+
+def test_a_side_without_a_final_score_gives_no_verdict():
+    above = _claim("N = 5: ESR ends above Random")
+    index = _index(_evidence("grid_5", finals=(float("nan"),)), _evidence("grid_5_random", finals=(9.0,)))
+    finding = rep.judge(above, index)
+    assert finding.verdict.startswith(rep.INCONCLUSIVE) and finding.measured.startswith("ESR no value")
+    several = _index(_evidence("grid_5", finals=(20.0, 21.0, float("nan"))), _evidence("grid_5_random", finals=(9.0,)))
+    finding = rep.judge(above, several)
+    assert finding.verdict.startswith(rep.REPRODUCED) and "(1 of 3 seeds without a final score)" in finding.measured

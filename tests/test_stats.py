@@ -77,3 +77,31 @@ def test_a_one_seed_method_is_held_fixed_against_several_seeds():
     # (0,0,.5) -> mean 1/6, (0,1,.5) -> 0.5, (1,1,.5) -> 5/6 with probabilities 1/4, 1/2, 1/4
     point, low, high = stats.iqm_ci([[0.0, 1.0], [0.5]])
     assert point == 0.5 and low == pytest.approx(1 / 6) and high == pytest.approx(5 / 6)
+
+
+def test_a_seed_without_a_final_score_is_left_out_and_counted():
+    """NaN (a seed whose final epochs never logged the metric) is not a score: compared as a
+    number it would lose every pair. Here x beats every scored y, so P = 1 by hand."""
+    assert stats.probability_of_improvement([1.0, 1.0], [0.0, np.nan]) == (1.0, 1.0, 1.0)
+    assert stats.probability_of_improvement([1.0], [0.0, np.nan]) == (1.0, None, None)
+    point, low, high = stats.probability_of_improvement([10, 11, 12, 13, 14], [1, 2, 3, 4, np.nan])
+    assert (point, low, high) == (1.0, 1.0, 1.0)
+    assert np.isnan(stats.probability_of_improvement([10.0, 11.0], [np.nan, np.nan])[0])
+    d = stats.describe([1.0, 2.0, 3.0, np.nan])
+    assert d["seeds"] == 4 and d["missing"] == 1 and d["mean"] == 2.0 and d["iqm"] == 2.0
+    assert np.isnan(d["per_seed"][3])  # stored as computed
+    text = stats.format_summary(d)
+    assert text.startswith("2.00 ± 0.58; IQM 2.00 [") and text.endswith("(1 of 4 seeds without a final score)")
+    assert stats.format_summary(stats.describe([5.0, np.nan])) == "5.00 (1 seed) (1 of 2 seeds without a final score)"
+
+
+def test_a_run_without_scores_says_so_rather_than_one_seed():
+    assert stats.format_summary(stats.describe([])) == "no value"
+    assert stats.format_summary(stats.describe([np.nan] * 3)) == "no value (3 seeds without a final score)"
+
+
+def test_per_seed_values_are_kept_unrounded_for_later_statistics():
+    """Rounding to 6 decimals would tie 1.0000001 with 1.0000004: by hand, x = (1.0000001, 2)
+    against y = (1.0000004, 0) wins 3 of 4 pairs; with the tie it would be 3.5 of 4."""
+    x, y = stats.describe([1.0000001, 2.0]), stats.describe([1.0000004, 0.0])
+    assert stats.probability_of_improvement(x["per_seed"], y["per_seed"])[0] == 0.75
