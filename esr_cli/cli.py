@@ -238,7 +238,8 @@ def eval_(
     most = specs.MAX_EVAL_EPISODES
     if episodes is not None and not 1 <= episodes <= most:
         raise Exit(2, f"--episodes: between 1 and {most:,} (got {episodes:,})")
-    if targets.is_spec_file(target):  # options that cannot fit the spec are named before "not trained yet"
+    spec_file = targets.is_spec_file(target)
+    if spec_file:  # options that cannot fit the spec are named before "not trained yet"
         spec = _load_spec(Path(target), budget, set_)
     else:
         # A trained run's spec and budget are fixed: these would silently change nothing.
@@ -246,12 +247,14 @@ def eval_(
             if given:
                 raise Exit(2, f"{option} applies to a spec file target only; {target} names a trained run, "
                               "whose spec and budget are fixed (name the spec file instead)")
-        spec = targets.run_spec(targets.stored_run(STATE.store, target))
+        run_path = targets.stored_run(STATE.store, target)
+        spec = targets.run_spec(run_path)
     targets.partner_spec(targets.seat_spec(spec, seat)[0], human)
     from esr_cli import runs  # JAX and the training code: after the options are checked
     from esr_cli.stats import format_summary  # scipy: +0.9 s, only where a table needs it
 
-    run_path = runs.find_run(target, budget, set_, STATE.store)
+    if spec_file:
+        run_path = runs.committed_run(spec, runs.train_command(target, budget, set_), STATE.store)
     built = ensure(runs.eval_recipe(run_path, STATE.store, episodes, err, human, seat), STATE.store)
     path, summary, cached = built.path, built.summary(), built.cached
     partner = "" if human == "training" else f", with the {human.split(':')[0]} human {summary['human_key'][:8]}"

@@ -173,18 +173,25 @@ def run_recipe(spec, console: Console, stop_at: float | None = None) -> Recipe:
                   record={"method": spec.method.kind, "env": spec.env.kind}, summary_file=False, on_wait=waiting)
 
 
+def committed_run(spec, command: str, store: Store) -> Path:
+    """The committed training run of a loaded spec; StoreError naming `command` (the
+    `esr train ...` that makes it) where there is none."""
+    hit = store.lookup(RUN_KIND, run_key(spec)[0])
+    if not hit:
+        raise StoreError(f"{spec.name} ({spec.budget}) is not trained in {store.root}: run `{command}` first")
+    return hit
+
+
 def find_run(target: str, budget: str, sets, store: Store) -> Path:
     """A committed run from a spec file (at budget/sets) or an artifact key/path."""
-    p = Path(target)
     if is_spec_file(target):
-        spec = specs.load(p, budget, list(sets or []))
-        key, _ = run_key(spec)
-        hit = store.lookup(RUN_KIND, key)
-        if not hit:
-            cmd = f"esr train {target} --budget {budget}" + "".join(f" --set {s}" for s in (sets or []))
-            raise StoreError(f"{spec.name} ({budget}) is not trained in {store.root}: run `{cmd}` first")
-        return hit
+        spec = specs.load(Path(target), budget, list(sets or []))
+        return committed_run(spec, train_command(target, budget, sets), store)
     return stored_run(store, target)
+
+
+def train_command(spec_file: str, budget: str, sets) -> str:
+    return f"esr train {spec_file} --budget {budget}" + "".join(f" --set {s}" for s in (sets or []))
 
 
 def eval_key(run_manifest: dict, episodes: int, partner_key: str | None = None, seat: int | None = None) -> tuple[str, dict]:
