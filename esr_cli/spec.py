@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import difflib
+import re
 from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union, get_args
 
@@ -398,7 +399,9 @@ class TrainSpec(_Model):
             if v > MAX_SEEDS:  # checked before the range is built: a huge count must not hang
                 raise ValueError(f"{v:,} seeds: at most {MAX_SEEDS:,} in one run (split them over runs)")
             return tuple(range(v))
-        if isinstance(v, (list, tuple)) and len(v) > MAX_SEEDS:
+        if not isinstance(v, (list, tuple)):
+            raise ValueError(f"expected a list of seeds or a count (an integer), got {v!r:.40}")
+        if len(v) > MAX_SEEDS:
             raise ValueError(f"{len(v):,} seeds: at most {MAX_SEEDS:,} in one run (split them over runs)")
         return v
 
@@ -547,6 +550,9 @@ def parse_override(text: str) -> tuple[str, Any]:
     if "=" not in text:
         raise SpecError("--set", text, "expected key.path=value")
     path, raw = text.split("=", 1)
+    if "[" in path:
+        name = path.split("[")[0].strip()
+        raise SpecError("--set", path.strip(), f"a list is set whole, not item by item: --set {name}=[...]")
     if len(raw) > MAX_OVERRIDE_CHARS:
         raise SpecError("--set", path, f"value is {len(raw):,} characters long; at most {MAX_OVERRIDE_CHARS:,}")
     try:
@@ -599,10 +605,12 @@ def first_problem(e: ValidationError) -> tuple[dict, str]:
         msg = "unknown key"
     elif msg.startswith("Value error, "):
         msg = msg[len("Value error, ") :]
-    elif err["type"] in ("model_attributes_type", "dict_type"):
+    elif err["type"] in ("model_attributes_type", "dict_type", "model_type"):
         msg = f"expected a section (a mapping of keys), got {type(err['input']).__name__} {str(err['input'])[:40]!r}"
     elif err["type"] == "bool_type":
         msg = "expected true or false"
+    elif err["type"] == "string_type" and isinstance(err["input"], (int, float)) and not isinstance(err["input"], bool):
+        msg = f"expected text, got the number {err['input']!r:.40}: write it in quotes to mean the text"
     return err, msg
 
 
@@ -625,6 +633,10 @@ def validate(raw: dict, source: str = "") -> Spec:
         section = KIND_MODELS.get(str(loc[0]) if loc else "", {})
         if err["type"] == "union_tag_not_found":
             msg = f"needs a `kind`: one of {', '.join(section)}"
+            given = err.get("input") if isinstance(err.get("input"), dict) else {}
+            typo = difflib.get_close_matches("kind", [str(k) for k in given], n=1, cutoff=0.6)
+            if typo:
+                loc, msg = loc + (typo[0],), f"unknown key; did you mean `kind`? (the section {msg})"
         elif err["type"] == "union_tag_invalid":
             msg = f"kind {err.get('ctx', {}).get('tag')!r} is not one of {', '.join(section)}"
         raise SpecError(source, _format_loc(loc), msg + other_problems(e)) from None
@@ -647,9 +659,9 @@ def load_raw(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict:
     """The YAML tree of a spec file. `extends: other.yaml` (relative to this file) starts from
     that spec and applies this file's keys over it (see `_merge`)."""
     raw = _read_yaml(path)
-    parent = raw.pop("extends", None)
-    if parent is None:
+    if "extends" not in raw:
         return raw
+    parent = raw.pop("extends")
     if not isinstance(parent, str) or not parent:
         raise SpecError(str(path), "extends", "must be the path of another spec file")
     base_path = (Path(path).parent / parent).resolve()
@@ -657,6 +669,8 @@ def load_raw(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict:
         raise SpecError(str(path), "extends", f"circular: {parent} extends this file again")
     if not base_path.exists():
         raise SpecError(str(path), "extends", f"file not found: {parent}")
+    if not base_path.is_file():
+        raise SpecError(str(path), "extends", f"{parent} is not a file")
     return _merge(load_raw(base_path, _seen + (Path(path).resolve(),)), raw)
 
 
@@ -672,7 +686,8 @@ def _read_yaml(path: str | Path) -> dict:
 
 
 def resolve(raw: dict, budget: str = "paper", overrides: list[str] | tuple[str, ...] = (), source: str = "") -> Spec:
-    """Apply budget then overrides to a raw spec tree and validate it."""
+    """Apply budget then overrides to a raw spec tree and validate it. A value that fails names
+    where it came from: the `--set` that gave it, or the budget that set it."""
     if budget not in BUDGETS:
         raise SpecError(source, "--budget", f"unknown budget {budget!r}; known: {', '.join(BUDGETS)}")
     if "budget" in raw:
@@ -688,18 +703,67 @@ def resolve(raw: dict, budget: str = "paper", overrides: list[str] | tuple[str, 
     chosen = budgets[budget] if own else DEFAULT_BUDGETS[budget]
     if not isinstance(chosen, dict):
         raise SpecError(source, f"budgets.{budget}", "must be a mapping of key.path to value")
-    for dotted, value in chosen.items():
-        # The default budgets name fields of every kind (e.g. ESR's update count); they apply
-        # only where the spec's kind has that field. A spec's own budgets apply as written.
-        if own or _kind_has_field(tree, str(dotted)):
-            _set_path(tree, str(dotted), value, source)
-    for text in overrides:
-        dotted, value = parse_override(text)
+    parsed = [(text, *parse_override(text)) for text in overrides]
+    switched = set()
+    for text, dotted, value in parsed:
         if dotted.split(".")[0] in ("budget", "budgets"):
             raise SpecError("--set", dotted, "choose a budget with --budget")
+        if _switch_kind(tree, dotted, value):  # before the budget, whose fields depend on the kind
+            switched.add(dotted.split(".")[0])
+    given: dict[str, str] = {}  # key path -> what set it, to name in an error
+    for dotted, value in chosen.items():
+        # The default budgets name fields of every kind (e.g. ESR's update count); they apply
+        # only where the spec's kind has that field. A spec's own budgets apply as written,
+        # except to a section whose kind --set changed (they were written for the file's kind).
+        as_written = own and str(dotted).split(".")[0] not in switched
+        if as_written or _kind_has_field(tree, str(dotted)):
+            _set_path(tree, str(dotted), value, source)
+            given[str(dotted)] = f"budgets.{budget}" if own else f"the {budget} budget"
+    for text, dotted, value in parsed:
         _set_path(tree, dotted, value, "--set")
+        given.pop(dotted, None)
+        given[dotted] = f"--set {text}"
     tree["budget"] = budget
-    return validate(tree, source)
+    try:
+        return validate(tree, source)
+    except SpecError as e:
+        raise _blame(e, given) from None
+
+
+def _switch_kind(tree: dict, dotted: str, value: Any) -> bool:
+    """`--set method.kind=random` (or `method={kind: random, ...}`) on an ESR spec: the section
+    starts again from the new kind, as a child file's section naming another kind replaces its
+    parent's (`_merge`); ESR's fields would be unknown keys of the new model."""
+    section, _, field = dotted.partition(".")
+    if section not in KIND_MODELS or not isinstance(tree.get(section), dict):
+        return False
+    kind = value if field == "kind" else value.get("kind") if not field and isinstance(value, dict) else None
+    if kind is None or kind == tree[section].get("kind"):
+        return False
+    tree[section] = {"kind": kind}
+    return True
+
+
+def _within(path: str, section: str) -> bool:
+    """`path` is `section` or a key or item inside it."""
+    return path == section or path.startswith((section + ".", section + "["))
+
+
+def _blame(e: SpecError, given: dict[str, str]) -> SpecError:
+    """The error with the value's origin named: a field set by `--set` or by the budget is the
+    user's mistake there, not in the file that the other fields come from; a cross-field problem
+    that quotes such a field says where its value came from."""
+    for dotted, origin in reversed(given.items()):  # the last --set of a path is the one that holds
+        if e.path and (_within(e.path, dotted) or _within(dotted, e.path)):
+            if origin.startswith("--set"):
+                return SpecError(origin, e.path, e.problem)
+            return SpecError(f"{e.source}, {origin}" if origin.startswith("budgets.") else e.source, e.path,
+                             e.problem + ("" if origin.startswith("budgets.") else f" (set by {origin})"))
+    notes = [f"{dotted} from {origin}" for dotted, origin in given.items()
+             if re.search(rf"(?<![\w.]){re.escape(dotted)}(?![\w])", e.problem)]
+    if notes:
+        return SpecError(e.source, e.path, f"{e.problem} ({'; '.join(notes)})")
+    return e
 
 
 def _chain(path: str | Path) -> list[tuple[Path, dict]]:

@@ -1,6 +1,7 @@
 """Spec loading and validation: every bad spec names file, key path and problem, exits 2,
 and leaves the store as it was."""
 
+import re
 from pathlib import Path
 
 import pytest
@@ -179,3 +180,57 @@ def test_a_human_preset_is_refused_where_it_has_no_settings():
         specs.load(Path("experiments/forced_coord_random.yaml"), "quick", ["human.preset=paper_random"])
     with pytest.raises(specs.SpecError, match=r"human.preset: Input should be 'paper_random'"):
         specs.load(Path("experiments/cramped_room.yaml"), "quick", ["human.preset=closest"])
+
+
+def test_a_bad_value_names_the_set_or_budget_that_gave_it(tmp_path):
+    """The user's mistake is where the value came from: a --set, not the spec file (nor the
+    file it extends); a spec's own budgets entry; a budget's value quoted by a cross-field rule."""
+    with pytest.raises(specs.SpecError) as e:
+        specs.load("experiments/grid_5_ave.yaml", "smoke", ["env.size=3", "env.size=0"])
+    assert str(e.value) == "--set env.size=0: env.size: Input should be greater than or equal to 3"
+    own = tmp_path / "own.yaml"
+    own.write_text(f"extends: {Path('experiments/grid_2.yaml').resolve()}\nname: x\n"
+                   "budgets: {smoke: {train.epochs: 0}}\n")
+    with pytest.raises(specs.SpecError) as e:
+        specs.load(own, "smoke")
+    assert e.value.source == f"{own}, budgets.smoke" and e.value.path == "train.epochs"
+    group = tmp_path / "group.yaml"
+    group.write_text(f"extends: {Path('experiments/grid_2.yaml').resolve()}\nname: x\nmethod: {{episode_group: 32}}\n")
+    assert specs.load(group, "paper").method.episode_group == 32
+    with pytest.raises(specs.SpecError, match=r"batch_size=16: .*\(learner.batch_size from the smoke budget\)"):
+        specs.load(group, "smoke")
+    with pytest.raises(specs.SpecError, match="a list is set whole"):
+        specs.load("experiments/grid_2.yaml", "paper", ["network.conv_channels[0]=8"])
+
+
+def test_setting_a_kind_starts_that_section_again_as_extends_does():
+    """--set method.kind=random on an ESR spec is the Random spec (ESR's fields would be unknown
+    keys of the new kind), at every budget; a kind --set leaves unchanged keeps the section."""
+    for budget in specs.BUDGETS:
+        switched = specs.load("experiments/grid_2.yaml", budget, ["method.kind=random"])
+        assert switched.training_part() == specs.load("experiments/grid_2_random.yaml", budget).training_part()
+    # a spec's own budget entries written for ESR do not apply to the new kind
+    assert specs.load("experiments/cramped_room.yaml", "smoke", ["method={kind: random}"]).method.kind == "random"
+    ave = specs.load("experiments/grid_2.yaml", "paper", ["method.kind=ave", "method.rollout_length=3"])
+    assert (ave.method.kind, ave.method.rollout_length) == ("ave", 3)
+    same = specs.load("experiments/grid_2.yaml", "paper", ["method.kind=esr", "method.repr_dim=8"])
+    assert same.method.repr_dim == 8 and same.method.repr_lr == specs.load("experiments/grid_2.yaml").method.repr_lr
+
+
+def test_a_misspelt_kind_and_wrong_types_are_named_in_plain_words(tmp_path):
+    f = tmp_path / "k.yaml"
+    f.write_text("name: y\nenv: {knd: gridworld}\nhuman: {kind: noisy_greedy}\nmethod: {kind: random}\n")
+    with pytest.raises(specs.SpecError) as e:
+        specs.load(f)
+    assert e.value.path == "env.knd" and "did you mean `kind`?" in e.value.problem
+    for sets, problem in ((["train.seeds=3.0"], "expected a list of seeds or a count (an integer), got 3.0"),
+                          (["name=2024"], "expected text, got the number 2024"),
+                          (["train=null"], "expected a section (a mapping of keys)")):
+        with pytest.raises(specs.SpecError, match=re.escape(problem)):
+            specs.load("experiments/grid_2.yaml", "paper", sets)
+    f.write_text("extends: null\n" + GOOD)
+    with pytest.raises(specs.SpecError, match="extends: must be the path of another spec file"):
+        specs.load(f)
+    f.write_text(f"extends: {tmp_path}\n" + GOOD)
+    with pytest.raises(specs.SpecError, match="is not a file"):
+        specs.load(f)
