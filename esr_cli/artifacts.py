@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Callable, NamedTuple
 
 from esr_cli import provenance
+from esr_cli.core.stops import Interrupted, TimeLimitReached
 from esr_cli.store import KINDS, RUN_KIND, Store, atomic_write_text, content_key, read_pending
 
 SUMMARY_FILE = "summary.json"
@@ -81,10 +82,18 @@ def ensure(recipe: Recipe, store: Store) -> Built:
         first = {k: sessions[0][k] for k in ("commit", "device") if k in sessions[0]}
         # The key components are in pending.json from the start: an unfinished run can then be
         # found by a longer run of the same lineage (runs.adopt_shorter_run).
-        out = store.begin(recipe.kind, key, {**pending, "key_components": recipe.components, **first,
-                                             "sessions": sessions})
+        record = {**pending, "key_components": recipe.components, **first, "sessions": sessions}
+        out = store.begin(recipe.kind, key, record)
         started = time.time()
-        summary = recipe.build(out, store)
+        try:
+            summary = recipe.build(out, store)
+        except (Interrupted, TimeLimitReached) as e:
+            # Saved at a chunk boundary on purpose: a listing says "stopped", not "failed" (a
+            # partial run that nobody holds and that says nothing was killed). The next start
+            # writes pending.json afresh, without this mark.
+            why = "interrupted" if isinstance(e, Interrupted) else "its time limit"
+            store.begin(recipe.kind, key, {**record, "stopped": {"epoch": e.epoch, "why": why, "at": provenance.now_iso()}})
+            raise
         if recipe.summary_file:
             atomic_write_text(out / SUMMARY_FILE, json.dumps(summary, indent=2, default=float))
         manifest = provenance.complete_manifest(pending, recipe.components, summary, started, **first,

@@ -160,8 +160,7 @@ def sweep(
     """Train every run of a suite that the store lacks: here, or as SLURM jobs (docs/cluster.md)."""
     from esr_cli import sweep as sw
 
-    if executor not in sw.EXECUTORS:
-        raise Exit(2, f"--executor: unknown executor {executor!r}; known: {', '.join(sw.EXECUTORS)}")
+    _check_executor(executor, sw.EXECUTORS)
     _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait,
                                   {"--partition": partition, "--time-min": time_min, "--gpus": gpus,
                                    "--cpus": cpus, "--mem-gb": mem_gb})
@@ -219,6 +218,16 @@ def sweep(
                        f"run the same sweep again to continue them")
 
 
+def _check_budget(budget: str) -> None:
+    if budget not in specs.BUDGETS:
+        raise Exit(2, f"--budget: unknown budget {budget!r}; known: {', '.join(specs.BUDGETS)}")
+
+
+def _check_executor(executor: str, known: tuple[str, ...]) -> None:
+    if executor not in known:
+        raise Exit(2, f"--executor: unknown executor {executor!r}; known: {', '.join(known)}")
+
+
 # ---------------------------------------------------------------- eval
 @app.command("eval")
 def eval_(
@@ -245,8 +254,8 @@ def eval_(
         # A trained run's spec and budget are fixed: these would silently change nothing.
         for given, option in ((set_, "--set"), (budget != "paper", "--budget")):
             if given:
-                raise Exit(2, f"{option} applies to a spec file target only; {target} names a trained run, "
-                              "whose spec and budget are fixed (name the spec file instead)")
+                raise Exit(2, f"{option} applies to a spec file target only; {target} is not a spec file but a "
+                              "run's key or path, whose spec and budget are fixed (name the spec file instead)")
         run_path = targets.stored_run(STATE.store, target)
         spec = targets.run_spec(run_path)
     targets.partner_spec(targets.seat_spec(spec, seat)[0], human)
@@ -295,6 +304,7 @@ def exact(
             assert len(cell) == 2
         except (ValueError, AssertionError):
             raise Exit(2, f"--goal: expected 'row,col', got {goal!r}") from None
+    targets.exact_target(spec, STATE.store, cell, gamma, robot, seed_index or 0)
     from esr_cli import exact_runs  # JAX and the analysis: after the options are checked
 
     built = ensure(exact_runs.exact_recipe(spec, STATE.store, cell, gamma, robot, seed_index or 0, err), STATE.store)
@@ -443,8 +453,11 @@ def plot(
             raise Exit(2, "esr plot estimator needs an exact artifact: make one with `esr exact SPEC --robot RUN`")
         targets.exact_artifact(STATE.store, ref)
     budget = budget or "paper"
+    _check_budget(budget)
     gamma = 0.2 if gamma is None else gamma
     state = 0 if state is None else state
+    if figure == "geometry":
+        targets.geometry_options(gamma, state)
     from esr_cli import exact_runs  # JAX, scipy, matplotlib: after the options are checked
 
     if figure == "estimator":
@@ -482,6 +495,7 @@ def ablate(
     names = [n for n, on in (("no_robot_action", no_robot_action), ("greedy", greedy)) if on]
     if not names and not set_:
         raise Exit(2, "name an ablation: --no-robot-action, --greedy and/or --set key.path=value")
+    _check_budget(budget)
     from esr_cli import paper  # validates every spec before it imports the training code
     from esr_cli.stats import format_summary
 
@@ -515,6 +529,7 @@ def _check_output_file(path: Path, option: str) -> None:
 
 @app.command("paper")
 def paper_(
+    ctx: typer.Context,
     budget: str = BudgetOpt,
     executor: str = typer.Option("local", "--executor", "-e", help="local | slurm | submitit-local (see esr sweep)"),
     report: bool = typer.Option(False, "--report", help="train nothing: write the reproduction report (every claim of "
@@ -527,7 +542,26 @@ def paper_(
 ):
     """Train what the paper suite lacks, draw every figure and write the report (make paper-figures);
     with --report, the reproduction report instead (docs/reproduction.md)."""
+    # The two modes take different options; one the chosen mode would ignore is a mistake to
+    # name (a forgotten --report must not start hours of training).
+    given = {name for name in ("budget", "executor", "report_out", "exact", "as_json")
+             if getattr(ctx.get_parameter_source(name), "name", "DEFAULT") not in ("DEFAULT", "DEFAULT_MAP")}
+    options = {"budget": "--budget", "executor": "--executor", "report_out": "--out", "exact": "--exact/--no-exact",
+               "as_json": "--json"}
+    wrong = given & ({"budget", "executor"} if report else {"report_out", "exact", "as_json"})
+    if wrong:
+        names = ", ".join(options[n] for n in sorted(wrong))
+        verb = "applies" if len(wrong) == 1 else "apply"
+        raise Exit(2, f"{names}: {verb} to `esr paper --report` only; add --report to write the report (without "
+                      "it, `esr paper` trains the paper suite)" if not report else
+                      f"{names}: {verb} to training the paper suite; `esr paper --report` trains nothing and "
+                      "reads every budget's runs")
+    if not report:
+        _check_budget(budget)
     from esr_cli import figures as figs, paper, sweep as sw
+
+    if not report:
+        _check_executor(executor, sw.EXECUTORS)
 
     if report:
         from esr_cli import reproduction

@@ -23,8 +23,9 @@ from esr_cli.artifacts import Recipe
 from esr_cli.envs import make_env
 from esr_cli.envs.gridworld import GridState
 from esr_cli.humans import make_human
-from esr_cli.runs import load_run, run_spec, seed_slice
-from esr_cli.store import EXACT_KIND, FIGURE_KIND, RUN_KIND, Store, StoreError
+from esr_cli.runs import load_run, seed_slice
+from esr_cli.store import EXACT_KIND, FIGURE_KIND, Store, StoreError
+from esr_cli.targets import exact_artifact, exact_target, geometry_options
 
 
 # The code behind an exact analysis: the environment, human and evaluation path with the
@@ -39,30 +40,7 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
                  console: Console) -> Recipe:
     """Exact empowerment of `spec`'s gridworld at `goal` and discount `gamma`, for a uniform
     robot or the Boltzmann policy of seed `seed_index` of the trained run `robot`."""
-    if spec.env.kind != "gridworld":
-        raise StoreError("exact empowerment is defined for gridworld specs only")
-    try:  # from the spec alone: enumerating a large space exhausts memory before it can count
-        exact.check_size(spec.env.size, spec.env.blocks)
-    except exact.TooManyStates as e:
-        raise StoreError(f"{spec.name}: {e}") from None
-    size = spec.env.size
-    goal = tuple(goal) if goal else (size // 2, size // 2)
-    if not all(0 <= g < size for g in goal):
-        raise StoreError(f"--goal {goal} is outside the {size}x{size} grid")
-    gamma = float(gamma if gamma is not None else getattr(spec.method, "future_gamma", spec.learner.gamma))
-    if not 0.0 <= gamma < 1.0:
-        raise StoreError(f"--gamma must be in [0, 1), got {gamma}")
-    robot_manifest = None
-    if robot:
-        run_path = store.resolve(robot)
-        robot_manifest = store.read_manifest(run_path)
-        if robot_manifest.get("kind") != RUN_KIND:
-            raise StoreError(f"{robot} is not a training run")
-        robot_spec = run_spec(run_path)
-        if robot_spec.env != spec.env:
-            raise StoreError(f"robot {robot} was trained on another environment than {spec.name}")
-        if not 0 <= seed_index < len(robot_spec.train.seeds):
-            raise StoreError(f"--seed-index {seed_index} out of range for a run with {len(robot_spec.train.seeds)} seeds")
+    goal, gamma, robot_manifest = exact_target(spec, store, goal, gamma, robot, seed_index)
     components = {
         "kind": "exact",
         "env": spec.training_part()["env"],
@@ -135,10 +113,8 @@ def _solve(space, pi_r: np.ndarray, pi_h: np.ndarray, gamma: float, console: Con
 
 def estimator_recipe(exact_ref: str, store: Store, console: Console) -> Recipe:
     """`esr plot estimator`: a figure artifact (kind `figures`) from an exact artifact."""
-    exact_path = store.resolve(exact_ref)
+    exact_path = exact_artifact(store, exact_ref)
     manifest = store.read_manifest(exact_path)
-    if manifest.get("kind") != EXACT_KIND:
-        raise StoreError(f"{exact_ref} is not an exact-empowerment artifact (make one with `esr exact SPEC --robot RUN`)")
     components = {"kind": "figure", "figure": "estimator", "exact": manifest["key"],
                   "code": provenance.code_digest(EXACT_CODE[0], EXACT_CODE[1] + ("plots.py",))}
 
@@ -224,10 +200,7 @@ def _visited_mean(emp, pi_robot: np.ndarray, mi: np.ndarray | None = None) -> fl
 
 def geometry_recipe(gamma: float, state: int) -> Recipe:
     """`esr plot geometry`: the information-geometry picture of a 3-state MDP (exact)."""
-    if not 0.0 <= gamma < 1.0:
-        raise StoreError(f"--gamma must be in [0, 1), got {gamma}")
-    if state not in (0, 1, 2):
-        raise StoreError(f"--state must be 0, 1 or 2, got {state}")
+    geometry_options(gamma, state)
     components = {"kind": "figure", "figure": "geometry", "gamma": gamma, "state": state,
                   "code": provenance.code_digest(("analysis", "plots.py"))}
 

@@ -157,7 +157,13 @@ NAMED_ABLATIONS = {
     "no_robot_action": ("no robot action", ("method.condition_on_robot_action=false",)),
     "greedy": ("greedy critic", ("learner.gamma=0.0",)),
 }
-DEFAULT_ABLATION_SPECS = tuple(f"experiments/grid_{n}.yaml" for n in figs.GRID_NS)
+# (the methods a named ablation changes, in words for the refusal)
+ABLATION_APPLIES = {
+    "no_robot_action": (lambda spec: spec.method.kind == "esr", "ESR's representations (method.kind: esr)"),
+    "greedy": (lambda spec: spec.method.kind != "random", "a method that learns a critic (the Random robot learns nothing)"),
+}
+# The package's own spec files, wherever esr is run from.
+DEFAULT_ABLATION_SPECS = tuple(str(figs.PAPER_SUITE.parents[1] / f"grid_{n}.yaml") for n in figs.GRID_NS)
 
 
 @dataclass
@@ -182,9 +188,23 @@ def ablate(spec_paths: list[str], names: list[str], custom: list[str], budget: s
     """Train (or reuse) each spec and its variants; -> (comparison artifact, final-return table)."""
     variants = ablation_variants(names, custom)
     loaded = []  # (spec path, variant, spec)
+    seen = {}
     for path in spec_paths or DEFAULT_ABLATION_SPECS:
-        for v in variants:
-            loaded.append((path, v, specs.load(path, budget, list(v.sets))))  # all validated before any work
+        base = specs.load(path, budget)
+        if base.training_part() in seen.values():
+            raise specs.SpecError(path, "", f"the same training run as {next(p for p, t in seen.items() if t == base.training_part())}: "
+                                  "name each base spec once")
+        seen[path] = base.training_part()
+        for n in names:
+            applies, what = ABLATION_APPLIES[n]
+            if not applies(base):
+                raise specs.SpecError(path, "method", f"--{n.replace('_', '-')} ablates {what}; this spec's method is {base.method.kind!r}")
+        for v in variants:  # all validated before any work
+            spec = specs.load(path, budget, list(v.sets)) if v.sets else base
+            if v.sets and spec.training_part() == base.training_part():
+                raise specs.SpecError(path, "", f"the variant {v.name!r} ({' '.join(v.sets)}) is the base spec's own "
+                                      "training run: it changes nothing to compare")
+            loaded.append((path, v, spec))
 
     from esr_cli import runs  # jax and the training core: after every spec is validated
     from esr_cli.core.train import release_compiled

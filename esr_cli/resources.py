@@ -6,8 +6,9 @@
   networks        seeds x 20 copies of the largest network's parameters (the critic, its target,
                   ESR's encoders, optimiser moments and gradients), and per seed in flight:
                   batch x 8 copies of one input's activations, ESR's batch x batch logits x 4
-                  and its representation table (buffer x 3 x repr_dim floats), AvE's
-                  batch x rollouts x (length + 1) observations x 2
+                  AvE's batch x rollouts x (length + 1) observations x 2; ESR's
+                  representation table (buffer x 3 x repr_dim floats per seed in flight)
+                  counts with the replay buffers, since learner.buffer_size sets it
   working copies  x2 on all (a chunk's input and output state, XLA's temporaries)
   runtime         1.5 GiB (JAX, compiled programs, the human model)
 
@@ -76,11 +77,19 @@ def network_bytes(spec, obs_shape: tuple, obs_bytes: int, seeds_at_once: int, nu
     batch = spec.learner.batch_size
     floats = batch * acts * ACTIVATION_COPIES
     if method.kind == "esr":
-        floats += 4 * batch * batch + 3 * spec.learner.buffer_size * repr_dim
+        floats += 4 * batch * batch
     in_flight = 4 * floats
     if method.kind == "ave":
         in_flight += 2 * batch * method.num_rollouts * (method.rollout_length + 1) * obs_bytes
     return 4 * len(spec.train.seeds) * PARAMETER_COPIES * params + seeds_at_once * in_flight
+
+
+def representation_table_bytes(spec, seeds_at_once: int) -> int:
+    """ESR's representations of the whole buffer (3 x buffer x repr_dim floats per seed in
+    flight): it grows with learner.buffer_size, so it counts with the buffers."""
+    if spec.method.kind != "esr":
+        return 0
+    return seeds_at_once * 4 * 3 * spec.learner.buffer_size * spec.method.repr_dim
 
 
 def observation(spec):
@@ -107,7 +116,10 @@ def estimate(spec, obs_bytes: int, seeds_at_once: int, obs_shape: tuple | None =
     episodes = max(1, spec.learner.buffer_size // steps)
     buffers = seeds * episodes * ((steps + 1) * obs_bytes + 12 * steps)
     rollouts = seeds_at_once * spec.train.num_envs * (steps + 1) * (5 * obs_bytes + 64)
-    networks = network_bytes(spec, obs_shape, obs_bytes, seeds_at_once, num_actions) if obs_shape else 0
+    networks = 0
+    if obs_shape:
+        networks = network_bytes(spec, obs_shape, obs_bytes, seeds_at_once, num_actions)
+        buffers += representation_table_bytes(spec, seeds_at_once)
     return Estimate(buffers, rollouts, networks)
 
 

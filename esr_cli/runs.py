@@ -176,8 +176,11 @@ def run_recipe(spec, console: Console, stop_at: float | None = None) -> Recipe:
 def committed_run(spec, command: str, store: Store) -> Path:
     """The committed training run of a loaded spec; StoreError naming `command` (the
     `esr train ...` that makes it) where there is none."""
-    hit = store.lookup(RUN_KIND, run_key(spec)[0])
+    key = run_key(spec)[0]
+    hit = store.lookup(RUN_KIND, key)
     if not hit:
+        if store.partial_path(RUN_KIND, key).is_dir():
+            raise StoreError(f"{spec.name} ({spec.budget}) is not finished in {store.root}: run `{command}` to continue it")
         raise StoreError(f"{spec.name} ({spec.budget}) is not trained in {store.root}: run `{command}` first")
     return hit
 

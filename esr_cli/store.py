@@ -121,6 +121,11 @@ class Store:
             raise StoreError(f"store {self.root} is not a directory")
         if not here.is_dir():
             raise StoreError(f"store {self.root} is not writable: {here} is not a directory")
+        # A file where a kind's folder belongs would hide that kind's artifacts and fail the first write.
+        for kind in KINDS:
+            if here == self.root.absolute() and (self.root / kind).exists() and not (self.root / kind).is_dir():
+                raise StoreError(f"store {self.root} is damaged: {self.root / kind} is a file where its {kind} "
+                                 "folder belongs (move it away)")
 
     # ---------------------------------------------------------------- paths
     def final_path(self, kind: str, key: str) -> Path:

@@ -32,7 +32,7 @@ from rich.text import Text
 from esr_cli import provenance, spec as specs
 from esr_cli.artifacts import ensure
 from esr_cli.printing import plain_console, tagged
-from esr_cli.store import RUN_KIND, Store, atomic_write_text
+from esr_cli.store import RUN_KIND, Store, atomic_write_text, read_pending
 from pydantic import ValidationError
 
 from esr_cli.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
@@ -194,6 +194,9 @@ def status(suite: Suite, store: Store) -> list[RunStatus]:
             out.append(RunStatus(run, "queued", f"{job} {job_state}: {detail}".rstrip(": ")))
         elif job_state in _ALIVE:
             out.append(RunStatus(run, "running", f"{job} started"))
+        elif partial.is_dir() and isinstance(stop := (read_pending(partial) or {}).get("stopped"), dict):
+            note = f"stopped ({stop.get('why')}) after epoch {stop.get('epoch')}; sweep again (or esr train) to continue it"
+            out.append(RunStatus(run, "stopped", f"{job}: {note}" if job else note, partial))
         elif partial.is_dir():
             note = "partial run with no live writer; sweep again (or esr train) to resume it"
             out.append(RunStatus(run, "failed", f"{job} {job_state}: {note}" if job else note, partial))

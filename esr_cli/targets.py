@@ -13,6 +13,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from esr_cli import spec as specs, yamlio
+from esr_cli.analysis.state_count import TooManyStates, check_size
 from esr_cli.store import EXACT_KIND, RUN_KIND, Store, StoreError
 
 EVAL_PARTNERS = ("training", "proxy")
@@ -67,8 +68,20 @@ def seat_spec(spec, seat: int | None):
 
 
 def stored_run(store: Store, ref: str) -> Path:
-    """A committed training run named by its key, a key prefix or its path."""
-    path = store.resolve(ref)
+    """A committed training run named by its key, a key prefix or its path (an unfinished one
+    is named as such, with how to finish it)."""
+    try:
+        path = store.resolve(ref)
+    except StoreError:
+        try:
+            entry = store.find(ref, include_partial=True)
+        except StoreError:
+            entry = None
+        if entry is not None and entry.status == "partial":
+            what = "training run" if entry.kind == RUN_KIND else f"{entry.kind} artifact"
+            raise StoreError(f"{ref} is an unfinished {what} ({entry.path}): run the command that started it "
+                             "again to finish it") from None
+        raise
     if store.read_manifest(path).get("kind") != RUN_KIND:
         raise StoreError(f"{ref} is not a training run")
     return path
@@ -99,3 +112,41 @@ def exact_artifact(store: Store, ref: str) -> Path:
     if store.read_manifest(path).get("kind") != EXACT_KIND:
         raise StoreError(f"{ref} is not an exact-empowerment artifact (make one with `esr exact SPEC --robot RUN`)")
     return path
+
+
+def exact_target(spec, store: Store, goal, gamma: float | None, robot: str | None,
+                 seed_index: int) -> tuple[tuple[int, int], float, dict | None]:
+    """(goal cell, discount, the robot run's manifest or None for a uniform robot) of an exact
+    analysis of `spec`, or StoreError naming the option that does not fit: a spec that is not a
+    small gridworld, a goal off the grid, a discount outside [0, 1), a robot that is not a run
+    on the same environment or a seed it lacks. From the spec and two small files of the run."""
+    if spec.env.kind != "gridworld":
+        raise StoreError("exact empowerment is defined for gridworld specs only")
+    try:  # from the spec alone: enumerating a large space exhausts memory before it can count
+        check_size(spec.env.size, spec.env.blocks)
+    except TooManyStates as e:
+        raise StoreError(f"{spec.name}: {e}") from None
+    size = spec.env.size
+    goal = tuple(goal) if goal else (size // 2, size // 2)
+    if not all(0 <= g < size for g in goal):
+        raise StoreError(f"--goal {goal} is outside the {size}x{size} grid")
+    gamma = float(gamma if gamma is not None else getattr(spec.method, "future_gamma", spec.learner.gamma))
+    if not 0.0 <= gamma < 1.0:
+        raise StoreError(f"--gamma must be in [0, 1), got {gamma}")
+    if not robot:
+        return goal, gamma, None
+    run_path = stored_run(store, robot)
+    robot_spec = run_spec(run_path)
+    if robot_spec.env != spec.env:
+        raise StoreError(f"robot {robot} was trained on another environment than {spec.name}")
+    if not 0 <= seed_index < len(robot_spec.train.seeds):
+        raise StoreError(f"--seed-index {seed_index} out of range for a run with {len(robot_spec.train.seeds)} seeds")
+    return goal, gamma, store.read_manifest(run_path)
+
+
+def geometry_options(gamma: float, state: int) -> None:
+    """`esr plot geometry`: a discount in [0, 1) and one of the example MDP's three states."""
+    if not 0.0 <= gamma < 1.0:
+        raise StoreError(f"--gamma must be in [0, 1), got {gamma}")
+    if state not in (0, 1, 2):
+        raise StoreError(f"--state must be 0, 1 or 2, got {state}")

@@ -38,6 +38,7 @@ import numpy as np
 from scipy import sparse
 from scipy.linalg import lu_factor, lu_solve
 
+from esr_cli.analysis.state_count import MAX_STATES, TooManyStates, check_size, state_bound  # noqa: F401 (read from the spec, JAX-free)
 from esr_cli.envs.gridworld import GridState, Gridworld
 
 
@@ -82,43 +83,6 @@ DENSE_STATES = 12_000
 # Enumeration keeps A_R x A_H successors per state (a 4 x 4 grid with 4 blocks: 28,604 states,
 # 11 million transitions, a minute) and the series costs about 0.35 s per wanted row there on
 # one core: beyond this the pairs a trained robot visits take hours.
-MAX_STATES = 30_000
-
-
-class TooManyStates(ValueError):
-    pass
-
-
-def state_bound(size: int, blocks: int) -> int:
-    """An upper bound on the states `enumerate_states` can reach on a size x size grid with
-    `blocks` blocks, from the spec alone. Blocks sit on distinct cells. A live human stands on a
-    cell without a block; a dead one is under the block just pushed onto it, so one of its
-    neighbours is free. The smaller of that count and "human anywhere, any layout" is close to
-    the reachable count: 8,960 for 8,851 on a 4x4 grid with 3 blocks, 5,340 for 5,031 on a 6x6
-    grid with 34."""
-    cells = size * size
-    anywhere = cells * math.comb(cells, blocks)
-    if blocks == 0:
-        return anywhere
-    neighbour_pairs = 4 * size * (size - 1)  # (cell, adjacent cell), both orders
-    live_or_dead = cells * math.comb(cells - 1, blocks) + neighbour_pairs * math.comb(cells - 2, blocks - 1)
-    return min(anywhere, live_or_dead)
-
-
-def _count(n: int) -> str:
-    return f"{n:,}" if n < 10**12 else f"{float(n):.1e}"
-
-
-def check_size(size: int, blocks: int, max_states: int = MAX_STATES) -> int:
-    """`state_bound`, or TooManyStates naming the spec fields to lower when it exceeds `max_states`."""
-    n = state_bound(size, blocks)
-    if n > max_states:
-        raise TooManyStates(f"env.size={size}, env.blocks={blocks}: up to {_count(n)} states, more than the "
-                            f"{max_states:,} exact analysis handles: lower env.size or env.blocks "
-                            "(a 4x4 grid with 4 blocks has 28,604)")
-    return n
-
-
 def enumerate_states(env: Gridworld, goal, starts: GridState, max_states: int = MAX_STATES) -> StateSpace:
     """Breadth-first enumeration of every state reachable from `starts` (a batch of states
     with this goal) under all joint actions."""
