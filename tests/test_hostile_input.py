@@ -4,6 +4,7 @@ mistake, resources checked before anything is compiled or written (docs/reliabil
 import copy
 import time
 import tracemalloc
+from pathlib import Path
 
 import pytest
 import yaml
@@ -12,6 +13,7 @@ from hypothesis import strategies as st
 
 from conftest import ROOT, esr
 from esr_cli import resources, spec as specs, suite as suites, yamlio
+from esr_cli.cli import main
 
 VALID = """name: t
 env: {kind: gridworld, blocks: 2}
@@ -487,8 +489,6 @@ def test_a_mapping_override_sets_its_keys_and_keeps_the_sections_others():
 
 
 def test_rich_markup_in_user_text_is_printed_as_text(tmp_path, capsys):
-    from esr_cli.cli import main
-
     for argv in (["show", "zz[/b]"], ["eval", "[/x]"], ["train", str(tmp_path / "d[/x]" / "s.yaml")]):
         assert main(["--store", str(tmp_path / "store"), *argv]) == 2
         err = capsys.readouterr().err
@@ -498,7 +498,6 @@ def test_rich_markup_in_user_text_is_printed_as_text(tmp_path, capsys):
 def test_a_store_path_that_looks_like_markup_is_printed_as_written(tmp_path, capsys):
     """Paths printed for scripts to read are the paths: `[bold]` is not styled away, `[/x]` is
     not a crash after the work is done."""
-    from esr_cli.cli import main
     from esr_cli.store import Store, content_key
 
     components = {"kind": "runs", "spec": {"name": "x"}}
@@ -534,16 +533,12 @@ def test_only_the_printing_module_makes_consoles():
 
 
 def test_an_empty_store_path_is_refused_rather_than_read_as_the_current_directory(capsys):
-    from esr_cli.cli import main
-
     for empty in ("", "  "):
         assert main(["--store", empty, "ls"]) == 2
         assert "--store: an empty path" in capsys.readouterr().err
 
 
 def test_a_file_name_too_long_is_a_usage_error(tmp_path, capsys):
-    from esr_cli.cli import main
-
     assert main(["--store", str(tmp_path / "store"), "train", str(tmp_path / ("a" * 300 + ".yaml"))]) == 2
     assert "file name too long" in capsys.readouterr().err
     assert main(["--store", str(tmp_path / ("b" * 300)), "ls"]) == 2
@@ -551,8 +546,6 @@ def test_a_file_name_too_long_is_a_usage_error(tmp_path, capsys):
 
 
 def test_eval_and_report_options_are_checked_before_the_store(tmp_path, capsys):
-    from esr_cli.cli import main
-
     store = ["--store", str(tmp_path / "store")]
     for argv, problem in ((["eval", "experiments/cramped_room.yaml", "--seat", "5"], "--seat: 0 or 1, got 5"),
                           (["eval", "experiments/cramped_room.yaml", "--human", "play:zz"], "'zz' is not a play artifact's key"),
@@ -575,8 +568,6 @@ def test_eval_and_report_options_are_checked_before_the_store(tmp_path, capsys):
     (["--no-wait"], "--wait/--no-wait: for submitted jobs"),
 ])
 def test_sweep_options_that_would_be_ignored_are_refused(tmp_path, capsys, flags, problem):
-    from esr_cli.cli import main
-
     assert main(["--store", str(tmp_path / "store"), "sweep", "experiments/suites/gridworld.yaml", *flags]) == 2
     assert problem in capsys.readouterr().err
     assert not (tmp_path / "store").exists()
@@ -591,8 +582,51 @@ def test_usage_errors_and_help_are_answered_without_loading_jax(tmp_path):
                  ["eval", "experiments/grid_2.yaml", "--human", "nope"], ["eval", "experiments/grid_2.yaml", "--seat", "1"],
                  ["eval", "deadbeef"], ["diagnose", "deadbeef"], ["ablate"],
                  ["ablate", "experiments/grid_2.yaml", "--greedy", "--set", "nope=1"], ["paper", "--executor", "nope"],
-                 ["plot", "estimator", "deadbeef"]):
+                 ["plot", "estimator", "deadbeef"], ["paper", "--json"], ["paper", "--report", "--budget", "smoke"],
+                 ["plot", "geometry", "--gamma", "1.5"], ["plot", "gridworld", "--budget", "bogus"],
+                 ["exact", "experiments/cramped_room.yaml"], ["exact", "experiments/grid_5.yaml"],
+                 ["exact", "experiments/grid_4x4_3.yaml", "--goal", "9,9"],
+                 ["ablate", "experiments/grid_5_random.yaml", "--greedy"]):
         _assert_refused_without_jax(args, tmp_path / "store", 0 if args == ["--help"] else 2)
+
+
+@pytest.mark.parametrize("args, problem", [
+    (["paper", "--json"], "--json: applies to `esr paper --report` only; add --report"),
+    (["paper", "--no-exact", "--out", "r.md"], "--exact/--no-exact, --out: apply to `esr paper --report` only"),
+    (["paper", "--report", "--executor", "slurm"], "--executor: applies to training the paper suite"),
+    (["paper", "--budget", "huge"], "--budget: unknown budget 'huge'"),
+    (["plot", "geometry", "--state", "7"], "--state must be 0, 1 or 2, got 7"),
+    (["exact", "experiments/grid_4x4_3.yaml", "--gamma", "1.0"], "--gamma must be in [0, 1), got 1.0"),
+    (["exact", "experiments/cramped_room.yaml"], "exact empowerment is defined for gridworld specs only"),
+    (["ablate", "experiments/grid_5_ave.yaml", "--no-robot-action"], "--no-robot-action ablates ESR's representations"),
+    (["ablate", "experiments/grid_5_random.yaml", "--greedy"], "the Random robot learns nothing"),
+    (["ablate", "experiments/grid_5.yaml", "--set", "learner.gamma=0.9"], "it changes nothing to compare"),
+    (["ablate", "experiments/grid_5.yaml", "experiments/grid_5.yaml", "--greedy"], "name each base spec once"),
+    (["ablate", "--greedy", "--budget", "bogus"], "--budget: unknown budget 'bogus'"),
+    (["eval", "ffff", "--set", "x=1"], "ffff is not a spec file but a run's key or path"),
+])
+def test_options_that_the_command_would_ignore_or_cannot_use_are_named(tmp_path, capsys, args, problem):
+    """Each refusal names the option at fault, before any work: a forgotten --report must not
+    start the paper suite's training, an ablation that changes nothing must not train twice."""
+    assert main(["--store", str(tmp_path / "store"), *args]) == 2
+    assert problem in capsys.readouterr().err
+    assert not (tmp_path / "store").exists()
+
+
+def test_ablate_finds_its_default_specs_from_any_directory(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["--store", str(tmp_path / "store"), "ablate", "--greedy", "--budget", "bogus"]) == 2
+    from esr_cli import paper
+
+    assert all(Path(p).is_file() for p in paper.DEFAULT_ABLATION_SPECS)
+
+
+def test_a_file_where_a_store_folder_belongs_is_named(tmp_path, capsys):
+    (tmp_path / "store").mkdir()
+    (tmp_path / "store" / "runs").write_text("")
+    for args in (["train", "experiments/grid_2.yaml", "--budget", "smoke"], ["ls"]):
+        assert main(["--store", str(tmp_path / "store"), *args]) == 2
+        assert "runs is a file where its runs folder belongs" in capsys.readouterr().err
 
 
 def test_options_that_do_not_fit_a_stored_run_are_refused_without_loading_jax(smoke_run):

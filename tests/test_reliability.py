@@ -1,6 +1,7 @@
 """Reliability: kills at every stage, Ctrl-C, two writers, divergence, corruption, bad input.
 See docs/reliability.md."""
 
+import json
 import shutil
 import signal
 import subprocess
@@ -94,6 +95,10 @@ def test_stop_after_ends_at_a_chunk_boundary_and_resumes_to_the_uninterrupted_re
     assert stopped.stdout == "" and committed(store) == []
     (part,) = partials(store)
     assert len((part / "metrics.jsonl").read_text().splitlines()) == 1
+    # stopped on purpose, as listings say ("stopped", not "failed"); what uses the run says so
+    assert json.loads((part / "pending.json").read_text())["stopped"]["epoch"] == 1
+    unfinished = esr("eval", *SMOKE[1:], store=store, check=False)
+    assert unfinished.returncode == 2 and "is not finished" in unfinished.stderr and "to continue it" in unfinished.stderr
     resumed = esr(*SMOKE, "--stop-after", "1h", store=store)
     path = Path(resumed.stdout.strip())
     assert "resuming" in resumed.stderr and committed(store) == [path] and partials(store) == []

@@ -289,3 +289,16 @@ def test_a_sweep_whose_jobs_stopped_at_their_time_budget_exits_75(tmp_path, monk
                  "--executor", "submitit-local"]) == 75
     err = " ".join(capsys.readouterr().err.split())
     assert "0 of 2 run(s) done" in err and "2 run(s) stopped at their jobs' time budget, saved; run the same sweep again" in err
+
+
+def test_a_run_stopped_on_purpose_is_stopped_not_failed(tmp_path):
+    """A run saved at a chunk boundary by Ctrl-C or --stop-after marks its pending.json; a
+    partial run without the mark (a killed writer) stays failed."""
+    store = Store(tmp_path / "store")
+    suite = sweep.load_suite(seeds_suite(tmp_path, 2), "smoke")
+    stopped, killed = suite.runs
+    store.begin("runs", stopped.key, {"key": stopped.key, "stopped": {"epoch": 3, "why": "interrupted"}})
+    store.begin("runs", killed.key, {"key": killed.key})
+    rows = sweep.status(suite, store)
+    assert [row.state for row in rows] == ["stopped", "failed"]
+    assert rows[0].note == "stopped (interrupted) after epoch 3; sweep again (or esr train) to continue it"
