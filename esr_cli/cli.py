@@ -777,6 +777,10 @@ def export_(
 ):
     """Write one artifact to a single file, to carry to another store (`esr import`). An
     unfinished run travels with its newest verified checkpoint and continues where imported."""
+    if out_file is not None:
+        if not out_file.name.endswith((".tar.gz", ".tgz")):
+            raise Exit(2, f"--out: {out_file} would hold a gzipped tar archive: name it with .tar.gz")
+        _check_output_file(out_file, "--out")
     from esr_cli.transfer import export
 
     moved = export(STATE.store, ref, out_file)

@@ -2,6 +2,7 @@
 mistake, resources checked before anything is compiled or written (docs/reliability.md)."""
 
 import copy
+import os
 import time
 import tracemalloc
 from pathlib import Path
@@ -83,6 +84,22 @@ def test_plain_alias_and_duplicate_keys_name_their_lines(tmp_path):
 def test_oversized_file_is_refused_unread(tmp_path):
     p = write(tmp_path, VALID + "# " + "x" * (yamlio.MAX_FILE_BYTES + 10) + "\n")
     with pytest.raises(specs.SpecError, match="larger than the 1,048,576 bytes"):
+        specs.load(p)
+
+
+def test_a_file_whose_size_is_not_reported_is_read_only_to_the_limit(tmp_path, monkeypatch):
+    """/proc files report a size of 0: the read itself stops one byte past the limit."""
+    p = write(tmp_path, VALID + "# " + "x" * (yamlio.MAX_FILE_BYTES + 10) + "\n")
+    real_stat = Path.stat
+
+    def unsized(self, *args, **kwargs):
+        st = real_stat(self, *args, **kwargs)
+        return os.stat_result((st.st_mode, st.st_ino, st.st_dev, st.st_nlink, st.st_uid, st.st_gid, 0,
+                               int(st.st_atime), int(st.st_mtime), int(st.st_ctime))) if self == p else st
+
+    monkeypatch.setattr(Path, "stat", unsized)
+    assert p.stat().st_size == 0
+    with pytest.raises(specs.SpecError, match="more than 1,048,576 bytes: larger than the 1,048,576 bytes"):
         specs.load(p)
 
 
@@ -604,6 +621,7 @@ def test_usage_errors_and_help_are_answered_without_loading_jax(tmp_path):
     (["ablate", "experiments/grid_5.yaml", "experiments/grid_5.yaml", "--greedy"], "name each base spec once"),
     (["ablate", "--greedy", "--budget", "bogus"], "--budget: unknown budget 'bogus'"),
     (["eval", "ffff", "--set", "x=1"], "ffff is not a spec file but a run's key or path"),
+    (["export", "ffff", "--out", "run.zip"], "--out: run.zip would hold a gzipped tar archive: name it with .tar.gz"),
 ])
 def test_options_that_the_command_would_ignore_or_cannot_use_are_named(tmp_path, capsys, args, problem):
     """Each refusal names the option at fault, before any work: a forgotten --report must not
