@@ -20,6 +20,7 @@ A suite expands to at most `MAX_RUNS` runs; the count is checked before any run 
 
 from __future__ import annotations
 
+import difflib
 import itertools
 import json
 import math
@@ -172,12 +173,29 @@ def _validate(raw: Any, source: str) -> SuiteModel:
     if isinstance(entries, list) and len(entries) > MAX_RUNS:  # before each entry is validated
         raise SuiteError(source, "specs", f"{len(entries):,} entries, more than the {MAX_RUNS:,} runs a suite may "
                                           "hold: split it into several suites")
+    if "specs" not in raw and {"env", "method"} & set(raw):
+        raise SuiteError(source, "", "this is a spec file, not a suite (a suite lists spec files under `specs:`): "
+                                     "train it with `esr train`, or name it in a suite's `specs:` list")
     try:
         return SuiteModel.model_validate(raw)
     except ValidationError as e:
         err, msg = specs.first_problem(e)
-        loc, msg = tuple(err["loc"]), msg + specs.other_problems(e)
-        raise SuiteError(source, _format_loc(loc), msg) from None
+        loc = tuple(err["loc"])
+        if err["type"] == "extra_forbidden":
+            close = difflib.get_close_matches(str(loc[-1]), _suite_names(loc), n=1, cutoff=0.6)
+            msg += f"; did you mean `{close[0]}`?" if close else ""
+        raise SuiteError(source, _format_loc(loc), msg + specs.other_problems(e)) from None
+
+
+def _suite_names(loc: tuple) -> list[str]:
+    """The keys valid where an unknown key `loc[-1]` was found in a suite."""
+    if len(loc) == 1:
+        return list(SuiteModel.model_fields)
+    if loc[0] == "slurm" and len(loc) == 2:
+        return list(SlurmOptions.model_fields)
+    if loc[0] == "specs" and len(loc) == 3:
+        return list(EntryModel.model_fields)
+    return []
 
 
 def run_count(model: SuiteModel) -> int:

@@ -11,7 +11,7 @@ import pytest
 from rich.console import Console
 
 from conftest import ROOT, esr
-from esr_cli import provenance, sweep
+from esr_cli import provenance, spec as specs, sweep
 from esr_cli.store import Store
 from esr_cli.suite import SuiteError
 
@@ -84,6 +84,10 @@ def test_baselines_quick_suite_is_every_method_on_grid_2_and_grid_5_with_five_se
     (f"specs: [{GRID_2}]\nslurm: {{gpus: -1}}\n", "slurm.gpus", "greater than or equal to 0"),
     ("just a string\n", "", "a suite is a mapping"),
     ("specs: [unclosed\n", "", "unreadable YAML"),
+    (f"specs: [{GRID_2}]\nslrum: {{gpus: 1}}\n", "slrum", "unknown key; did you mean `slurm`?"),
+    (f"specs: [{GRID_2}]\nslurm: {{gpu: 1}}\n", "slurm.gpu", "unknown key; did you mean `gpus`?"),
+    (f"specs: [{{spce: {GRID_2}}}]\n", "specs[0].spce", "unknown key; did you mean `spec`?"),
+    ("name: t\nenv: {kind: gridworld}\nmethod: {kind: esr}\n", "", "this is a spec file, not a suite"),
 ])
 def test_bad_suites_name_the_key(tmp_path, text, where, problem):
     path = write_suite(tmp_path, text)
@@ -91,6 +95,14 @@ def test_bad_suites_name_the_key(tmp_path, text, where, problem):
         sweep.load_suite(path, "smoke")
     assert e.value.path == where and problem in str(e.value), str(e.value)
     assert str(path) in str(e.value)
+
+
+def test_a_grid_over_the_method_kind_starts_the_section_again(tmp_path):
+    """As `--set method.kind=random` does: ESR's fields do not follow into the Random robot."""
+    path = write_suite(tmp_path, f"specs: [{GRID_2}]\ngrid: {{method.kind: [esr, random]}}\n")
+    runs = sweep.load_suite(path, "smoke").runs
+    assert [r.spec.method.kind for r in runs] == ["esr", "random"]
+    assert runs[1].spec.training_part() == specs.load(ROOT / "experiments/grid_2_random.yaml", "smoke").training_part()
 
 
 def test_bad_suite_exits_2_before_any_work(tmp_path):
