@@ -607,6 +607,8 @@ def ls():
     for e in STATE.store.entries():
         m = e.manifest or {}
         status = "damaged" if e.status == "complete" and e.manifest is None else e.status  # unreadable manifest
+        if e.status == "partial" and isinstance(m.get("stopped"), dict):
+            status = "stopped"  # saved at a chunk boundary on purpose; the same command continues it
         damaged += status == "damaged"
         seeds = m.get("seeds")
         epochs = ""

@@ -97,6 +97,7 @@ def test_stop_after_ends_at_a_chunk_boundary_and_resumes_to_the_uninterrupted_re
     assert len((part / "metrics.jsonl").read_text().splitlines()) == 1
     # stopped on purpose, as listings say ("stopped", not "failed"); what uses the run says so
     assert json.loads((part / "pending.json").read_text())["stopped"]["epoch"] == 1
+    assert "stopped" in esr("ls", store=store).stdout
     unfinished = esr("eval", *SMOKE[1:], store=store, check=False)
     assert unfinished.returncode == 2 and "is not finished" in unfinished.stderr and "to continue it" in unfinished.stderr
     resumed = esr(*SMOKE, "--stop-after", "1h", store=store)
