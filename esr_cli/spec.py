@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import difflib
+import math
 import re
 from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union, get_args
@@ -142,6 +143,12 @@ class GridworldEnvSpec(_Model):
             raise ValueError(f"start={self.start!r} places two blocks beside the human: needs blocks >= 2")
         return self
 
+    @property
+    def robot_actions(self) -> int:
+        """The robot's action count: a cell and one of five moves for whatever stands there
+        (envs/gridworld.py; a test keeps the two equal)."""
+        return self.size * self.size * 5
+
 
 OVERCOOKED_LAYOUTS = ("cramped_room", "coord_ring", "asymm_advantages", "forced_coord", "counter_circuit")
 
@@ -154,6 +161,11 @@ class OvercookedEnvSpec(_Model):
     episode_steps: Int = Field(400, ge=1, le=10_000)
     robot_seat: Annotated[Literal[0, 1], _a_number("0 or 1")] = Field(0, description="JaxMARL's agent the robot plays (1: the flipped seats; "
                                       "`esr eval --seat 1`)")
+
+    @property
+    def robot_actions(self) -> int:
+        """Overcooked's six moves: four directions, stay, interact (envs/overcooked.py)."""
+        return 6
 
 
 EnvSpec = Annotated[Union[GridworldEnvSpec, OvercookedEnvSpec], Field(discriminator="kind")]
@@ -343,6 +355,11 @@ class OracleMethodSpec(_Model):
 METHOD_SPECS = (ESRMethodSpec, RandomMethodSpec, AvEMethodSpec, GoalInferenceMethodSpec, IQLearnMethodSpec, OracleMethodSpec)
 
 
+# Kinds whose robot has no learned policy (each class's `learns_policy` is False; a test keeps
+# the two equal), so the learner's fields do not act on it.
+POLICY_FREE_METHODS = frozenset({"random", "goal_inference"})
+
+
 def _kind(model) -> str:
     return get_args(model.model_fields["kind"].annotation)[0]
 
@@ -485,6 +502,7 @@ class Spec(_Model):
         if self.method.kind == "esr" and self.method.episode_group > self.learner.batch_size:
             raise ValueError(f"method.episode_group={self.method.episode_group} is larger than "
                              f"learner.batch_size={self.learner.batch_size}: a batch cannot hold one group")
+        self._entropy_target_reachable()
         steps = self.env.episode_steps
         total = self.train.epochs * self.train.num_envs * steps * len(self.train.seeds)
         if total > MAX_ENV_STEPS:
@@ -496,6 +514,17 @@ class Spec(_Model):
                 f"(train.num_envs * env.episode_steps = {self.train.num_envs * steps} transitions)"
             )
         return self
+
+    def _entropy_target_reachable(self) -> None:
+        # The dual step drives the policy's entropy toward the target; at or above ln |A| (the
+        # uniform policy's entropy) no temperature reaches it and beta only runs into its clip.
+        learner = self.learner
+        steered = self.method.kind not in POLICY_FREE_METHODS and learner.dual_lr > 0 and learner.dual_updates_per_epoch > 0
+        ceiling = math.log(self.env.robot_actions)
+        if steered and learner.target_entropy >= ceiling:
+            raise ValueError(
+                f"learner.target_entropy={learner.target_entropy:g} nats cannot be reached: a uniform policy over "
+                f"the robot's {self.env.robot_actions} actions has ln {self.env.robot_actions} = {ceiling:.3f} nats")
 
     def training_part(self) -> dict:
         """The fields that determine a training run (the artifact key's spec component)."""

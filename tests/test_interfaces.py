@@ -71,3 +71,15 @@ def test_registry_builds_every_method_kind_of_the_spec():
         assert hasattr(method_class(kind), "from_spec")
     with pytest.raises(ValueError, match="unknown method kind 'nope'"):
         method_class("nope")
+
+
+def test_the_specs_static_facts_agree_with_the_code():
+    """spec.py checks specs without importing JAX, so it keeps two facts of its own: which
+    method kinds learn no policy, and each environment's robot action count."""
+    from esr_cli.envs import make_env
+    from esr_cli.methods.registry import METHODS
+
+    assert specs.POLICY_FREE_METHODS == {k for k, cls in METHODS.items() if not cls._field_defaults["learns_policy"]}
+    for name in ("grid_2", "cramped_room"):
+        spec = specs.load(ROOT / "experiments" / f"{name}.yaml", "smoke", ["env.size=6"] if name == "grid_2" else [])
+        assert spec.env.robot_actions == make_env(spec.env).num_robot_actions

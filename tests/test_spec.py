@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest import ROOT
 from esr_cli import spec as specs
 from esr_cli.cli import main
 
@@ -67,6 +68,7 @@ BAD = {
     "too many blocks": (GOOD.replace("blocks: 2", "blocks: 24"), "env", "does not fit"),
     "corner needs two blocks": (GOOD.replace("blocks: 2", "blocks: 1"), "env", "blocks >= 2"),
     "buffer too small": (GOOD + "learner: {buffer_size: 100}\n", "", "cannot hold one epoch"),
+    "unreachable entropy": (GOOD + "learner: {target_entropy: 4.83}\n", "", "ln 125 = 4.828 nats"),
     "unknown kind": (GOOD.replace("kind: esr", "kind: magic"), "method", "kind"),
     "missing section": ("name: t\nenv: {kind: gridworld}\nhuman: {kind: noisy_greedy}\n", "method", "Field required"),
     "duplicate seeds": (GOOD + "train: {seeds: [1, 1]}\n", "train.seeds", "distinct"),
@@ -86,6 +88,16 @@ def test_bad_spec_names_key_and_problem(tmp_path, case):
     assert e.value.path == path
     assert problem in e.value.problem
     assert str(f) in str(e.value)
+
+
+def test_an_entropy_target_binds_only_where_a_dual_step_steers_a_policy():
+    """ln 6 = 1.792 nats caps an Overcooked robot's entropy; a robot without a learned policy,
+    or a learner without dual steps, leaves the target unused."""
+    with pytest.raises(specs.SpecError, match="ln 6 = 1.792 nats"):
+        specs.load(ROOT / "experiments/cramped_room.yaml", "smoke", ["learner.target_entropy=1.8"])
+    assert specs.load(ROOT / "experiments/cramped_room.yaml", "smoke", ["learner.target_entropy=1.79"])
+    specs.load(ROOT / "experiments/grid_2_random.yaml", "smoke", ["learner.target_entropy=9"])
+    specs.load(ROOT / "experiments/grid_2.yaml", "smoke", ["learner.target_entropy=9", "learner.dual_lr=0"])
 
 
 def test_missing_file():
