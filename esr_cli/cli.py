@@ -9,6 +9,7 @@ import errno
 import json
 import os
 import sys
+import tempfile
 from pathlib import Path
 from typing import List, Optional
 
@@ -524,6 +525,11 @@ def _check_output_file(path: Path, option: str) -> None:
         if parent.exists():
             if not parent.is_dir():
                 raise Exit(2, f"{option}: {parent} is a file, not a directory")
+            try:  # the only sure test that a file can be made there (permissions, /proc, a read-only mount)
+                with tempfile.TemporaryFile(dir=parent):
+                    pass
+            except OSError as e:
+                raise Exit(2, f"{option}: cannot write in {parent}: {e.strerror or e}") from None
             break
 
 

@@ -133,13 +133,23 @@ def play_data_recipe(episodes: tuple[str, ...], layout: str, console: Console) -
     """Played Overcooked episodes (`play` artifacts) as the person's (observation, action) pairs."""
     key, components = play_data_key(episodes, layout)
 
-    def build(out: Path, store: Store) -> dict:
+    def played(store: Store) -> list[Path]:
         paths = []
         for episode in episodes:
             path = store.lookup(PLAY_KIND, episode)
             if path is None:
                 raise StoreError(f"played episode {episode[:12]} is not in {store.root} (`esr plays` lists them)")
             paths.append(path)
+        return paths
+
+    def check(store: Store) -> None:  # before the store holds anything of this artifact or those needing it
+        try:
+            play_data.check(played(store), layout)
+        except play_data.PlayDataError as e:
+            raise StoreError(str(e)) from None
+
+    def build(out: Path, store: Store) -> dict:
+        paths = played(store)
         try:
             data = play_data.convert(paths, layout)
         except play_data.PlayDataError as e:
@@ -153,7 +163,7 @@ def play_data_recipe(episodes: tuple[str, ...], layout: str, console: Console) -
             "action_fraction": [round(float(c) / len(data["action"]), 4) for c in counts],
         }
 
-    return Recipe(DATA_KIND, f"play data {layout}", components, build, summary_file=False)
+    return Recipe(DATA_KIND, f"play data {layout}", components, build, check=check, summary_file=False)
 
 
 def load_data(path: Path) -> dict[str, np.ndarray]:

@@ -204,10 +204,19 @@ def ablate(spec_paths: list[str], names: list[str], custom: list[str], budget: s
             if v.sets and spec.training_part() == base.training_part():
                 raise specs.SpecError(path, "", f"the variant {v.name!r} ({' '.join(v.sets)}) is the base spec's own "
                                       "training run: it changes nothing to compare")
+            twin = next((w for p, w, other in loaded if p == path and other.training_part() == spec.training_part()), None)
+            if twin is not None:
+                raise specs.SpecError(path, "", f"the variants {twin.name!r} and {v.name!r} are the same training run: "
+                                      "name each ablation once")
             loaded.append((path, v, spec))
 
     from esr_cli import runs  # jax and the training core: after every spec is validated
     from esr_cli.core.train import release_compiled
+    from esr_cli.resources import check_run_fits
+
+    for path, v, spec in loaded:  # every run still to train fits, before the first trains for hours
+        if store.lookup(RUN_KIND, runs.run_key(spec)[0]) is None:
+            check_run_fits(spec)
 
     run_paths = []
     for i, (path, v, spec) in enumerate(loaded, 1):

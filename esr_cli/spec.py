@@ -632,6 +632,8 @@ def first_problem(e: ValidationError) -> tuple[dict, str]:
     msg = err["msg"]
     if err["type"] == "extra_forbidden":
         msg = "unknown key"
+    elif err["type"] == "missing":
+        msg = "missing: this key is required"
     elif msg.startswith("Value error, "):
         msg = msg[len("Value error, ") :]
     elif err["type"] in ("model_attributes_type", "dict_type", "model_type"):
@@ -640,7 +642,24 @@ def first_problem(e: ValidationError) -> tuple[dict, str]:
         msg = "expected true or false"
     elif err["type"] == "string_type" and isinstance(err["input"], (int, float)) and not isinstance(err["input"], bool):
         msg = f"expected text, got the number {err['input']!r:.40}: write it in quotes to mean the text"
+    elif err.get("input", ...) is None and err["type"].endswith("_type"):
+        msg = "the value is empty (null): write one, or leave the key out for its default"
+    elif err["type"] in ("tuple_type", "list_type"):
+        msg = f"expected a list, e.g. [a, b], got {_described(err['input'])}"
+    elif err["type"] == "int_parsing_size" or (err["type"] in ("float_type", "float_parsing")
+                                               and isinstance(err.get("input"), int) and not isinstance(err["input"], bool)):
+        msg = "the number is far too large for this setting"
     return err, msg
+
+
+def _described(value: Any) -> str:
+    if isinstance(value, bool):
+        return f"the boolean {str(value).lower()}"
+    if isinstance(value, (int, float)):
+        return f"the number {value!r:.40}"
+    if isinstance(value, str):
+        return f"the text {value[:40]!r}"
+    return f"a {'mapping' if isinstance(value, dict) else type(value).__name__}"
 
 
 def other_problems(e: ValidationError) -> str:
@@ -657,7 +676,11 @@ def validate(raw: dict, source: str = "") -> Spec:
         loc = tuple(err["loc"])
         if err["type"] == "extra_forbidden":
             close = difflib.get_close_matches(str(loc[-1]), _valid_names(loc), n=1, cutoff=0.6)
-            if close:
+            head, _, rest = str(loc[-1]).partition(".")
+            if rest and head:  # `train.epochs: 5` written in a file, as --set and budgets write it
+                msg += (f": a dotted key path is for --set and budgets; in a file, nest it: "
+                        f"`{head}: {{{rest}: ...}}`")
+            elif close:
                 msg += f"; did you mean `{close[0]}`?"
         section = KIND_MODELS.get(str(loc[0]) if loc else "", {})
         if err["type"] == "union_tag_not_found":
@@ -693,14 +716,24 @@ def load_raw(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict:
     parent = raw.pop("extends")
     if not isinstance(parent, str) or not parent:
         raise SpecError(str(path), "extends", "must be the path of another spec file")
-    base_path = (Path(path).parent / parent).resolve()
-    if base_path in _seen or base_path == Path(path).resolve():
+    if len(_seen) + 1 >= MAX_EXTENDS:
+        raise SpecError(str(_seen[0]), "extends", f"a chain of more than {MAX_EXTENDS} files extending one another "
+                        f"(file {MAX_EXTENDS} of it is {path}); shorten it")
+    try:
+        base_path = (Path(path).parent / parent).resolve()
+        here = Path(path).resolve()
+    except (OSError, RuntimeError, ValueError) as e:  # a symlink loop, a NUL in the name
+        raise SpecError(str(path), "extends", f"cannot follow {parent[:60]!r}: {e}") from None
+    if base_path in _seen or base_path == here:
         raise SpecError(str(path), "extends", f"circular: {parent} extends this file again")
     if not base_path.exists():
         raise SpecError(str(path), "extends", f"file not found: {parent}")
     if not base_path.is_file():
         raise SpecError(str(path), "extends", f"{parent} is not a file")
-    return _merge(load_raw(base_path, _seen + (Path(path).resolve(),)), raw)
+    return _merge(load_raw(base_path, _seen + (here,)), raw)
+
+
+MAX_EXTENDS = 32  # files in one `extends:` chain: far above any real layering
 
 
 def _read_yaml(path: str | Path) -> dict:
@@ -724,34 +757,57 @@ def resolve(raw: dict, budget: str = "paper", overrides: list[str] | tuple[str, 
                         "(the file's `budgets:` section says what each budget changes)")
     # The file as written must be valid on its own: a budget must not hide a bad value.
     validate({**copy.deepcopy(raw), "budget": "paper"}, source)
-    tree = copy.deepcopy(raw)
-    budgets = tree.get("budgets") or {}
+    budgets = raw.get("budgets") or {}
     if not isinstance(budgets, dict):
         raise SpecError(source, "budgets", "must be a mapping of budget name to overrides")
-    own = budget in budgets
-    chosen = budgets[budget] if own else DEFAULT_BUDGETS[budget]
-    if not isinstance(chosen, dict):
-        raise SpecError(source, f"budgets.{budget}", "must be a mapping of key.path to value")
+    for name in budgets:  # nor may a budget of the file other than the one chosen
+        if name != budget:
+            tree = copy.deepcopy(raw)
+            given = _apply_budget(tree, name, budgets[name], True, set(), source)
+            _validated(tree, name, given, source)
+    tree = copy.deepcopy(raw)
     parsed = [(text, *parse_override(text)) for text in overrides]
+    given: dict[str, str] = {}  # key path -> what set it, to name in an error
     switched = set()
     for text, dotted, value in parsed:
         if dotted.split(".")[0] in ("budget", "budgets"):
             raise SpecError("--set", dotted, "choose a budget with --budget")
         if _switch_kind(tree, dotted, value):  # before the budget, whose fields depend on the kind
-            switched.add(dotted.split(".")[0])
-    given: dict[str, str] = {}  # key path -> what set it, to name in an error
-    for dotted, value in chosen.items():
-        # The default budgets name fields of every kind (e.g. ESR's update count); they apply
-        # only where the spec's kind has that field. A spec's own budgets apply as written,
-        # except to a section whose kind --set changed (they were written for the file's kind).
-        as_written = own and str(dotted).split(".")[0] not in switched
-        if as_written or _kind_has_field(tree, str(dotted)):
-            _set_path(tree, str(dotted), value, source)
-            given[str(dotted)] = f"budgets.{budget}" if own else f"the {budget} budget"
+            section = dotted.split(".")[0]
+            switched.add(section)
+            given[section] = f"--set {text}"  # the new kind's missing or bad fields are this --set's
+    own = budget in budgets
+    given.update(_apply_budget(tree, budget, budgets[budget] if own else DEFAULT_BUDGETS[budget], own, switched, source))
     for text, dotted, value in parsed:
         _set_path(tree, dotted, value, "--set")
         given.pop(dotted, None)
         given[dotted] = f"--set {text}"
+    return _validated(tree, budget, given, source)
+
+
+def _apply_budget(tree: dict, budget: str, entries: Any, own: bool, switched: set[str], source: str) -> dict[str, str]:
+    """Set a budget's entries in `tree`; -> {key path: what set it}."""
+    where = f"budgets.{budget}" if own else f"the {budget} budget"
+    if not isinstance(entries, dict):
+        raise SpecError(source, f"budgets.{budget}", "must be a mapping of key.path to value")
+    given = {}
+    for dotted, value in entries.items():
+        dotted = str(dotted)
+        if dotted.split(".")[0] in ("budget", "budgets", "name"):
+            raise SpecError(f"{source}, {where}", dotted, "a budget sets fields of the run's sections, not this")
+        # The default budgets name fields of every kind (e.g. ESR's update count); they apply
+        # only where the spec's kind has that field. A spec's own budgets apply as written,
+        # except to a section whose kind --set changed (they were written for the file's kind).
+        as_written = own and dotted.split(".")[0] not in switched
+        if as_written and _switch_kind(tree, dotted, value):  # as --set SECTION.kind does
+            given[dotted.split(".")[0]] = where
+        elif as_written or _kind_has_field(tree, dotted):
+            _set_path(tree, dotted, value, f"{source}, {where}" if source else where)
+            given[dotted] = where
+    return given
+
+
+def _validated(tree: dict, budget: str, given: dict[str, str], source: str) -> Spec:
     tree["budget"] = budget
     try:
         return validate(tree, source)
@@ -798,7 +854,7 @@ def _blame(e: SpecError, given: dict[str, str]) -> SpecError:
 def _chain(path: str | Path) -> list[tuple[Path, dict]]:
     """The files of an `extends:` chain with their own keys, the given file first."""
     out, p = [], Path(path)
-    while len(out) < 64:
+    while len(out) < MAX_EXTENDS:
         raw = _read_yaml(p)
         out.append((p, raw))
         parent = raw.get("extends")
@@ -812,9 +868,12 @@ def _chain(path: str | Path) -> list[tuple[Path, dict]]:
 
 def _defines(tree: dict, dotted: str) -> bool:
     node: Any = tree
-    for part in dotted.replace("[", ".[").split("."):
+    parts = dotted.replace("[", ".[").split(".")
+    for i, part in enumerate(parts):
         if part.startswith("["):
             break  # a list is written in one file as a whole
+        if isinstance(node, dict) and ".".join(parts[i:]) in node:
+            return True  # the path written as one dotted key (itself a mistake to name)
         if not isinstance(node, dict) or part not in node:
             return False
         node = node[part]

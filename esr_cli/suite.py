@@ -233,6 +233,9 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
             raw_spec = specs.load_raw(spec_path)
         except specs.SpecError as e:
             raise SuiteError(source, f"{where}.spec", f"{entry.spec}: {e.problem}") from None
+        if "specs" in raw_spec and "env" not in raw_spec:
+            raise SuiteError(source, f"{where}.spec", f"{entry.spec} is a suite, not a spec file: suites do not nest "
+                             "(list its spec files here)")
         grid = {**model.grid, **entry.grid}
         fixed = [_set_text(k, v) for k, v in {**model.set, **entry.set}.items()]
         names = list(grid)

@@ -440,6 +440,7 @@ def run_suite(
                   + (f" ({suite.duplicates} duplicate(s) dropped)" if suite.duplicates else ""))
 
     if executor == "local":
+        _check_local_runs_fit(todo)  # all of them before the first trains for hours
         _run_local(todo, store, console, result)
     elif todo:
         _submit(todo, executor, opts, suite, store, console, result, wait)
@@ -447,6 +448,17 @@ def run_suite(
     for i, run in enumerate(suite.runs):
         result.paths[i] = store.lookup(RUN_KIND, run.key)
     return result
+
+
+def _check_local_runs_fit(todo: list[RunStatus]) -> None:
+    """Raise ResourceError, naming the run, if any run here would not fit this machine's memory."""
+    from esr_cli.resources import ResourceError, check_run_fits
+
+    for s in todo:
+        try:
+            check_run_fits(s.run.spec)
+        except ResourceError as e:
+            raise ResourceError(f"{s.run.label}: {e} (nothing of the suite has run)") from None
 
 
 def _run_local(todo: list[RunStatus], store: Store, console: Console, result: SweepResult) -> None:

@@ -8,8 +8,11 @@ bounded work, before anything walks the tree (docs/reliability.md):
   silently keep the last one);
 - scalars are read as YAML 1.2 reads them, not as PyYAML's YAML 1.1: only `true`/`false` are
   booleans (`yes`, `on`, `off` stay text, which a boolean field then refuses), integers are
-  decimal (`010` is 10, not octal 8; `1:30` is text, not 90), `1e-4` without a dot is a
-  number, and `2020-01-01` is text, not a date;
+  decimal (`010` is 10, not octal 8; `1:30` is text, not 90), `1e-4` without a dot and `+.5`
+  are numbers, and `2020-01-01` is text, not a date; an explicit `!!float` or `!!bool` on
+  something else is refused;
+- every key is text: `1:`, `true:` or `null:` as a key is refused (it would read as a list
+  index or nothing);
 - integers longer than MAX_INT_DIGITS digits are refused (Python refuses to read them);
 - tags that build other Python types (`!!binary`, `!!set`, `!!timestamp`, `!!omap`, `!!pairs`)
   are refused: a spec holds numbers, text, booleans, lists and mappings only.
@@ -53,17 +56,19 @@ class _BoundedLoader(yaml.SafeLoader):
                 first = None
             if first is not None:
                 raise YamlInputError(f"key {key!r} appears twice in one mapping (lines {first} and {line}); keep one")
-            if isinstance(key, (str, int, float, bool)) or key is None:
-                seen[key] = line
+            if not isinstance(key, str):  # `1:`, `true:` or `null:` would read as a list index or None
+                shown = (key_node.value or "(empty)") if isinstance(key_node, yaml.ScalarNode) else "a list or mapping"
+                raise YamlInputError(f"line {line}: the key {shown:.40} is not a name: keys are text "
+                                     "(write it in quotes if it must be a number)")
+            seen[key] = line
         return super().construct_mapping(node, deep=deep)
 
 
 # YAML 1.2 (core schema) plain scalars, replacing PyYAML's YAML 1.1 ones.
 _BOOL = re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$")
 _INT = re.compile(r"^[-+]?[0-9][0-9_]*$")  # underscores as in 10_000, like the floats
-_FLOAT = re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
-    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
-    |\.[0-9_]+(?:[eE][-+][0-9]+)?
+_FLOAT = re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*\.[0-9_]*|\.[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)?
+    |[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+
     |[-+]?\.(?:inf|Inf|INF)
     |\.(?:nan|NaN|NAN))$""", re.X)
 _REPLACED = {"tag:yaml.org,2002:bool", "tag:yaml.org,2002:int", "tag:yaml.org,2002:float", "tag:yaml.org,2002:timestamp"}
@@ -88,12 +93,28 @@ def _construct_int(loader, node):
     return int(text)
 
 
+def _construct_float(loader, node):
+    text = loader.construct_scalar(node)
+    if not isinstance(text, str) or not (_FLOAT.match(text) or _INT.match(text)):  # an explicit `!!float` on a non-number
+        raise YamlInputError(f"line {node.start_mark.line + 1}: {str(text)[:40]!r} is not a number")
+    return yaml.SafeLoader.construct_yaml_float(loader, node)
+
+
+def _construct_bool(loader, node):
+    text = loader.construct_scalar(node)
+    if not isinstance(text, str) or not _BOOL.match(text):  # `!!bool yes`: YAML 1.2 has only true and false
+        raise YamlInputError(f"line {node.start_mark.line + 1}: {str(text)[:40]!r} is not true or false")
+    return text.lower() == "true"
+
+
 def _refuse_tag(loader, node):
     raise YamlInputError(f"line {node.start_mark.line + 1}: the tag {node.tag.replace('tag:yaml.org,2002:', '!!')} "
                          "is not allowed: write a number, text, boolean, list or mapping")
 
 
 _BoundedLoader.add_constructor("tag:yaml.org,2002:int", _construct_int)
+_BoundedLoader.add_constructor("tag:yaml.org,2002:float", _construct_float)
+_BoundedLoader.add_constructor("tag:yaml.org,2002:bool", _construct_bool)
 for _tag in ("binary", "timestamp", "set", "omap", "pairs"):
     _BoundedLoader.add_constructor(f"tag:yaml.org,2002:{_tag}", _refuse_tag)
 
@@ -108,6 +129,8 @@ def parse(text: str) -> Any:
         raise YamlInputError(f"unreadable YAML: {where}{getattr(e, 'problem', None) or e}") from None
     except RecursionError:
         raise YamlInputError("unreadable YAML: nested too deeply") from None
+    except (ValueError, TypeError, KeyError) as e:  # a constructor's own refusal of an explicit tag
+        raise YamlInputError(f"unreadable YAML: {e}") from None
 
 
 def read(path: str | Path) -> Any:

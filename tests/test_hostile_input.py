@@ -3,6 +3,7 @@ mistake, resources checked before anything is compiled or written (docs/reliabil
 
 import copy
 import os
+import re
 import time
 import tracemalloc
 from pathlib import Path
@@ -255,6 +256,12 @@ def test_published_ave_on_overcooked_validates():
     ("network.mlp_layers=[8,8,8,8,8,8,8,8,8,8,8,8,8,8,8,8,8]", r"network.mlp_layers: Value error, 17 layers: at most 16|17 layers: at most 16"),
     ("method.repr_dim=100000", r"method.repr_dim: Input should be less than or equal to 16384"),
     ("budget=quick", r"--set: budget: choose a budget with --budget"),
+    ("train.epochs=null", r"train.epochs: the value is empty \(null\): write one, or leave the key out"),
+    ("network.conv_channels=16", r"network.conv_channels: expected a list, e.g. \[a, b\], got the number 16"),
+    ("train.epochs=1e20", r"train.epochs: the number is far too large for this setting"),
+    ("learner.lr=1" + "0" * 400, r"learner.lr: the number is far too large for this setting"),
+    ("learner.lr=._", r"learner.lr: expected a number, got the text '._'$"),
+    ("env.kind=overcooked", r"^--set env.kind=overcooked: env.layout: missing: this key is required"),
 ])
 def test_a_value_of_the_wrong_type_or_size_is_named(tmp_path, override, message):
     with pytest.raises(specs.SpecError, match=message):
@@ -472,7 +479,8 @@ def test_durations_by_hand():
 @pytest.mark.parametrize("text, value", [
     ("010", 10), ("1_000", 1000), ("-3", -3), ("1e-4", 1e-4), ("true", True), ("FALSE", False),
     ("yes", "yes"), ("on", "on"), ("off", "off"), ("1:30", "1:30"), ("0b101", "0b101"), ("0x1f", "0x1f"),
-    ("2020-01-01", "2020-01-01"), ("~", None),
+    ("2020-01-01", "2020-01-01"), ("~", None), ("+.5", 0.5), ("-.5", -0.5), (".5e3", 500.0), ("._", "._"),
+    ("!!float 3", 3.0), ("!!bool true", True),
 ])
 def test_scalars_read_as_yaml_1_2_not_1_1(text, value):
     assert yamlio.parse(f"a: {text}") == {"a": value}
@@ -482,6 +490,8 @@ def test_scalars_read_as_yaml_1_2_not_1_1(text, value):
     ("!!binary /w==", "the tag !!binary is not allowed"), ("!!set {x}", "the tag !!set is not allowed"),
     ("!!timestamp 2020-01-01", "the tag !!timestamp is not allowed"),
     ("9" * 5000, "an integer of 5,000 digits; at most 4,000"),
+    ("!!float abc", "'abc' is not a number"), ("!!bool yes", "'yes' is not true or false"),
+    ("{1: 2}", "the key 1 is not a name"), ("{null: 2}", "the key null is not a name"),
 ])
 def test_values_that_are_not_spec_values_are_refused_by_line(text, problem):
     with pytest.raises(yamlio.YamlInputError, match=f"line 1: {problem}"):
@@ -619,9 +629,13 @@ def test_usage_errors_and_help_are_answered_without_loading_jax(tmp_path):
     (["ablate", "experiments/grid_5_random.yaml", "--greedy"], "the Random robot learns nothing"),
     (["ablate", "experiments/grid_5.yaml", "--set", "learner.gamma=0.9"], "it changes nothing to compare"),
     (["ablate", "experiments/grid_5.yaml", "experiments/grid_5.yaml", "--greedy"], "name each base spec once"),
+    (["ablate", "experiments/grid_5.yaml", "--greedy", "--set", "learner.gamma=0"], "are the same training run"),
+    (["ablate", "experiments/grid_2.yaml", "--greedy", "--set", "learner.buffer_size=50000000000"],
+     "too large for this machine: grid_2 needs about"),
     (["ablate", "--greedy", "--budget", "bogus"], "--budget: unknown budget 'bogus'"),
     (["eval", "ffff", "--set", "x=1"], "ffff is not a spec file but a run's key or path"),
     (["export", "ffff", "--out", "run.zip"], "--out: run.zip would hold a gzipped tar archive: name it with .tar.gz"),
+    (["export", "ffff", "--out", "/proc/run.tar.gz"], "--out: cannot write in /proc"),
 ])
 def test_options_that_the_command_would_ignore_or_cannot_use_are_named(tmp_path, capsys, args, problem):
     """Each refusal names the option at fault, before any work: a forgotten --report must not
@@ -666,3 +680,40 @@ def _assert_refused_without_jax(args, store, code):
     proc = subprocess.run([sys.executable, "-c", probe, "--store", str(store), *args],
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.stdout.split()[-3:] == [str(code), "False", "False"], (args, proc.stdout, proc.stderr)
+
+
+def test_a_dotted_key_in_a_file_is_named_as_one(tmp_path):
+    with pytest.raises(specs.SpecError, match=r"train.epochs: unknown key: a dotted key path is for --set and budgets; "
+                       r"in a file, nest it: `train: \{epochs: ...\}`"):
+        specs.load(write(tmp_path, VALID + "train.epochs: 5\n"))
+
+
+def test_every_budget_of_the_file_is_checked_whichever_is_chosen(tmp_path):
+    """A typo in the quick budget is named when the paper budget runs; a budget entry that
+    changes a kind restarts that section, as --set does, and its problems are the budget's."""
+    path = write(tmp_path, VALID + "budgets: {quick: {train.epoch: 5}}\n")
+    with pytest.raises(specs.SpecError, match=r"budgets.quick: train.epoch: unknown key; did you mean `epochs`"):
+        specs.load(path, "paper")
+    for entries, problem in (("{budgets.smoke: {}}", "budgets.smoke: a budget sets fields of the run's sections"),
+                             ("{a..b: 1}", "a..b: malformed key path"),
+                             ("{env.kind: overcooked}", "env.layout: missing: this key is required")):
+        with pytest.raises(specs.SpecError, match=re.escape(f"budgets.quick: {problem}")):
+            specs.load(write(tmp_path, VALID + f"budgets: {{quick: {entries}}}\n"), "quick")
+    switched = specs.load(write(tmp_path, VALID + "budgets: {quick: {method.kind: random}}\n"), "quick")
+    assert switched.method.kind == "random"
+
+
+def test_extends_that_cannot_be_followed_are_named(tmp_path):
+    (tmp_path / "l1.yaml").symlink_to(tmp_path / "l2.yaml")
+    (tmp_path / "l2.yaml").symlink_to(tmp_path / "l1.yaml")
+    (tmp_path / "loop.yaml").write_text("extends: l1.yaml\n")
+    (tmp_path / "nul.yaml").write_text('extends: "a\\0b.yaml"\n')
+    for name, problem in (("loop", "extends: cannot follow 'l1.yaml'"), ("nul", "extends: cannot follow")):
+        with pytest.raises(specs.SpecError, match=problem):
+            specs.load(tmp_path / f"{name}.yaml")
+    write(tmp_path, VALID, "d0.yaml")
+    for i in range(1, specs.MAX_EXTENDS + 1):
+        (tmp_path / f"d{i}.yaml").write_text(f"extends: d{i - 1}.yaml\n")
+    assert specs.load(tmp_path / f"d{specs.MAX_EXTENDS - 1}.yaml").name == "t"
+    with pytest.raises(specs.SpecError, match=f"d{specs.MAX_EXTENDS}.yaml: extends: a chain of more than"):
+        specs.load(tmp_path / f"d{specs.MAX_EXTENDS}.yaml")

@@ -258,3 +258,20 @@ def test_an_unfinished_longer_run_gives_a_shorter_one_its_checkpoint(tmp_path, r
     for a, b in zip(final_arrays(path), want_state):
         np.testing.assert_array_equal(a, b)
     assert len(partials(store)) == 1  # the 3-epoch run is still there to be resumed
+
+
+def test_a_human_cloned_from_episodes_the_store_lacks_is_refused_before_anything_is_written(tmp_path):
+    """The played episodes are looked up before any artifact begins: nothing of the data, the
+    human or the run is left half-made (no partial, no lock) by a mistyped key."""
+    from rich.console import Console
+
+    from esr_cli import spec as specs
+    from esr_cli.artifacts import ensure
+    from esr_cli.human_runs import human_recipe
+    from esr_cli.store import Store, StoreError
+
+    spec = specs.load(ROOT / "experiments/cramped_room.yaml", "smoke", ["human.data=[0123456789abcdef0123456789abcdef]"])
+    store = Store(tmp_path / "store")
+    with pytest.raises(StoreError, match="played episode 0123456789ab is not in"):
+        ensure(human_recipe(spec.human, spec.env.layout, Console(quiet=True)), store)
+    assert [p for p in (tmp_path / "store").rglob("*") if p.is_file()] == []

@@ -70,7 +70,7 @@ BAD = {
     "buffer too small": (GOOD + "learner: {buffer_size: 100}\n", "", "cannot hold one epoch"),
     "unreachable entropy": (GOOD + "learner: {target_entropy: 4.83}\n", "", "ln 125 = 4.828 nats"),
     "unknown kind": (GOOD.replace("kind: esr", "kind: magic"), "method", "kind"),
-    "missing section": ("name: t\nenv: {kind: gridworld}\nhuman: {kind: noisy_greedy}\n", "method", "Field required"),
+    "missing section": ("name: t\nenv: {kind: gridworld}\nhuman: {kind: noisy_greedy}\n", "method", "missing: this key is required"),
     "duplicate seeds": (GOOD + "train: {seeds: [1, 1]}\n", "train.seeds", "distinct"),
     "unreadable yaml": ("name: t\nenv: {kind: gridworld\n", "", "unreadable YAML"),
     "not a mapping": ("- 1\n- 2\n", "", "mapping"),

@@ -88,6 +88,9 @@ def test_baselines_quick_suite_is_every_method_on_grid_2_and_grid_5_with_five_se
     (f"specs: [{GRID_2}]\nslurm: {{gpu: 1}}\n", "slurm.gpu", "unknown key; did you mean `gpus`?"),
     (f"specs: [{{spce: {GRID_2}}}]\n", "specs[0].spce", "unknown key; did you mean `spec`?"),
     ("name: t\nenv: {kind: gridworld}\nmethod: {kind: esr}\n", "", "this is a spec file, not a suite"),
+    (f"specs: [{ROOT / 'experiments/suites/gridworld.yaml'}]\n", "specs[0].spec", "is a suite, not a spec file"),
+    (f"specs: [{GRID_2}]\nslurm: {{setup: 'module load x'}}\n", "slurm.setup", "expected a list"),
+    (f"specs: [{GRID_2}]\nset: {{1: 2}}\n", "", "the key 1 is not a name"),
 ])
 def test_bad_suites_name_the_key(tmp_path, text, where, problem):
     path = write_suite(tmp_path, text)
@@ -114,6 +117,17 @@ def test_bad_suite_exits_2_before_any_work(tmp_path):
     assert not store.exists()
     proc = esr("sweep", str(seeds_suite(tmp_path, 1)), "--executor", "nope", store=store, check=False, **WIDE)
     assert proc.returncode == 2 and "unknown executor 'nope'" in proc.stderr and not store.exists()
+
+
+def test_a_local_sweep_checks_every_runs_memory_before_the_first_trains(tmp_path):
+    """The second run would not fit: the sweep stops before the first one trains."""
+    store = tmp_path / "store"
+    path = write_suite(tmp_path, f"specs: [{GRID_2}]\ngrid: {{learner.buffer_size: [1000, 50000000000]}}\n")
+    proc = esr("sweep", str(path), "--budget", "smoke", store=store, check=False, **WIDE)
+    assert proc.returncode == 2, proc.stderr
+    assert "too large for this machine" in proc.stderr and "learner.buffer_size=50000000000" in proc.stderr
+    assert "nothing of the suite has run" in proc.stderr
+    assert not list(store.rglob("*.partial")) and not list(store.rglob("manifest.json"))
 
 
 def test_sweep_through_submitit_local(smoke_run, tmp_path):

@@ -229,7 +229,7 @@ def test_export_names_a_missing_artifact(tmp_path):
 
 def test_export_refuses_a_target_that_is_not_a_file_before_any_work(smoke_run, tmp_path):
     store, path, _ = smoke_run
-    pipe = tmp_path / "pipe"
+    pipe = tmp_path / "pipe.tar.gz"
     os.mkfifo(pipe)
     for target, message in ((pipe, "not a regular file"), (tmp_path / "no" / "x.tar.gz", "no directory")):
         proc = esr("export", path.name[:8], "--out", str(target), store=store, check=False)
