@@ -69,14 +69,15 @@ class SlurmOptions(_Model):
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    partition: Optional[str] = None
-    account: Optional[str] = None
-    qos: Optional[str] = None
-    time_min: int = Field(720, ge=1, le=366 * 24 * 60, description="wall-clock limit of one job, minutes")
-    gpus: int = Field(1, ge=0, le=64, description="GPUs per job")
-    cpus: int = Field(8, ge=1, le=4096, description="CPU cores per job")
-    mem_gb: float = Field(32, gt=0, le=65_536, description="memory per job, GB")
-    array_parallelism: int = Field(64, ge=1, le=MAX_RUNS, description="at most this many jobs of the array run at once")
+    # The spec's number types: `gpus: true` or `gpus: "2"` is a mistake to name, not a 1 or a 2.
+    partition: Optional[str] = Field(None, min_length=1)
+    account: Optional[str] = Field(None, min_length=1)
+    qos: Optional[str] = Field(None, min_length=1)
+    time_min: specs.Int = Field(720, ge=1, le=366 * 24 * 60, description="wall-clock limit of one job, minutes")
+    gpus: specs.Int = Field(1, ge=0, le=64, description="GPUs per job")
+    cpus: specs.Int = Field(8, ge=1, le=4096, description="CPU cores per job")
+    mem_gb: specs.Float = Field(32, gt=0, le=65_536, description="memory per job, GB")
+    array_parallelism: specs.Int = Field(64, ge=1, le=MAX_RUNS, description="at most this many jobs of the array run at once")
     setup: tuple[str, ...] = Field((), description="shell lines run before each job (module load, ...)")
     additional: dict[str, Any] = Field(default_factory=dict, description="extra sbatch options, e.g. {constraint: a100}")
 

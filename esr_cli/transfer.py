@@ -155,6 +155,11 @@ def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path],
     final, partial = store.final_path(kind, key), store.partial_path(kind, key)
     if store.lookup(kind, key):  # already here: like a cache hit, nothing to do
         return Moved(kind, key, "complete", 0, final)
+    unpacked = sum(m.size for m in members if m.isfile())
+    free = shutil.disk_usage(store.root).free
+    if unpacked > free:  # the headers' sizes, known before a byte is written
+        raise StoreError(f"{archive} unpacks to {unpacked / (1 << 20):,.1f} MiB but the store's disk has "
+                         f"{free / (1 << 20):,.1f} MiB free")
     made += [d for d in (final.parent.parent, final.parent) if not d.exists()]
     final.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=".import-", dir=final.parent) as tmp:

@@ -396,7 +396,11 @@ def test_sweep_results_refuses_an_unknown_metric(tmp_path):
 @pytest.mark.parametrize("slurm, problem", [("mem_gb: .inf", "slurm.mem_gb: Input should be a finite number"),
                                             ("mem_gb: .nan", "slurm.mem_gb: Input should be a finite number"),
                                             ("time_min: 100000000", "slurm.time_min: Input should be less than or equal"),
-                                            ("gpus: 100000", "slurm.gpus: Input should be less than or equal")])
+                                            ("gpus: 100000", "slurm.gpus: Input should be less than or equal"),
+                                            ("gpus: true", "slurm.gpus: expected an integer, got the boolean true"),
+                                            ("gpus: '2'", "slurm.gpus: expected an integer, got the text '2'"),
+                                            ("partition: ''", "slurm.partition: String should have at least 1 character"),
+                                            ("setup: 'module load x'", "slurm.setup: expected a list")])
 def test_slurm_options_refuse_non_finite_and_absurd_values(tmp_path, slurm, problem):
     p = write(tmp_path, f"specs: [{GRID_2}]\nslurm: {{{slurm}}}\n", "suite.yaml")
     with pytest.raises(suites.SuiteError, match=problem) as e:

@@ -235,3 +235,18 @@ def test_export_refuses_a_target_that_is_not_a_file_before_any_work(smoke_run, t
         proc = esr("export", path.name[:8], "--out", str(target), store=store, check=False)
         assert proc.returncode == 2 and message in proc.stderr and "Traceback" not in proc.stderr
     assert pipe.exists() and not pipe.is_file() and not (tmp_path / "no").exists()
+
+
+def test_an_archive_larger_than_the_free_disk_is_refused_before_it_is_unpacked(smoke_run, tmp_path, monkeypatch):
+    """The members' sizes in the tar headers are summed first: a small archive of zeros that
+    would unpack past the free space writes nothing."""
+    import esr_cli.transfer as transfer
+
+    store, path, _ = smoke_run
+    archive = tmp_path / "run.tar.gz"
+    esr("export", path.name[:8], "--out", str(archive), store=store)
+    monkeypatch.setattr(transfer.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(10**9, 10**9, 1000))
+    other = tmp_path / "other"
+    with pytest.raises(StoreError, match=r"unpacks to [\d.,]+ MiB but the store's disk has 0.0 MiB free"):
+        import_archive(Store(other), archive)
+    assert not [p for p in other.rglob("*") if p.is_file()]
