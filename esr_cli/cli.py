@@ -807,6 +807,9 @@ def import_(
     one step; an unfinished run continues with the command that started it."""
     from esr_cli.transfer import import_archive
 
+    folders = [str(a) for a in archives if a.is_dir()]
+    if folders:
+        raise Exit(2, f"{', '.join(folders)}: a directory, not an archive (`esr export` writes a .tar.gz file)")
     missing = [str(a) for a in archives if not a.is_file()]
     if missing:
         raise Exit(2, f"no archive {', '.join(missing)}")

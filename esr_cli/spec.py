@@ -579,6 +579,8 @@ def parse_override(text: str) -> tuple[str, Any]:
     if "=" not in text:
         raise SpecError("--set", text, "expected key.path=value")
     path, raw = text.split("=", 1)
+    if not path.strip():
+        raise SpecError("--set", text[:60], "no key path before '=': expected key.path=value")
     if "[" in path:
         name = path.split("[")[0].strip()
         raise SpecError("--set", path.strip(), f"a list is set whole, not item by item: --set {name}=[...]")

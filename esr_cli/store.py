@@ -193,7 +193,9 @@ class Store:
         if (p / MANIFEST).is_file() or (include_partial and status == "partial" and p.is_dir()):
             return Entry(p.parent.parent.name, key, p, status, read_pending(p) if status == "partial" else None)
         if not re.fullmatch(r"[0-9a-f]{4,32}", ref):
-            raise StoreError(f"no artifact {ref!r}: give a path to an artifact directory or a key (at least 4 hex digits)")
+            spec = next((q for q in (p.with_name(p.name + ".yaml"), p.with_name(p.name + ".yml")) if q.is_file()), None)
+            hint = f" (the spec file is {spec})" if spec else ""
+            raise StoreError(f"no artifact {ref!r}: give a path to an artifact directory or a key (at least 4 hex digits)" + hint)
         hits = [e for e in self.entries() if e.key.startswith(ref) and (include_partial or e.status == "complete")]
         hits = [e for e in hits if e.status == "complete"] or hits
         if not hits:

@@ -126,6 +126,8 @@ def import_archive(store: Store, archive: Path, without_checkpoint: bool = False
     its logged epochs, e.g. what came back from a machine that could not send its checkpoint),
     so that reports and figures read it; training it again starts from epoch 0."""
     archive = Path(archive)
+    if archive.is_dir():
+        raise StoreError(f"{archive}: a directory, not an archive (`esr export` writes a .tar.gz file)")
     if not archive.is_file():
         raise StoreError(f"no archive {archive}")
     try:

@@ -55,7 +55,8 @@ class _BoundedLoader(yaml.SafeLoader):
             except TypeError:  # an unhashable key: PyYAML's own error follows
                 first = None
             if first is not None:
-                raise YamlInputError(f"key {key!r} appears twice in one mapping (lines {first} and {line}); keep one")
+                where = f"line {line}" if first == line else f"lines {first} and {line}"
+                raise YamlInputError(f"key {key!r} appears twice in one mapping ({where}); keep one")
             if not isinstance(key, str):  # `1:`, `true:` or `null:` would read as a list index or None
                 shown = (key_node.value or "(empty)") if isinstance(key_node, yaml.ScalarNode) else "a list or mapping"
                 raise YamlInputError(f"line {line}: the key {shown:.40} is not a name: keys are text "

@@ -721,3 +721,16 @@ def test_extends_that_cannot_be_followed_are_named(tmp_path):
     assert specs.load(tmp_path / f"d{specs.MAX_EXTENDS - 1}.yaml").name == "t"
     with pytest.raises(specs.SpecError, match=f"d{specs.MAX_EXTENDS}.yaml: extends: a chain of more than"):
         specs.load(tmp_path / f"d{specs.MAX_EXTENDS}.yaml")
+
+
+def test_small_slips_get_messages_that_point_at_them(tmp_path, capsys):
+    """A spec path without .yaml where a run is expected, an empty key path, a key twice on one
+    line, a folder given as an archive."""
+    cases = ((["eval", "experiments/grid_2"], "(the spec file is experiments/grid_2.yaml)"),
+             (["train", "experiments/grid_2.yaml", "--set", "=1"], "--set: =1: no key path before '='"),
+             (["train", str(write(tmp_path, "a: {b: 1, b: 2}\n"))], "key 'b' appears twice in one mapping (line 1)"),
+             (["import", str(tmp_path / "x.tar.gz")], "x.tar.gz: a directory, not an archive"))
+    (tmp_path / "x.tar.gz").mkdir()
+    for args, problem in cases:
+        assert main(["--store", str(tmp_path / "store"), *args]) == 2
+        assert problem in capsys.readouterr().err
