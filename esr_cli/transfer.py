@@ -197,6 +197,7 @@ def _first_line(e: Exception) -> str:
 def _checked_members(tar: tarfile.TarFile, archive: Path) -> tuple[str, str, list[tarfile.TarInfo]]:
     """The archive's members, all plain files or folders inside one `<kind>/<kk>/<key>[.partial]`."""
     members, total, top = [], 0, None
+    files: set[tuple[str, ...]] = set()
     for m in tar:
         if len(members) >= MAX_MEMBERS:
             raise StoreError(f"{archive} has more than {MAX_MEMBERS:,} members: not an esr artifact")
@@ -215,6 +216,11 @@ def _checked_members(tar: tarfile.TarFile, archive: Path) -> tuple[str, str, lis
             top = head
         elif head != top:
             raise StoreError(f"{archive} holds more than one artifact ({'/'.join(top)} and {'/'.join(head)}): export one per archive")
+        here = tuple(parts)
+        if here in files or any(here[:i] in files for i in range(4, len(here))):
+            raise StoreError(f"{archive}: member {m.name!r} repeats a file or lies inside one: not an esr artifact")
+        if m.isfile():
+            files.add(here)
         total += max(m.size, 0)
         if total > MAX_BYTES:
             raise StoreError(f"{archive} unpacks to more than {MAX_BYTES >> 30} GiB: not an esr artifact")

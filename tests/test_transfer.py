@@ -140,6 +140,8 @@ def _pending(**fields) -> bytes:
         ([(f"{RUN_DIR}.partial/pending.json", b"[]")], "pending.json is not a JSON object"),
         ([(f"{RUN_DIR}.partial/pending.json", b"{}")], "pending.json names key 'None'"),
         ([], "holds no artifact"),
+        ([(f"{RUN_DIR}/a", b"x"), (f"{RUN_DIR}/a/b", b"y")], "member .*a/b' repeats a file or lies inside one"),
+        ([(f"{RUN_DIR}/a", b"x"), (f"{RUN_DIR}/a", b"y")], "member .*/a' repeats a file or lies inside one"),
     ],
 )
 def test_a_bad_archive_is_refused_and_changes_nothing(tmp_path, members, message):
