@@ -17,6 +17,7 @@ key (or compare two) without touching the store.
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -93,6 +94,12 @@ def ensure(recipe: Recipe, store: Store) -> Built:
             # writes pending.json afresh, without this mark.
             why = "interrupted" if isinstance(e, Interrupted) else "its time limit"
             store.begin(recipe.kind, key, {**record, "stopped": {"epoch": e.epoch, "why": why, "at": provenance.now_iso()}})
+            raise
+        except BaseException:
+            # Only a training run resumes from what it wrote; any other artifact (an evaluation,
+            # a figure, a cloned human) starts again, so an interrupted or failed one leaves nothing.
+            if recipe.kind != RUN_KIND:
+                shutil.rmtree(out, ignore_errors=True)
             raise
         if recipe.summary_file:
             atomic_write_text(out / SUMMARY_FILE, json.dumps(summary, indent=2, default=float))

@@ -8,6 +8,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import signal
 import sys
 import tempfile
 from pathlib import Path
@@ -850,14 +851,40 @@ def global_options_first(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = global_options_first(sys.argv[1:] if argv is None else list(argv))
+    debug = "--debug" in argv
+    # SIGTERM (kill, timeout, a scheduler) ends any command with a message and its cleanup (an
+    # unfinished evaluation or figure is removed); the training loop installs its own handler,
+    # which saves at the next chunk boundary first.
+    try:
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    except ValueError:  # called from a thread other than the main one: leave signals alone
+        previous = None
+    try:
+        return _run(argv, debug)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+class Terminated(Exception):
+    """SIGTERM arrived outside the training loop."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
+
+
+def _run(argv: list[str], debug: bool) -> int:
     from esr_cli.core.stops import CorruptCheckpoint, Diverged, Interrupted, TimeLimitReached
     from esr_cli.resources import ResourceError
 
-    argv = global_options_first(sys.argv[1:] if argv is None else list(argv))
-    debug = "--debug" in argv
     try:
         app(args=argv, standalone_mode=False)
         return 0
+    except KeyboardInterrupt:  # Ctrl-C outside the CLI library's own handling (while importing, say)
+        err.print("interrupted")
+        return 130
     except SystemExit as e:  # typer/click's own exits (e.g. --help)
         return int(e.code or 0)
     except Exception as e:  # noqa: BLE001 - every failure becomes one line unless --debug
@@ -886,8 +913,8 @@ def main(argv: list[str] | None = None) -> int:
             code, msg = 1, str(e)
         elif isinstance(e, Diverged):
             code, msg = 1, f"run diverged: {e} (the partial run is kept for inspection)"
-        elif isinstance(e, KeyboardInterrupt):
-            code, msg = 130, "interrupted"
+        elif isinstance(e, Terminated):
+            code, msg = 143, "terminated (SIGTERM)"
         elif isinstance(e, OSError) and e.errno == errno.ENAMETOOLONG:  # a path given on the command line
             name = str(e.filename or "")
             code, msg = 2, f"file name too long: {name[:60]}{'...' if len(name) > 60 else ''} (at most 255 bytes per component)"

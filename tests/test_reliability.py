@@ -275,3 +275,21 @@ def test_a_human_cloned_from_episodes_the_store_lacks_is_refused_before_anything
     with pytest.raises(StoreError, match="played episode 0123456789ab is not in"):
         ensure(human_recipe(spec.human, spec.env.layout, Console(quiet=True)), store)
     assert [p for p in (tmp_path / "store").rglob("*") if p.is_file()] == []
+
+
+def test_an_evaluation_stopped_by_sigterm_says_so_and_leaves_nothing_half_made(smoke_run, tmp_path):
+    """Only a training run resumes from what it wrote: an evaluation ended by SIGTERM exits
+    143 with one line and its partial directory is removed."""
+    store, path, _ = smoke_run
+    mine = tmp_path / "store"
+    shutil.copytree(path, mine / "runs" / path.parent.name / path.name)
+    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli", "eval", path.name[:8], "--episodes", "1000000"],
+                            cwd=ROOT, env=esr_env(mine), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 300
+    while not list((mine / "evals").rglob("pending.json")):
+        assert proc.poll() is None and time.time() < deadline, proc.communicate()
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143 and "terminated (SIGTERM)" in err, err
+    assert not list((mine / "evals").rglob("*.partial"))
