@@ -638,7 +638,8 @@ def ls():
         )
         n += 1
     if n == 0:
-        err.print(f"store {STATE.store.root} is empty")
+        err.print(f"store {STATE.store.root} is empty" if STATE.store.root.is_dir() else
+                  f"no store at {STATE.store.root} (nothing has been made there yet)")
         return
     out.print(table)
     if damaged:
@@ -763,7 +764,11 @@ def show(ref: str = typer.Argument(..., help="artifact key, key prefix or path",
 @app.command()
 def verify(ref: Optional[str] = typer.Argument(None, help="artifact key or path (default: every artifact)")):
     """Re-hash every file of an artifact against its manifest."""
-    paths = [STATE.store.resolve(ref)] if ref else [e.path for e in STATE.store.entries() if e.status == "complete"]
+    if ref is None and not STATE.store.root.is_dir():
+        raise Exit(2, f"no store at {STATE.store.root}: nothing to verify")
+    paths = [STATE.store.resolve(ref)] if ref is not None else [e.path for e in STATE.store.entries() if e.status == "complete"]
+    if not paths:
+        err.print(f"store {STATE.store.root} holds no finished artifact to verify")
     bad = 0
     for p in paths:
         problems = STATE.store.verify(p)

@@ -188,10 +188,20 @@ class Store:
     def find(self, ref: str, include_partial: bool = False) -> Entry:
         """The artifact a key, a unique key prefix (>= 4 hex digits) or a directory names; with
         include_partial, an unfinished one too (where a key is both, the committed one)."""
+        if not ref.strip():
+            raise StoreError("an empty key: give an artifact's key (at least 4 hex digits), a unique prefix or its directory")
         p = Path(ref)
         key, status = parse_dirname(p.name)
         if (p / MANIFEST).is_file() or (include_partial and status == "partial" and p.is_dir()):
             return Entry(p.parent.parent.name, key, p, status, read_pending(p) if status == "partial" else None)
+        if status == "partial" and p.is_dir():
+            raise StoreError(f"{p} is unfinished (no manifest yet): `esr ls` shows how far it got")
+        inside = next((q for q in p.parents if (q / MANIFEST).is_file() or parse_dirname(q.name)[1] == "partial"), None)
+        if p.is_file() and inside is not None:
+            raise StoreError(f"{ref} is a file inside the artifact {inside}: give that directory or its key")
+        if re.fullmatch(r"[0-9a-fA-F]{33,}", ref):
+            raise StoreError(f"{ref[:40]!r} has {len(ref)} hex digits: a key has 32")
+        ref = ref.lower() if re.fullmatch(r"[0-9a-fA-F]{4,32}", ref) else ref  # keys are written in lower case
         if not re.fullmatch(r"[0-9a-f]{4,32}", ref):
             spec = next((q for q in (p.with_name(p.name + ".yaml"), p.with_name(p.name + ".yml")) if q.is_file()), None)
             hint = f" (the spec file is {spec})" if spec else ""
@@ -199,6 +209,11 @@ class Store:
         hits = [e for e in self.entries() if e.key.startswith(ref) and (include_partial or e.status == "complete")]
         hits = [e for e in hits if e.status == "complete"] or hits
         if not hits:
+            unfinished = [] if include_partial else [e for e in self.entries() if e.key.startswith(ref)]
+            if unfinished:
+                e = unfinished[0]
+                raise StoreError(f"{e.kind} {e.key[:12]} in store {self.root} is unfinished (no manifest yet): "
+                                 "`esr ls` shows how far it got")
             raise StoreError(f"no artifact with key {ref!r} in store {self.root}")
         if len(hits) > 1:
             raise StoreError(f"key prefix {ref!r} is ambiguous: {', '.join(f'{e.kind}/{e.key[:12]}' for e in hits)}")

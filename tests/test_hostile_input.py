@@ -2,6 +2,7 @@
 mistake, resources checked before anything is compiled or written (docs/reliability.md)."""
 
 import copy
+import json
 import os
 import re
 import time
@@ -734,3 +735,20 @@ def test_small_slips_get_messages_that_point_at_them(tmp_path, capsys):
     for args, problem in cases:
         assert main(["--store", str(tmp_path / "store"), *args]) == 2
         assert problem in capsys.readouterr().err
+
+
+def test_a_reference_that_names_no_finished_artifact_says_what_is_wrong(smoke_run, tmp_path, capsys):
+    store, path, _ = smoke_run
+    unfinished = tmp_path / "s" / "runs" / path.parent.name / f"{path.name}.partial"
+    unfinished.mkdir(parents=True)
+    (unfinished / "pending.json").write_text(json.dumps({"kind": "runs", "key": path.name, "name": "grid_2"}))
+    cases = (([store, "show", ""], "an empty key"), ([store, "verify", ""], "an empty key"),
+             ([store, "show", path.name + "dead"], "has 36 hex digits: a key has 32"),
+             ([store, "show", str(path / "spec.yaml")], "is a file inside the artifact"),
+             ([tmp_path / "s", "show", path.name[:8]], "is unfinished (no manifest yet)"),
+             ([tmp_path / "s", "verify", str(unfinished)], "is unfinished (no manifest yet)"),
+             ([tmp_path / "none", "verify"], "no store at"))
+    for (where, *args), problem in cases:
+        assert main(["--store", str(where), *args]) == 2, args
+        assert problem in capsys.readouterr().err, args
+    assert main(["--store", str(store), "show", path.name[:8].upper()]) == 0  # keys in either case
