@@ -647,6 +647,9 @@ def ls():
 
 
 # ---------------------------------------------------------------- play
+MAX_PLAY_EPISODES = 10_000  # a person plays each one: far above any study's session
+
+
 @app.command()
 def play(
     target: str = typer.Argument(..., help="a trained run (key or path) or a spec; with --robots, the spec only names the environment", show_default=False),
@@ -665,8 +668,8 @@ def play(
     """Play the human's part with trained robots; every episode is logged as a `play` artifact."""
     from esr_cli.play import session as ps
 
-    if episodes < 1:
-        raise Exit(2, f"--episodes: must be >= 1 (got {episodes})")
+    if not 1 <= episodes <= MAX_PLAY_EPISODES:
+        raise Exit(2, f"--episodes: between 1 and {MAX_PLAY_EPISODES:,} (got {episodes:,})")
     if not 0.5 <= fps <= 60:
         raise Exit(2, f"--fps: between 0.5 and 60 (got {fps})")
     if not 1024 <= port <= 65535:
