@@ -212,7 +212,7 @@ def sweep(
             out.print(str(p), highlight=False)
     done = sum(p is not None for p in result.paths)
     err.print(tagged(f"{done} of {len(result.paths)} run(s) done", "green", f"; {len(result.submitted)} "
-                     f"{'run' if executor == 'local' else 'submitted'} this time; `esr sweep --status {suite_file}` shows each"))
+                     f"{'run' if executor == 'local' else 'submitted'} this time; `{STATE.store.invocation()} sweep --status {suite_file} --budget {budget}` shows each"))
     if result.failed:
         raise Exit(1, f"{len(result.failed)} run(s) failed: " + "; ".join(f"{r.label}: {m}" for r, m in result.failed))
     if result.stopped:  # saved at their jobs' time budgets: resumable, like `esr train --stop-after`
@@ -265,7 +265,7 @@ def eval_(
     from esr_cli.stats import format_summary  # scipy: +0.9 s, only where a table needs it
 
     if spec_file:
-        run_path = runs.committed_run(spec, runs.train_command(target, budget, set_), STATE.store)
+        run_path = runs.committed_run(spec, runs.train_command(target, budget, set_, STATE.store), STATE.store)
     built = ensure(runs.eval_recipe(run_path, STATE.store, episodes, err, human, seat), STATE.store)
     path, summary, cached = built.path, built.summary(), built.cached
     partner = "" if human == "training" else f", with the {human.split(':')[0]} human {summary['human_key'][:8]}"

@@ -86,7 +86,7 @@ class PaperInputs:
         """The committed artifacts of `wanted` runs, or MissingRuns naming the commands."""
         runs = [self.run(stem, sets) for stem, sets in wanted]
         found = [self.store.lookup(RUN_KIND, r.key) for r in runs]
-        missing = [r.command(self.budget) for r, p in zip(runs, found) if p is None]
+        missing = [r.command(self.budget, self.store.invocation()) for r, p in zip(runs, found) if p is None]
         if missing:
             raise MissingRuns(figure, missing)
         return found

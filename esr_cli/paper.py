@@ -93,7 +93,7 @@ def suite_figure_recipe(suite, store: Store) -> Recipe:
     per environment) and their final-return table, keyed by the runs and the plotting code.
     Raises figs.MissingRuns; never trains."""
     found = [store.lookup(RUN_KIND, run.key) for run in suite.runs]
-    missing = [run.command(suite.budget) for run, p in zip(suite.runs, found) if p is None]
+    missing = [run.command(suite.budget, store.invocation()) for run, p in zip(suite.runs, found) if p is None]
     if missing:
         raise figs.MissingRuns(f"suite {suite.name}", missing)
     manifests = [store.read_manifest(p) for p in found]
@@ -148,7 +148,7 @@ def make_paper(store: Store, budget: str, executor: str, console: Console) -> Pa
         raise sweep.SweepError(f"{len(result.failed)} run(s) failed: " + "; ".join(f"{r.label}: {m}" for r, m in result.failed))
     if not result.complete:
         raise sweep.SweepError("runs were submitted; when they finish, run the same command again to draw the report "
-                               f"(`esr sweep --status {figs.PAPER_SUITE}` shows them)")
+                               f"(`{store.invocation()} sweep --status {figs.PAPER_SUITE} --budget {budget}` shows them)")
     return ensure_report(store, budget, console)
 
 

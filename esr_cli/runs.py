@@ -189,12 +189,12 @@ def find_run(target: str, budget: str, sets, store: Store) -> Path:
     """A committed run from a spec file (at budget/sets) or an artifact key/path."""
     if is_spec_file(target):
         spec = specs.load(Path(target), budget, list(sets or []))
-        return committed_run(spec, train_command(target, budget, sets), store)
+        return committed_run(spec, train_command(target, budget, sets, store), store)
     return stored_run(store, target)
 
 
-def train_command(spec_file: str, budget: str, sets) -> str:
-    return f"esr train {spec_file} --budget {budget}" + "".join(f" --set {s}" for s in (sets or []))
+def train_command(spec_file: str, budget: str, sets, store: Store) -> str:
+    return f"{store.invocation()} train {spec_file} --budget {budget}" + "".join(f" --set {s}" for s in (sets or []))
 
 
 def eval_key(run_manifest: dict, episodes: int, partner_key: str | None = None, seat: int | None = None) -> tuple[str, dict]:

@@ -21,6 +21,7 @@ import hashlib
 import json
 import os
 import re
+import shlex
 import shutil
 import time
 from contextlib import contextmanager
@@ -136,6 +137,14 @@ class Store:
 
     def lock_path(self, kind: str, key: str) -> Path:
         return self.root / kind / key[:2] / f"{key}.lock"
+
+    def invocation(self) -> str:
+        """`esr`, with `--store PATH` unless this is the store esr opens by default: a command
+        printed as a hint must reach the store the user named."""
+        default = Path(os.environ.get("ESR_STORE") or "artifacts")
+        if self.root.absolute() == default.absolute():
+            return "esr"
+        return f"esr --store {shlex.quote(str(self.root))}"
 
     def ensure_writable(self) -> None:
         try:

@@ -129,8 +129,9 @@ class Run:
     def label(self) -> str:
         return " ".join((self.spec.name, *self.sets))
 
-    def command(self, budget: str) -> str:
-        return f"esr train {self.spec_path} --budget {budget}" + "".join(f" --set '{s}'" for s in self.sets)
+    def command(self, budget: str, esr: str = "esr") -> str:
+        """The `esr train` line of this run; `esr`: how to call esr (Store.invocation)."""
+        return f"{esr} train {self.spec_path} --budget {budget}" + "".join(f" --set '{s}'" for s in self.sets)
 
 
 @dataclass(frozen=True)

@@ -277,7 +277,7 @@ def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESUL
             row.update(run_finals(r.path, tuple(m for m in metrics if m in logged)),
                        wall_s=store.read_manifest(r.path).get("wall_time_s"), path=str(r.path))
         else:
-            row["command"] = r.run.command(suite.budget)
+            row["command"] = r.run.command(suite.budget, store.invocation())
         out.append(row)
     return out
 

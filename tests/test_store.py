@@ -276,3 +276,14 @@ def test_ls_shows_a_runs_final_return_as_figures_and_reports_do(tmp_path):
     assert "43.50" in finished and "99.00" not in finished
     assert "43.50" in next(line for line in listed.splitlines() if "efefef" in line)
     assert "30 of 3,000" in next(line for line in listed.splitlines() if "efefef" in line)
+
+
+def test_a_printed_command_names_the_store_unless_it_is_the_default(tmp_path, monkeypatch):
+    monkeypatch.delenv("ESR_STORE", raising=False)
+    monkeypatch.chdir(tmp_path)
+    assert Store("artifacts").invocation() == "esr"
+    assert Store(tmp_path / "artifacts").invocation() == "esr"  # the same folder, written out
+    assert Store("my store").invocation() == "esr --store 'my store'"
+    monkeypatch.setenv("ESR_STORE", str(tmp_path / "elsewhere"))
+    assert Store(tmp_path / "elsewhere").invocation() == "esr"
+    assert Store("artifacts").invocation() == "esr --store artifacts"

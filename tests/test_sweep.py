@@ -246,7 +246,9 @@ def test_status_tells_running_failed_queued_missing(tmp_path):
     # --results names what is not done, with the command that makes it, and reads nothing else.
     res = sweep.results(suite, store)
     assert [row["state"] for row in res] == ["failed", "missing", "failed", "running", "missing", "stopped"]
-    assert res[4]["command"] == f"esr train {GRID_2} --budget smoke --set 'train.seeds=[4]'" and "return" not in res[4]
+    # the command reaches this store, which is not the default one
+    assert res[4]["command"] == f"esr --store {store.root} train {GRID_2} --budget smoke --set 'train.seeds=[4]'"
+    assert "return" not in res[4]
 
 
 def test_a_job_that_reaches_its_time_budget_returns_stopped_and_the_next_finishes(smoke_run, tmp_path):
