@@ -10,7 +10,6 @@ import json
 import os
 import signal
 import sys
-import tempfile
 from pathlib import Path
 from typing import List, Optional
 
@@ -21,7 +20,7 @@ from rich.text import Text
 from esr_cli import spec as specs, targets
 from esr_cli.artifacts import ensure
 from esr_cli.printing import plain_console, tagged
-from esr_cli.store import RUN_KIND, Store, StoreError
+from esr_cli.store import RUN_KIND, Store, StoreError, probe_writable
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -526,9 +525,8 @@ def _check_output_file(path: Path, option: str) -> None:
         if parent.exists():
             if not parent.is_dir():
                 raise Exit(2, f"{option}: {parent} is a file, not a directory")
-            try:  # the only sure test that a file can be made there (permissions, /proc, a read-only mount)
-                with tempfile.TemporaryFile(dir=parent):
-                    pass
+            try:
+                probe_writable(parent)
             except OSError as e:
                 raise Exit(2, f"{option}: cannot write in {parent}: {e.strerror or e}") from None
             break
@@ -814,14 +812,10 @@ def import_(
 ):
     """Put artifacts exported from another store into this one, each checked and then added in
     one step; an unfinished run continues with the command that started it."""
-    from esr_cli.transfer import import_archive
+    from esr_cli.transfer import check_archive, import_archive
 
-    folders = [str(a) for a in archives if a.is_dir()]
-    if folders:
-        raise Exit(2, f"{', '.join(folders)}: a directory, not an archive (`esr export` writes a .tar.gz file)")
-    missing = [str(a) for a in archives if not a.is_file()]
-    if missing:
-        raise Exit(2, f"no archive {', '.join(missing)}")
+    for archive in archives:  # every one readable before any is added
+        check_archive(archive)
     for archive in archives:
         moved = import_archive(STATE.store, archive, without_checkpoint)
         if moved.files == 0:

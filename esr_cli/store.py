@@ -23,6 +23,7 @@ import os
 import re
 import shlex
 import shutil
+import tempfile
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -111,6 +112,14 @@ class Entry:
     path: Path
     status: str  # complete | partial
     manifest: dict | None
+
+
+def probe_writable(path: Path) -> None:
+    """Raise OSError unless a file can be made in the nearest existing folder of `path`: the
+    only sure test (permissions, /proc, a read-only mount). Leaves nothing behind."""
+    here = next(p for p in (Path(path).absolute(), *Path(path).absolute().parents) if p.exists())
+    with tempfile.TemporaryFile(dir=here):
+        pass
 
 
 class Store:

@@ -126,14 +126,7 @@ def import_archive(store: Store, archive: Path, without_checkpoint: bool = False
     its logged epochs, e.g. what came back from a machine that could not send its checkpoint),
     so that reports and figures read it; training it again starts from epoch 0."""
     archive = Path(archive)
-    if archive.is_dir():
-        raise StoreError(f"{archive}: a directory, not an archive (`esr export` writes a .tar.gz file)")
-    if not archive.is_file():
-        raise StoreError(f"no archive {archive}")
-    try:
-        tar = tarfile.open(archive, "r:*")
-    except (tarfile.TarError, OSError, EOFError) as e:
-        raise StoreError(f"{archive} is not a tar archive ({_first_line(e)})") from None
+    tar = _open(archive)
     made = [] if store.root.is_dir() else [store.root]  # folders to remove again if it is refused
     try:
         with tar:
@@ -145,6 +138,27 @@ def import_archive(store: Store, archive: Path, without_checkpoint: bool = False
             except OSError:
                 pass
         raise
+
+
+def _open(archive: Path) -> tarfile.TarFile:
+    if archive.is_dir():
+        raise StoreError(f"{archive}: a directory, not an archive (`esr export` writes a .tar.gz file)")
+    if not archive.is_file():
+        raise StoreError(f"no archive {archive}")
+    try:
+        return tarfile.open(archive, "r:*")
+    except (tarfile.TarError, OSError, EOFError):
+        raise StoreError(f"{archive} is not a tar archive, or a damaged one (`esr export` writes them)") from None
+
+
+def check_archive(archive: Path) -> None:
+    """Raise StoreError unless `archive` reads to the end as one artifact's folder: what can be
+    known without unpacking it (`esr import` of several archives checks all before adding any)."""
+    with _open(Path(archive)) as tar:
+        try:
+            _checked_members(tar, archive)
+        except (tarfile.TarError, OSError, EOFError, zlib.error) as e:
+            raise StoreError(f"{archive} could not be read to the end ({_first_line(e)})") from None
 
 
 def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path], without_checkpoint: bool) -> Moved:

@@ -752,3 +752,8 @@ def test_a_reference_that_names_no_finished_artifact_says_what_is_wrong(smoke_ru
         assert main(["--store", str(where), *args]) == 2, args
         assert problem in capsys.readouterr().err, args
     assert main(["--store", str(store), "show", path.name[:8].upper()]) == 0  # keys in either case
+
+
+def test_a_store_where_nothing_can_be_written_is_named_before_any_work(capsys):
+    assert main(["--store", "/proc/esr", "train", "experiments/grid_2.yaml", "--budget", "smoke"]) == 2
+    assert "store /proc/esr is not writable" in capsys.readouterr().err

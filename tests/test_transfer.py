@@ -252,3 +252,13 @@ def test_an_archive_larger_than_the_free_disk_is_refused_before_it_is_unpacked(s
     with pytest.raises(StoreError, match=r"unpacks to [\d.,]+ MiB but the store's disk has 0.0 MiB free"):
         import_archive(Store(other), archive)
     assert not [p for p in other.rglob("*") if p.is_file()]
+
+
+def test_several_archives_are_all_checked_before_any_is_added(smoke_run, tmp_path):
+    store, path, _ = smoke_run
+    good, bad = tmp_path / "good.tar.gz", tmp_path / "bad.tar.gz"
+    esr("export", path.name[:8], "--out", str(good), store=store)
+    bad.write_bytes(b"not an archive at all")
+    proc = esr("import", str(good), str(bad), store=tmp_path / "other", check=False)
+    assert proc.returncode == 2 and "bad.tar.gz is not a tar archive, or a damaged one" in proc.stderr
+    assert not list((tmp_path / "other").glob("runs/*/*"))  # the good one waits for the bad one to be mended
