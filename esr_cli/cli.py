@@ -54,7 +54,7 @@ def main_options(
     store: Optional[str] = StoreOpt,  # text, not Path: Path("") would silently mean the current directory
     debug: bool = typer.Option(False, "--debug", help="show tracebacks"),
 ):
-    from esr_cli.provenance import matmul_precision
+    from esr_cli.provenance import compile_cache_dir, matmul_precision
 
     if store is not None and not store.strip():
         raise Exit(2, "--store: an empty path; give the store's directory (or leave --store out for $ESR_STORE or ./artifacts)")
@@ -66,6 +66,7 @@ def main_options(
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     try:
         matmul_precision()  # a bad setting stops every command before any work
+        compile_cache_dir()
     except ValueError as e:
         raise Exit(2, str(e)) from None
 

@@ -116,6 +116,17 @@ def matmul_precision() -> str:
     return value
 
 
+def compile_cache_dir() -> str | None:
+    """Where compiled XLA programs are kept ($ESR_COMPILE_CACHE, default ~/.cache/esr/jax), or
+    None when it is `off`; ValueError when it names something that is not a folder."""
+    where = os.environ.get("ESR_COMPILE_CACHE", str(Path.home() / ".cache" / "esr" / "jax"))
+    if where.strip().lower() in ("", "0", "off", "none"):
+        return None
+    if os.path.exists(where) and not os.path.isdir(where):
+        raise ValueError(f"ESR_COMPILE_CACHE={where!r} is not a folder: name a folder, or `off` to keep no compiled programs")
+    return where
+
+
 def apply_matmul_precision() -> str:
     """Set JAX's default matmul precision for this process (before anything compiles)."""
     import jax

@@ -36,8 +36,8 @@ def enable_compile_cache() -> None:
     `off` disables): resuming, evaluating or re-running a spec then skips most compile time.
     Also fixes the matmul precision (provenance.matmul_precision) before anything compiles."""
     provenance.apply_matmul_precision()
-    where = os.environ.get("ESR_COMPILE_CACHE", str(Path.home() / ".cache" / "esr" / "jax"))
-    if where.lower() in ("", "0", "off", "none"):
+    where = provenance.compile_cache_dir()
+    if where is None:
         return
     jax.config.update("jax_compilation_cache_dir", where)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)

@@ -757,3 +757,9 @@ def test_a_reference_that_names_no_finished_artifact_says_what_is_wrong(smoke_ru
 def test_a_store_where_nothing_can_be_written_is_named_before_any_work(capsys):
     assert main(["--store", "/proc/esr", "train", "experiments/grid_2.yaml", "--budget", "smoke"]) == 2
     assert "store /proc/esr is not writable" in capsys.readouterr().err
+
+
+def test_a_compile_cache_that_is_not_a_folder_is_named_before_any_work(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("ESR_COMPILE_CACHE", str(write(tmp_path, "x", "a_file")))
+    assert main(["--store", str(tmp_path / "s"), "train", "experiments/grid_2.yaml", "--budget", "smoke"]) == 2
+    assert "ESR_COMPILE_CACHE=" in capsys.readouterr().err and not (tmp_path / "s").exists()
