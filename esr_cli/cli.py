@@ -71,6 +71,15 @@ def main_options(
         raise Exit(2, str(e)) from None
 
 
+def _refuse_spec_options(target: str, budget: str, sets: Optional[List[str]]) -> None:
+    """A trained run's spec and budget are fixed: --set and --budget beside its key or path
+    would silently change nothing."""
+    for given, option in ((sets, "--set"), (budget != "paper", "--budget")):
+        if given:
+            raise Exit(2, f"{option} applies to a spec file target only; {target} is not a spec file but a "
+                          "run's key or path, whose spec and budget are fixed (name the spec file instead)")
+
+
 def _load_spec(path: Path, budget: str, sets: Optional[List[str]]):
     return specs.load(path, budget, list(sets or []))
 
@@ -253,11 +262,7 @@ def eval_(
     if spec_file:  # options that cannot fit the spec are named before "not trained yet"
         spec = _load_spec(Path(target), budget, set_)
     else:
-        # A trained run's spec and budget are fixed: these would silently change nothing.
-        for given, option in ((set_, "--set"), (budget != "paper", "--budget")):
-            if given:
-                raise Exit(2, f"{option} applies to a spec file target only; {target} is not a spec file but a "
-                              "run's key or path, whose spec and budget are fixed (name the spec file instead)")
+        _refuse_spec_options(target, budget, set_)
         run_path = targets.stored_run(STATE.store, target)
         spec = targets.run_spec(run_path)
     targets.partner_spec(targets.seat_spec(spec, seat)[0], human)
@@ -680,6 +685,8 @@ def play(
     refs = [r.strip() for r in robots.split(",") if r.strip()] if robots else []
     if robots is not None and not refs:
         raise Exit(2, "--robots: name at least one robot (a run key, path or spec, or `random`)")
+    if not any(targets.is_spec_file(r) for r in [target, *refs]):
+        _refuse_spec_options(target, budget, set_)
     if web:
         from esr_cli.play.web import PortInUse, Web
 

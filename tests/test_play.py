@@ -215,6 +215,7 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path):
         (["play", "experiments/grid_2.yaml", "--robots", ",", "--web"], "--robots: name at least one robot"),
         (["play", "experiments/grid_2.yaml", "--robots", "random"], "needs a terminal"),
         (["play", "deadbeef", "--episodes", "99999999999"], "--episodes: between 1 and 10,000"),
+        (["play", "deadbeef", "--budget", "smoke", "--web"], "--budget applies to a spec file target only"),
     ]:
         proc = esr(*args, store=tmp_path / "store", check=False, timeout=120)
         assert proc.returncode == 2 and message in proc.stderr, (args, proc.stderr)
