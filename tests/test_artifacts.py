@@ -55,20 +55,25 @@ def test_requires_come_first_and_a_failed_check_writes_nothing(tmp_path):
 
 
 def test_a_failed_build_commits_nothing_and_the_next_resumes_its_partial_directory(tmp_path):
+    """A training run resumes from what it wrote; any other kind leaves nothing and starts again."""
     store, calls = Store(tmp_path / "store"), []
     components = {"n": "run"}
     with pytest.raises(RuntimeError):
-        ensure(Recipe(FIGURE_KIND, "run", components, _writer(calls, "run", fail=True)), store)
-    key = Recipe(FIGURE_KIND, "run", components, _writer(calls, "run")).key
-    partial = store.partial_path(FIGURE_KIND, key)
-    assert store.lookup(FIGURE_KIND, key) is None and (partial / "run.txt").exists()
+        ensure(Recipe(RUN_KIND, "run", components, _writer(calls, "run", fail=True)), store)
+    key = Recipe(RUN_KIND, "run", components, _writer(calls, "run")).key
+    partial = store.partial_path(RUN_KIND, key)
+    assert store.lookup(RUN_KIND, key) is None and (partial / "run.txt").exists()
     assert json.loads((partial / "pending.json").read_text())["key_components"] == components
 
     def resume(out: Path, store: Store) -> dict:
         return {"found": (out / "run.txt").read_text()}  # what the interrupted build left
 
-    built = ensure(Recipe(FIGURE_KIND, "run", components, resume), store)
+    built = ensure(Recipe(RUN_KIND, "run", components, resume), store)
     assert built.summary() == {"found": "run"} and not partial.exists()
+    with pytest.raises(RuntimeError):
+        ensure(Recipe(FIGURE_KIND, "fig", components, _writer(calls, "fig", fail=True)), store)
+    figure_key = Recipe(FIGURE_KIND, "fig", components, _writer(calls, "fig")).key
+    assert not store.partial_path(FIGURE_KIND, figure_key).exists()
 
 
 def test_unknown_kind_is_refused():
