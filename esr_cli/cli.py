@@ -8,7 +8,6 @@ from __future__ import annotations
 import errno
 import json
 import os
-import signal
 import sys
 from pathlib import Path
 from typing import List, Optional
@@ -20,7 +19,8 @@ from rich.text import Text
 from esr_cli import spec as specs, targets
 from esr_cli.artifacts import ensure
 from esr_cli.printing import plain_console, tagged
-from esr_cli.store import RUN_KIND, Store, StoreError, probe_writable
+from esr_cli.stop_signals import Terminated, stop_signals_raise
+from esr_cli.store import RUN_KIND, Store, StoreError, nearest_existing, probe_writable
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -527,15 +527,13 @@ def _check_output_file(path: Path, option: str) -> None:
     below an existing file."""
     if path.is_dir():
         raise Exit(2, f"{option}: {path} is a directory; name a file")
-    for parent in path.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise Exit(2, f"{option}: {parent} is a file, not a directory")
-            try:
-                probe_writable(parent)
-            except OSError as e:
-                raise Exit(2, f"{option}: cannot write in {parent}: {e.strerror or e}") from None
-            break
+    parent = nearest_existing(path.parent)
+    if not parent.is_dir():
+        raise Exit(2, f"{option}: {parent} is a file, not a directory")
+    try:
+        probe_writable(parent)
+    except OSError as e:
+        raise Exit(2, f"{option}: cannot write in {parent}: {e.strerror or e}") from None
 
 
 @app.command("paper")
@@ -826,11 +824,15 @@ def import_(
         check_archive(archive)
     for archive in archives:
         moved = import_archive(STATE.store, archive, without_checkpoint)
-        if moved.files == 0:
+        if moved.files == 0 and moved.local_epoch is not None:
+            err.print(f"{moved.kind} {moved.key[:12]} is already unfinished in the store, at epoch {moved.local_epoch}: "
+                      "as far as the archive's or further, so it is kept and nothing is imported")
+        elif moved.files == 0:
             err.print(f"{moved.kind} {moved.key[:12]} is already in the store: nothing to import")
         else:
+            at = f", which was at epoch {moved.local_epoch}" if moved.local_epoch is not None else ""
             note = ("; a record without a checkpoint: training it again starts from epoch 0" if moved.record else
-                    "; it replaces this store's unfinished run of the same key" if moved.replaced_partial else "")
+                    f"; it replaces this store's unfinished run of the same key{at}" if moved.replaced_partial else "")
             err.print(tagged("imported", "green", f" {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files{note})"))
         out.print(str(moved.path), highlight=False)
 
@@ -863,26 +865,8 @@ def global_options_first(argv: list[str]) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     argv = global_options_first(sys.argv[1:] if argv is None else list(argv))
     debug = "--debug" in argv
-    # SIGTERM (kill, timeout, a scheduler) ends any command with a message and its cleanup (an
-    # unfinished evaluation or figure is removed); the training loop installs its own handler,
-    # which saves at the next chunk boundary first.
-    try:
-        previous = signal.signal(signal.SIGTERM, _on_sigterm)
-    except ValueError:  # called from a thread other than the main one: leave signals alone
-        previous = None
-    try:
+    with stop_signals_raise():  # any command ends with its cleanup and one line (esr_cli/stop_signals.py)
         return _run(argv, debug)
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
-
-
-class Terminated(Exception):
-    """SIGTERM arrived outside the training loop."""
-
-
-def _on_sigterm(signum, frame):
-    raise Terminated()
 
 
 def _run(argv: list[str], debug: bool) -> int:

@@ -24,7 +24,7 @@ from esr_cli.core.train import make_trainer
 from esr_cli.finals import read_rows
 from esr_cli.resources import check_run_fits
 from esr_cli.stats import describe
-from esr_cli.store import EVAL_KIND, HUMAN_KIND, LockBusy, RUN_KIND, Store, StoreError, atomic_write_text, content_key, probe_writable
+from esr_cli.store import EVAL_KIND, HUMAN_KIND, LockBusy, RUN_KIND, Store, StoreError, atomic_write_text, content_key, nearest_existing, probe_writable
 from esr_cli.targets import is_spec_file, partner_spec, run_spec, seat_spec, stored_run
 
 # Rough upper bound of a checkpoint per seed plus metrics, checked before a run starts.
@@ -91,7 +91,7 @@ def adopt_shorter_run(store: Store, key: str, components: dict, run_dir: Path, e
 
 def _check_disk(store: Store, spec) -> None:
     need = MIN_FREE_BYTES_PER_SEED * len(spec.train.seeds)
-    where = next(p for p in (store.root.absolute(), *store.root.absolute().parents) if p.exists())  # before it is made
+    where = nearest_existing(store.root)  # the store itself may not be made yet
     try:
         probe_writable(where)
     except OSError as e:

@@ -114,11 +114,17 @@ class Entry:
     manifest: dict | None
 
 
+def nearest_existing(path: Path) -> Path:
+    """`path` made absolute, or the nearest of its parents that exists: where a file or
+    folder meant for `path` is really made (or refused)."""
+    absolute = Path(path).absolute()
+    return next(p for p in (absolute, *absolute.parents) if os.path.exists(p))
+
+
 def probe_writable(path: Path) -> None:
     """Raise OSError unless a file can be made in the nearest existing folder of `path`: the
     only sure test (permissions, /proc, a read-only mount). Leaves nothing behind."""
-    here = next(p for p in (Path(path).absolute(), *Path(path).absolute().parents) if p.exists())
-    with tempfile.TemporaryFile(dir=here):
+    with tempfile.TemporaryFile(dir=nearest_existing(path)):
         pass
 
 
@@ -126,7 +132,7 @@ class Store:
     def __init__(self, root: str | Path):
         self.root = Path(root)
         # A file where the store (or a folder above it) should be would read as an empty store.
-        here = next(p for p in (self.root.absolute(), *self.root.absolute().parents) if os.path.exists(p))
+        here = nearest_existing(self.root)
         if here == self.root.absolute() and not here.is_dir():
             raise StoreError(f"store {self.root} is not a directory")
         if not here.is_dir():

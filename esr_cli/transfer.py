@@ -23,6 +23,8 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
+from esr_cli.checkpoint_files import CHECKPOINT_DIR, verified_steps
+from esr_cli.finals import read_rows
 from esr_cli.store import (KINDS, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, parse_dirname,
                            read_pending)
 
@@ -40,7 +42,8 @@ class Moved:
     status: str  # complete | partial
     files: int
     path: Path  # the archive written (export) or the artifact's directory (import)
-    replaced_partial: bool = False  # import: a finished archive took the place of a local unfinished run
+    replaced_partial: bool = False  # import: the archive took the place of a local unfinished run
+    local_epoch: int | None = None  # import over a local unfinished run: that run's checkpoint epoch
     record: bool = False  # import: an unfinished run without an intact checkpoint (--without-checkpoint)
 
 
@@ -92,8 +95,6 @@ def _find(store: Store, ref: str) -> tuple[str, str, Path, str]:
 def snapshot_partial(src: Path, stage: Path) -> None:
     """Copy an unfinished run with only its newest verified checkpoint. The run may be saving a
     newer one meanwhile (and deleting the oldest), so a copy that changed under it is retried."""
-    from esr_cli.checkpoint_files import CHECKPOINT_DIR, verified_steps
-
     for _ in range(SNAPSHOT_TRIES):
         shutil.rmtree(stage, ignore_errors=True)
         steps = verified_steps(src)
@@ -188,20 +189,30 @@ def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path],
         with store.lock(kind, key, wait=False):
             if store.lookup(kind, key):
                 return Moved(kind, key, "complete", 0, final)
-            if partial.exists() and status != "complete":
-                raise StoreError(f"{kind} {key[:12]} is already unfinished in store {store.root} ({partial}); "
-                                 "remove that directory first to replace it with the archive's")
+            # One key is one computation, so of two copies the one further along supersedes the
+            # other (the local run is not training now: this process holds its lock).
+            local_epoch = _checkpoint_epoch(partial) if partial.exists() else None
+            if status != "complete" and local_epoch is not None:
+                if local_epoch >= _checkpoint_epoch(stage):
+                    return Moved(kind, key, status, 0, partial, local_epoch=local_epoch)
+                # Moved aside into the temporary folder (removed with it) only now, just before
+                # the archive's copy takes its place.
+                partial.rename(Path(tmp) / "superseded")
             target = final if status == "complete" else partial
             stage.rename(target)
             fsync_dir(target.parent)
-            # One key is one computation: the finished artifact supersedes the local unfinished
-            # run of the same key (not training now: this process holds its lock). Removed only
-            # after the finished one is in place, so a kill between leaves both, never neither.
-            replaced = status == "complete" and partial.exists()
-            if replaced:
+            # A finished artifact is in place before the unfinished one goes: a kill between
+            # leaves both, never neither.
+            if status == "complete" and partial.exists():
                 shutil.rmtree(partial)
     files = sum(1 for p in target.rglob("*") if p.is_file())
-    return Moved(kind, key, status, files, target, replaced, record)
+    return Moved(kind, key, status, files, target, replaced_partial=local_epoch is not None,
+                 local_epoch=local_epoch, record=record)
+
+
+def _checkpoint_epoch(run_dir: Path) -> int:
+    """The epoch of an unfinished run's newest intact checkpoint; 0 without one."""
+    return next(iter(verified_steps(run_dir)), 0)
 
 
 def _first_line(e: Exception) -> str:
@@ -264,9 +275,6 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
             more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
             raise StoreError(f"{archive}: {kind}/{key[:2]}/{key}: {problems[0]}{more}; nothing imported")
         return False
-    from esr_cli.checkpoint_files import verified_steps
-    from esr_cli.finals import read_rows
-
     if not (stage / "pending.json").is_file():
         raise StoreError(f"{archive}: unfinished run {key[:12]} has no pending.json; nothing imported")
     pending = read_pending(stage)

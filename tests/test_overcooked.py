@@ -288,3 +288,19 @@ def test_per_seed_humans_are_one_clone_per_training_seed(cramped):
         make_human(spec.human, cramped, params, (3, 7, 9))
     with pytest.raises(specs.SpecError, match="per_seed with human.adapt is not supported"):
         specs.load("experiments/cramped_room.yaml", "smoke", ["human.per_seed=true", "human.adapt=true"])
+
+
+def test_jaxmarl_import_banner_is_dropped_and_nothing_reaches_stdout():
+    """jaxmarl announces its optional environments when imported; esr's stdout carries results,
+    so that banner is dropped, and anything else printed from jaxmarl code goes to stderr."""
+    import subprocess
+    import sys
+
+    code = ("from esr_cli.envs.overcooked import jaxmarl_env, quiet_jaxmarl\n"
+            "jaxmarl_env('cramped_room', 400)\n"
+            "with quiet_jaxmarl():\n"
+            "    print('from jaxmarl')\n"
+            "print('result')\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
+    assert proc.stdout == "result\n"
+    assert "from jaxmarl" in proc.stderr.splitlines() and "ubmoduled" not in proc.stderr

@@ -388,4 +388,15 @@ def test_overcooked_episodes_export_to_the_human_data_schema_and_replay(tmp_path
 
     again = pd.read_pickle(tmp_path / "out" / "p9.pickle")
     assert list(again["joint_action"]) == list(frame["joint_action"])
+    # As a human's data: the person's view of each logged state and their action, on this
+    # layout only; one episode leaves no test split.
+    from esr_cli.humans import play_data
+
+    data = play_data.convert([built.path], "cramped_room")
+    np.testing.assert_array_equal(data["action"], [s["human_action"] for s in logged_steps(built.path)])
+    states = jax.tree.map(lambda *xs: np.stack(xs), *logged)
+    np.testing.assert_array_equal(data["obs"], np.asarray(jax.vmap(env.observe_human)(states), np.uint8))
+    assert (data["player"] == 1).all() and not data["test"].any() and (data["game"] == 0).all()
+    with pytest.raises(play_data.PlayDataError, match="is not an Overcooked episode on coord_ring"):
+        play_data.convert([built.path], "coord_ring")
     assert esr("plays", "--participant", "nobody", store=tmp_path, check=False).returncode == 1

@@ -277,6 +277,48 @@ def test_a_human_cloned_from_episodes_the_store_lacks_is_refused_before_anything
     assert [p for p in (tmp_path / "store").rglob("*") if p.is_file()] == []
 
 
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+@pytest.mark.parametrize("where", ["gc-callback", "finalizer"])
+def test_a_stop_signal_where_python_ignores_exceptions_is_not_lost(sig, where):
+    """Python ignores an exception raised in a gc callback (jax registers one), a weakref
+    callback or a finalizer; Ctrl-C or a SIGTERM handled there must still end the command,
+    a moment later."""
+    import gc
+    import os
+
+    from esr_cli.stop_signals import Terminated, stop_signals_raise
+
+    sent = []
+
+    def send_and_linger():
+        if not sent:
+            sent.append(True)
+            os.kill(os.getpid(), sig)  # handled at the next bytecode, still in here
+            sum(range(10_000))
+
+    class Finalized:
+        def __del__(self):
+            send_and_linger()
+
+    def callback(phase, info):
+        if phase == "start":
+            send_and_linger()
+
+    gc.callbacks.append(callback)
+    try:
+        with pytest.raises(KeyboardInterrupt if sig == signal.SIGINT else Terminated), stop_signals_raise():
+            if where == "gc-callback":
+                gc.collect()
+            else:
+                Finalized()  # dropped at once: __del__ runs here
+            deadline = time.monotonic() + 10
+            while time.monotonic() < deadline:
+                time.sleep(0.01)
+    finally:
+        gc.callbacks.remove(callback)
+    assert sent
+
+
 def test_an_evaluation_stopped_by_sigterm_says_so_and_leaves_nothing_half_made(smoke_run, tmp_path):
     """Only a training run resumes from what it wrote: an evaluation ended by SIGTERM exits
     143 with one line and its partial directory is removed."""

@@ -63,8 +63,16 @@ def test_an_unfinished_run_moves_and_resumes_to_the_uninterrupted_result(smoke_r
     assert all(n.startswith(f"runs/{part.name[:2]}/{part.name}/") for n in names)
 
     there = tmp_path / "there"
-    esr("import", str(archive), store=there)
-    assert [p.name for p in partials(there)] == [part.name]
+    # A copy that never reached a checkpoint is superseded; importing the same archive again
+    # keeps what is there (as far along), and the run resumes from it either way.
+    key = part.name.removesuffix(".partial")
+    stale = Store(there).begin("runs", key, {"kind": "runs", "name": "grid_2", "key": key})
+    replaced = esr("import", str(archive), store=there)
+    assert "replaces this store's unfinished run of the same key, which was at epoch 0" in " ".join(replaced.stderr.split())
+    again = esr("import", str(archive), store=there)
+    assert "already unfinished in the store, at epoch 1" in " ".join(again.stderr.split())
+    assert Path(again.stdout.strip()) == stale and [p.name for p in partials(there)] == [part.name]
+    assert not [p for p in stale.parent.iterdir() if p.name.startswith(".import-")]
     resumed = esr(*SMOKE, store=there)
     assert "resuming" in resumed.stderr
     path = Path(resumed.stdout.strip())

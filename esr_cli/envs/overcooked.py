@@ -15,8 +15,10 @@
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import sys
+import tempfile
 from functools import cache
 from typing import NamedTuple
 
@@ -34,31 +36,53 @@ URGENCY_CHANNEL = 25  # 1 everywhere in the last 40 steps of an episode
 _EMPTY, _ONION, _PLATE, _DISH, _AGENT = 1, 3, 5, 9, 10
 
 
+# What jaxmarl's package import prints about its optional environments: noise to esr's users.
+JAXMARL_BANNER = frozenset({
+    "Importing submoduled environments...",
+    "Submoduled environments imported successfully.",
+    "Submoduled environments not found. Skipping import.",
+})
+
+
 @contextlib.contextmanager
-def stdout_to_stderr():
-    """Send whatever is printed meanwhile to stderr, at the file-descriptor level: jaxmarl's
-    package import prints to stdout (which carries esr's results) and one of its modules
-    resets sys.stdout to sys.__stdout__, which defeats contextlib.redirect_stdout alone."""
+def quiet_jaxmarl():
+    """Run jaxmarl code with what it prints caught at the file-descriptor level (one of its
+    modules resets sys.stdout to sys.__stdout__, which defeats contextlib.redirect_stdout
+    alone): its import banner is dropped and anything else goes to stderr, never to stdout,
+    which carries esr's results."""
     current = sys.stdout
     for stream in (sys.stdout, sys.__stdout__):
         if stream is not None:
             stream.flush()
+    caught = io.StringIO()
     try:
         saved = os.dup(1)
-    except OSError:  # no file descriptor 1: nothing to protect
-        with contextlib.redirect_stdout(sys.stderr):
-            yield
+    except OSError:  # no file descriptor 1: only Python-level printing to catch
+        try:
+            with contextlib.redirect_stdout(caught):
+                yield
+        finally:
+            _forward_to_stderr(caught.getvalue())
         return
-    os.dup2(2, 1)
-    try:
-        with contextlib.redirect_stdout(sys.stderr):
-            yield
-    finally:
-        if sys.__stdout__ is not None:
-            sys.__stdout__.flush()
-        os.dup2(saved, 1)
-        os.close(saved)
-        sys.stdout = current
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 1)
+        try:
+            with contextlib.redirect_stdout(caught):
+                yield
+        finally:
+            if sys.__stdout__ is not None:
+                sys.__stdout__.flush()
+            os.dup2(saved, 1)
+            os.close(saved)
+            sys.stdout = current
+            sink.seek(0)
+            _forward_to_stderr(sink.read().decode(errors="replace") + caught.getvalue())
+
+
+def _forward_to_stderr(text: str) -> None:
+    kept = [line for line in text.splitlines() if line.strip() not in JAXMARL_BANNER]
+    if kept:
+        sys.stderr.write("\n".join(kept) + "\n")
 
 
 @cache
@@ -68,7 +92,7 @@ def jaxmarl_env(layout: str, max_steps: int):
 
     # ensure_compile_time_eval: jaxmarl makes module-level arrays on import, and this may
     # first run inside a traced function; the result is cached, so it must hold no tracer.
-    with stdout_to_stderr(), warnings.catch_warnings(), jax.ensure_compile_time_eval():
+    with quiet_jaxmarl(), warnings.catch_warnings(), jax.ensure_compile_time_eval():
         warnings.simplefilter("ignore", DeprecationWarning)
         from flax.core.frozen_dict import FrozenDict
         from jaxmarl.environments.overcooked import Overcooked as JaxmarlOvercooked
@@ -229,7 +253,7 @@ class Overcooked(NamedTuple):
 
         The robot (agent_0) is drawn red, the human (agent_1) blue.
         """
-        with stdout_to_stderr():
+        with quiet_jaxmarl():
             from jaxmarl.viz.overcooked_visualizer import OvercookedVisualizer
         pad = (np.asarray(state.maze_map).shape[0] - self.height) // 2
         grid = np.asarray(state.maze_map)[pad : pad + self.height, pad : pad + self.width, :]

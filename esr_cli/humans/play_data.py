@@ -32,13 +32,19 @@ def held_out(episodes: int) -> np.ndarray:
     return test
 
 
+def _played_on(path: Path, layout: str) -> dict:
+    """The episode's header; PlayDataError unless it was played on Overcooked's `layout`."""
+    header = read_header(path)
+    if header["env"].get("kind") != "overcooked" or header["env"].get("layout") != layout:
+        raise PlayDataError(f"played episode {Path(path).name[:12]} is not an Overcooked episode on {layout}")
+    return header
+
+
 def check(paths: list[Path], layout: str) -> None:
     """Raise PlayDataError unless every episode was played on Overcooked's `layout` and one at
     least has a step: cheap (headers and step logs), so it runs before anything is written."""
     for path in paths:
-        header = read_header(path)
-        if header["env"].get("kind") != "overcooked" or header["env"].get("layout") != layout:
-            raise PlayDataError(f"played episode {Path(path).name[:12]} is not an Overcooked episode on {layout}")
+        _played_on(path, layout)
     if not any(read_steps(path) for path in paths):
         raise PlayDataError("the played episodes have no steps")
 
@@ -46,11 +52,10 @@ def check(paths: list[Path], layout: str) -> None:
 def convert(paths: list[Path], layout: str) -> dict[str, np.ndarray]:
     """-> obs uint8[M, H, W, 26], action int8[M], player int8[M] (the seat the person played),
     test bool[M], game int32[M] (the episode's index in `paths`)."""
-    check(paths, layout)
+    headers = [_played_on(path, layout) for path in paths]  # all, before any episode is converted
     out = {k: [] for k in ("obs", "action", "player", "test", "game")}
     test = held_out(len(paths))
-    for i, path in enumerate(paths):
-        header = read_header(path)
+    for i, (path, header) in enumerate(zip(paths, headers)):
         steps = read_steps(path)
         if not steps:
             continue

@@ -1,0 +1,60 @@
+"""Ctrl-C (SIGINT) and SIGTERM (kill, timeout, a scheduler) as exceptions, so any command ends
+with its cleanup (an unfinished evaluation or figure is removed) and one line; the training
+loop installs its own handlers, which save at the next chunk boundary first.
+
+Python runs a signal handler between two bytecodes of whatever the main thread is doing. If
+that is a garbage-collector callback (jax registers one), a weakref callback or a finalizer,
+the exception is "ignored" (handed to sys.unraisablehook) and the program carries on: the
+signal would be lost. Meanwhile esr's hook sends the same signal again a moment later.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import sys
+import threading
+
+REDELIVER_AFTER_S = 0.05
+
+
+class Terminated(Exception):
+    """SIGTERM arrived outside the training loop."""
+
+
+RAISES = {signal.SIGINT: KeyboardInterrupt, signal.SIGTERM: Terminated}
+
+
+@contextlib.contextmanager
+def stop_signals_raise():
+    """Within: SIGINT raises KeyboardInterrupt and SIGTERM Terminated, in the main thread, and
+    neither is lost where Python would ignore it. In another thread signals cannot be
+    handled, and are left alone."""
+    try:
+        previous = {sig: signal.signal(sig, _raise) for sig in RAISES}
+    except ValueError:
+        yield
+        return
+    previous_hook = sys.unraisablehook
+
+    def redeliver(unraisable):
+        sig = next((s for s, exc in RAISES.items() if unraisable.exc_type is exc), None)
+        if sig is None:
+            previous_hook(unraisable)
+            return
+        timer = threading.Timer(REDELIVER_AFTER_S, os.kill, (os.getpid(), sig))
+        timer.daemon = True
+        timer.start()
+
+    sys.unraisablehook = redeliver
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous_hook
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _raise(signum, frame):
+    raise RAISES[signum]()
