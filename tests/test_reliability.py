@@ -327,11 +327,14 @@ def test_an_evaluation_stopped_by_sigterm_says_so_and_leaves_nothing_half_made(s
     shutil.copytree(path, mine / "runs" / path.parent.name / path.name)
     proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli", "eval", path.name[:8], "--episodes", "1000000"],
                             cwd=ROOT, env=esr_env(mine), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 300
-    while not list((mine / "evals").rglob("pending.json")):
-        assert proc.poll() is None and time.time() < deadline, proc.communicate()
-        time.sleep(0.1)
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=120)
+    try:  # a failure must not leave a million-episode evaluation running
+        deadline = time.time() + 300
+        while not list((mine / "evals").rglob("pending.json")):
+            assert proc.poll() is None and time.time() < deadline, proc.communicate()
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
     assert proc.returncode == 143 and "terminated (SIGTERM)" in err, err
     assert not list((mine / "evals").rglob("*.partial"))
