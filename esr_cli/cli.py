@@ -830,9 +830,9 @@ def import_(
         elif moved.files == 0:
             err.print(f"{moved.kind} {moved.key[:12]} is already in the store: nothing to import")
         else:
-            at = f", which was at epoch {moved.local_epoch}" if moved.local_epoch is not None else ""
             note = ("; a record without a checkpoint: training it again starts from epoch 0" if moved.record else
-                    f"; it replaces this store's unfinished run of the same key{at}" if moved.replaced_partial else "")
+                    f"; it replaces this store's unfinished run of the same key, which was at epoch {moved.local_epoch}"
+                    if moved.replaced_partial else "")
             err.print(tagged("imported", "green", f" {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files{note})"))
         out.print(str(moved.path), highlight=False)
 

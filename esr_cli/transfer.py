@@ -42,9 +42,13 @@ class Moved:
     status: str  # complete | partial
     files: int
     path: Path  # the archive written (export) or the artifact's directory (import)
-    replaced_partial: bool = False  # import: the archive took the place of a local unfinished run
     local_epoch: int | None = None  # import over a local unfinished run: that run's checkpoint epoch
     record: bool = False  # import: an unfinished run without an intact checkpoint (--without-checkpoint)
+
+    @property
+    def replaced_partial(self) -> bool:
+        """import: the archive took the place of a local unfinished run (kept when files == 0)."""
+        return self.files > 0 and self.local_epoch is not None
 
 
 # ---------------------------------------------------------------- export
@@ -206,8 +210,7 @@ def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path],
             if status == "complete" and partial.exists():
                 shutil.rmtree(partial)
     files = sum(1 for p in target.rglob("*") if p.is_file())
-    return Moved(kind, key, status, files, target, replaced_partial=local_epoch is not None,
-                 local_epoch=local_epoch, record=record)
+    return Moved(kind, key, status, files, target, local_epoch=local_epoch, record=record)
 
 
 def _checkpoint_epoch(run_dir: Path) -> int:
