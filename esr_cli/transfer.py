@@ -189,7 +189,7 @@ def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path],
         except (tarfile.TarError, OSError, EOFError, zlib.error) as e:
             raise StoreError(f"{archive} could not be read to the end ({_first_line(e)})") from None
         stage = Path(tmp) / kind / key[:2] / dirname
-        record = _check_contents(store, stage, kind, key, status, archive, without_checkpoint)
+        record, stage_epoch = _check_contents(store, stage, kind, key, status, archive, without_checkpoint)
         with store.lock(kind, key, wait=False):
             if store.lookup(kind, key):
                 return Moved(kind, key, "complete", 0, final)
@@ -197,7 +197,7 @@ def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path],
             # other (the local run is not training now: this process holds its lock).
             local_epoch = _checkpoint_epoch(partial) if partial.exists() else None
             if status != "complete" and local_epoch is not None:
-                if local_epoch >= _checkpoint_epoch(stage):
+                if local_epoch >= stage_epoch:
                     return Moved(kind, key, status, 0, partial, local_epoch=local_epoch)
                 # Moved aside into the temporary folder (removed with it) only now, just before
                 # the archive's copy takes its place.
@@ -265,8 +265,9 @@ def _checked_members(tar: tarfile.TarFile, archive: Path) -> tuple[str, str, lis
 
 
 def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str, archive: Path,
-                    without_checkpoint: bool = False) -> bool:
-    """Refuse what cannot be imported; -> whether it is a record (no intact checkpoint)."""
+                    without_checkpoint: bool = False) -> tuple[bool, int]:
+    """Refuse what cannot be imported; -> (whether it is a record (no intact checkpoint), the epoch
+    of its newest intact checkpoint, 0 without one or for a finished artifact)."""
     if not stage.is_dir():
         raise StoreError(f"{archive} holds no files for {kind} {key[:12]}")
     if status == "complete":
@@ -277,7 +278,7 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
         if problems:
             more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
             raise StoreError(f"{archive}: {kind}/{key[:2]}/{key}: {problems[0]}{more}; nothing imported")
-        return False
+        return False, 0
     if not (stage / "pending.json").is_file():
         raise StoreError(f"{archive}: unfinished run {key[:12]} has no pending.json; nothing imported")
     pending = read_pending(stage)
@@ -289,8 +290,9 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
     problem = components_problem(pending, "pending.json")
     if problem:
         raise StoreError(f"{archive}: unfinished run {key[:12]}: {problem}; nothing imported")
-    if verified_steps(stage):
-        return False
+    steps = verified_steps(stage)  # newest first
+    if steps:
+        return False, steps[0]
     if not without_checkpoint:
         raise StoreError(f"{archive}: unfinished run {key[:12]} has no checkpoint matching its recorded digests; "
                          "nothing imported (`esr import --without-checkpoint` keeps its logged epochs for reports; "
@@ -303,4 +305,4 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
         if not (isinstance(row, dict) and type(row.get("epoch")) is int and isinstance(row.get("return"), list)):
             raise StoreError(f"{archive}: unfinished run {key[:12]}: line {i} of metrics.jsonl is not an epoch's "
                              "metrics (an object with an integer 'epoch' and a 'return' list); nothing imported")
-    return True
+    return True, 0
