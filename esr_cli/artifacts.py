@@ -84,6 +84,8 @@ def ensure(recipe: Recipe, store: Store) -> Built:
         # The key components are in pending.json from the start: an unfinished run can then be
         # found by a longer run of the same lineage (runs.adopt_shorter_run).
         record = {**pending, "key_components": recipe.components, **first, "sessions": sessions}
+        if recipe.kind != RUN_KIND:  # what a build killed outright (SIGKILL) left: it starts again, with nothing of it
+            shutil.rmtree(store.partial_path(recipe.kind, key), ignore_errors=True)
         out = store.begin(recipe.kind, key, record)
         started = time.time()
         try:

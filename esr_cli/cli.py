@@ -874,11 +874,19 @@ def _run(argv: list[str], debug: bool) -> int:
     from esr_cli.resources import ResourceError
 
     try:
-        app(args=argv, standalone_mode=False)
-        return 0
+        code = app(args=argv, standalone_mode=False)
+        if code != 130:
+            return code if isinstance(code, int) else 0
+        # The CLI library hands back Ctrl-C inside a command as the code 130 rather than
+        # raising: the command's cleanup has run, and the user is told.
+        err.print("interrupted")
+        return 130
     except KeyboardInterrupt:  # Ctrl-C outside the CLI library's own handling (while importing, say)
         err.print("interrupted")
         return 130
+    except Terminated:  # a BaseException, so not among the failures below
+        err.print(tagged("error:", "red", " terminated (SIGTERM)"), highlight=False)
+        return 143
     except SystemExit as e:  # typer/click's own exits (e.g. --help)
         return int(e.code or 0)
     except Exception as e:  # noqa: BLE001 - every failure becomes one line unless --debug
@@ -907,8 +915,6 @@ def _run(argv: list[str], debug: bool) -> int:
             code, msg = 1, str(e)
         elif isinstance(e, Diverged):
             code, msg = 1, f"run diverged: {e} (the partial run is kept for inspection)"
-        elif isinstance(e, Terminated):
-            code, msg = 143, "terminated (SIGTERM)"
         elif isinstance(e, OSError) and e.errno == errno.ENAMETOOLONG:  # a path given on the command line
             name = str(e.filename or "")
             code, msg = 2, f"file name too long: {name[:60]}{'...' if len(name) > 60 else ''} (at most 255 bytes per component)"
@@ -919,8 +925,19 @@ def _run(argv: list[str], debug: bool) -> int:
         return code
 
 
+STOPPED_BY_SIGNAL = (130, 143)
+
+
 def entry() -> None:
-    sys.exit(main())
+    code = main()
+    if code in STOPPED_BY_SIGNAL:
+        # Everything esr does on the way out (removing an unfinished artifact, saving a run) is
+        # done. Tearing the interpreter down while an XLA program the signal cut short is still
+        # running can crash it (SIGSEGV), so a stopped command leaves at once.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
 
 
 if __name__ == "__main__":

@@ -243,11 +243,13 @@ def eval_recipe(run_path: Path, store: Store, episodes: int | None, console: Con
 
         enable_compile_cache()
         trainer = build_trainer(spec, store)
-        with console.status(f"evaluating {spec.name}: {episodes} episodes x {len(spec.train.seeds)} seed(s)"):
+        what = f"evaluating {spec.name}: {episodes:,} episodes x {len(spec.train.seeds)} seed(s)"
+        with console.status(what) as status:
             state = loop.final_state(trainer, run_path)
             if partner_key is not None and trainer.human.has_state:  # the checkpoint holds the training humans
                 state = state._replace(human=loop.initial_state(trainer, spec.train.seeds).human)
-            results = ev.evaluate(trainer, state, episodes, spec.train.seeds)
+            results = ev.evaluate(trainer, state, episodes, spec.train.seeds,
+                                  progress=lambda done, total: status.update(f"{what}: {done:,} of {total:,} played"))
         summary = {"name": spec.name, "budget": spec.budget, "seeds": list(spec.train.seeds), "episodes": episodes,
                    "run": run_manifest["key"], "human": partner, "human_key": partner_key,
                    "robot_seat": spec.env.robot_seat if spec.env.kind == "overcooked" else None, "results": {}}

@@ -19,8 +19,10 @@ import threading
 REDELIVER_AFTER_S = 0.05
 
 
-class Terminated(Exception):
-    """SIGTERM arrived outside the training loop."""
+class Terminated(BaseException):
+    """SIGTERM arrived outside the training loop. A BaseException, as KeyboardInterrupt is:
+    libraries catch Exception broadly (jax turns a failed compilation-cache read into a
+    warning, orbax a failed restore into an error of its own), and a stop must pass through."""
 
 
 RAISES = {signal.SIGINT: KeyboardInterrupt, signal.SIGTERM: Terminated}

@@ -76,6 +76,16 @@ def test_a_failed_build_commits_nothing_and_the_next_resumes_its_partial_directo
     assert not store.partial_path(FIGURE_KIND, figure_key).exists()
 
 
+def test_what_a_killed_build_left_is_cleared_before_the_next_one_unless_it_is_a_run(tmp_path):
+    """SIGKILL leaves a partial directory behind; only a training run resumes from one."""
+    store, calls = Store(tmp_path / "store"), []
+    recipe = Recipe(FIGURE_KIND, "fig", {"n": "fig"}, _writer(calls, "fig"))
+    left = store.begin(FIGURE_KIND, recipe.key, {"kind": FIGURE_KIND})
+    (left / "half_written.png").write_text("cut short")
+    built = ensure(recipe, store)
+    assert sorted(p.name for p in built.path.iterdir()) == sorted([MANIFEST, "fig.txt", "summary.json"])
+
+
 def test_unknown_kind_is_refused():
     with pytest.raises(ValueError, match="unknown artifact kind"):
         Recipe("models", "x", {}, lambda out, store: {})

@@ -319,9 +319,29 @@ def test_a_stop_signal_where_python_ignores_exceptions_is_not_lost(sig, where):
     assert sent
 
 
-def test_an_evaluation_stopped_by_sigterm_says_so_and_leaves_nothing_half_made(smoke_run, tmp_path):
-    """Only a training run resumes from what it wrote: an evaluation ended by SIGTERM exits
-    143 with one line and its partial directory is removed."""
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_a_library_catching_exception_does_not_swallow_a_stop_signal(sig):
+    """jax reads its compilation cache, and orbax restores, under `except Exception`: a stop
+    raised in there must still end the command, not become a warning or a 'corrupt checkpoint'."""
+    import os
+
+    from esr_cli.stop_signals import Terminated, stop_signals_raise
+
+    swallowed = []
+    with pytest.raises(KeyboardInterrupt if sig == signal.SIGINT else Terminated), stop_signals_raise():
+        try:
+            os.kill(os.getpid(), sig)
+            time.sleep(10)
+        except Exception as e:  # noqa: BLE001 - what such a library does
+            swallowed.append(e)
+    assert not swallowed
+
+
+@pytest.mark.parametrize("sig, code, line", [(signal.SIGTERM, 143, "terminated (SIGTERM)"),
+                                             (signal.SIGINT, 130, "interrupted")], ids=["sigterm", "ctrl-c"])
+def test_an_evaluation_stopped_by_a_signal_says_so_and_leaves_nothing_half_made(smoke_run, tmp_path, sig, code, line):
+    """Only a training run resumes from what it wrote: an evaluation ended by SIGTERM or
+    Ctrl-C exits 143 or 130 with one line, and its partial directory is removed."""
     store, path, _ = smoke_run
     mine = tmp_path / "store"
     shutil.copytree(path, mine / "runs" / path.parent.name / path.name)
@@ -332,9 +352,9 @@ def test_an_evaluation_stopped_by_sigterm_says_so_and_leaves_nothing_half_made(s
         while not list((mine / "evals").rglob("pending.json")):
             assert proc.poll() is None and time.time() < deadline, proc.communicate()
             time.sleep(0.1)
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(sig)
         _, err = proc.communicate(timeout=120)
     finally:
         proc.kill()
-    assert proc.returncode == 143 and "terminated (SIGTERM)" in err, err
+    assert proc.returncode == code and err.strip().endswith(line), err
     assert not list((mine / "evals").rglob("*.partial"))

@@ -6,6 +6,8 @@ method that learns no policy is evaluated as `random`. All seeds run in one vmap
 
 from __future__ import annotations
 
+from typing import Callable
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -21,20 +23,29 @@ def policy_modes(trainer: Trainer) -> tuple[str, ...]:
     return ("sample", "greedy") if trainer.method.learns_policy else ("random",)
 
 
-# Episodes x seeds in one program: memory stays bounded by this many trajectories, whatever
-# `--episodes` asks for (up to a million). Fewer episodes run as one program, as they always have.
-EVAL_BATCH = 2048
+# Environment steps (episodes x seeds x episode length) in one program: 2,048 gridworld
+# episodes of 50 steps. Memory stays bounded whatever `--episodes` (up to a million) and the
+# episode length ask for, and so does the time between two programs, the only moments at
+# which Python can act on Ctrl-C or SIGTERM. Fewer steps run as one program.
+EVAL_STEPS = 2048 * 50
 
 
-def evaluate(trainer: Trainer, state: TrainState, episodes: int, seeds) -> dict:
+def episodes_per_program(episode_steps: int, n_seeds: int) -> int:
+    return max(1, EVAL_STEPS // (episode_steps * n_seeds))
+
+
+def evaluate(trainer: Trainer, state: TrainState, episodes: int, seeds,
+             progress: Callable[[int, int], None] | None = None) -> dict:
     """-> {mode: {"return": float[seeds, episodes], "success": bool[seeds, episodes],
     "states": the first chunk's env-state trajectories}}. Episodes run in chunks of at most
-    EVAL_BATCH // seeds per seed; chunk c > 0 draws from the seed's key folded with c."""
+    `episodes_per_program` per seed; chunk c > 0 draws from the seed's key folded with c.
+    `progress(done, total)` is called after each chunk, in episodes per seed over all modes."""
     out = {}
     keys = jax.vmap(lambda s: jax.random.PRNGKey(s + EVAL_KEY_SALT))(jnp.asarray(seeds, jnp.int32))
-    chunk = max(1, EVAL_BATCH // len(seeds))
+    chunk = episodes_per_program(trainer.env.episode_steps, len(seeds))
     sizes = [min(chunk, episodes - start) for start in range(0, episodes, chunk)]
-    for mode in policy_modes(trainer):
+    modes = policy_modes(trainer)
+    for m, mode in enumerate(modes):
 
         def run(lstate, hstate, key, n, mode=mode):
             roll = trainer.rollout(lstate, key, n, mode, hstate=hstate)
@@ -48,6 +59,8 @@ def evaluate(trainer: Trainer, state: TrainState, episodes: int, seeds) -> dict:
             parts.append(np.asarray(returns))
             if c == 0:
                 states = chunk_states  # for the GIF; later chunks' trajectories are dropped
+            if progress is not None:
+                progress(m * episodes + sum(sizes[: c + 1]), len(modes) * episodes)
         returns = np.concatenate(parts, axis=1)
         out[mode] = {"return": returns, "success": returns > 0, "states": states}
     return out
