@@ -341,8 +341,8 @@ def diagnose(
     as_json: bool = typer.Option(False, "--json", help="print JSON instead of tables"),
 ):
     """Why a robot helps or not: its own reward on its play against a uniform robot's, and on
-    the gridworld its reward by the human's situation and its critic and policy at the trapped
-    corner start. An unfinished run is read at its newest checkpoint."""
+    the gridworld its reward by the human's situation and its critic and policy at a few
+    distinct start states. An unfinished run is read at its newest checkpoint."""
     path, record, finished = targets.run_record(STATE.store, run)
     if not 0 <= seed_index < len(record["seeds"]):
         raise Exit(2, f"--seed-index: the run has {len(record['seeds'])} seed(s)")
@@ -367,7 +367,8 @@ def diagnose(
         report.update({
             "reward": rewards,
             "free_vs_trapped": dg.free_trapped_contrast(rewards),
-            "corner_starts": dg.corner_start_policy(trainer, one, jax.random.PRNGKey(1)) if learns else [],
+            "start": trainer.spec.env.start,
+            "start_states": dg.start_policy(trainer, one, jax.random.PRNGKey(1)) if learns else [],
             "representations": dg.representation_check(trainer, one, jax.random.PRNGKey(2), batches)
             if trainer.spec.method.kind == "esr" else None,
         })
@@ -403,17 +404,21 @@ def _print_play_check(play: dict) -> None:
 def _print_gridworld_diagnosis(report: dict) -> None:
     from esr_cli.analysis import diagnose as dg
 
-    rewards, contrast, starts, reprs = (report[k] for k in ("reward", "free_vs_trapped", "corner_starts", "representations"))
+    rewards, contrast, starts, reprs = (report[k] for k in ("reward", "free_vs_trapped", "start_states", "representations"))
     table = Table(title="reward by the human's situation (the run's buffer)")
     for col in ("situation", "transitions", "mean reward", "sd"):
         table.add_column(col)
     for name, r in rewards.items():
         table.add_row(name, str(r["n"]), f"{r['mean']:.3f}", f"{r['sd']:.3f}")
     out.print(table)
-    out.print(f"free vs trapped: {contrast['difference']:+.3f} in mean reward, effect size {contrast['effect_size']:.2f} "
-              "(pooled standard deviations)")
+    n_free, n_trapped = rewards["free"]["n"], rewards["trapped"]["n"]
+    if n_free < 2 or n_trapped < 2:
+        out.print(f"free vs trapped: too few transitions to compare ({n_free} free, {n_trapped} trapped)")
+    else:
+        out.print(f"free vs trapped: {contrast['difference']:+.3f} in mean reward, effect size {contrast['effect_size']:.2f} "
+                  "(pooled standard deviations)")
     if starts:
-        table = Table(title="corner starts: robot actions by what they do (the human staying)")
+        table = Table(title=f"{report['start']} starts: robot actions by what they do (the human staying)")
         table.add_column("human at")
         for name in dg.EFFECTS:
             table.add_column(f"{name}: actions, max Q, P(policy), in buffer")

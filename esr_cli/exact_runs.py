@@ -90,7 +90,12 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
             "pairs_computed": int(np.isfinite(emp.mi).sum()),
         }
 
-    return Recipe(EXACT_KIND, spec.name, components, _discard_on_failure(build), budget=spec.budget)
+    def check(store: Store) -> None:  # before anything is written: the goal must leave some start free
+        if not len(exact.start_states(make_env(spec.env), goal).t):
+            raise StoreError(f"--goal {goal}: no start state of {spec.name} leaves this cell free "
+                             f"(the human starts there or a block always covers it): choose another cell")
+
+    return Recipe(EXACT_KIND, spec.name, components, _discard_on_failure(build), budget=spec.budget, check=check)
 
 
 def _solve(space, pi_r: np.ndarray, pi_h: np.ndarray, gamma: float, console: Console) -> exact.Empowerment:

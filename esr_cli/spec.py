@@ -732,7 +732,25 @@ def load_raw(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict:
         raise SpecError(str(path), "extends", f"file not found: {parent}")
     if not base_path.is_file():
         raise SpecError(str(path), "extends", f"{parent} is not a file")
-    return _merge(load_raw(base_path, _seen + (here,)), raw)
+    return _merge(_budgets_for(load_raw(base_path, _seen + (here,)), raw), raw)
+
+
+def _replaces(old: Any, new: Any) -> bool:
+    """A child section naming another kind than its base's replaces it (`_merge`)."""
+    return isinstance(old, dict) and isinstance(new, dict) and new.get("kind", old.get("kind")) != old.get("kind")
+
+
+def _budgets_for(base: dict, child: dict) -> dict:
+    """`base` without its budget entries for the sections that `child` replaces by another kind:
+    they were written for the base's kind (as a budget's entries do not apply to a section whose
+    kind --set changed). The child's own budgets may set the new kind's fields."""
+    replaced = [key for key, value in child.items() if _replaces(base.get(key), value)]
+    budgets = base.get("budgets")
+    if not replaced or not isinstance(budgets, dict):
+        return base
+    kept = {name: {k: v for k, v in entries.items() if not any(_within(str(k), r) for r in replaced)}
+            if isinstance(entries, dict) else entries for name, entries in budgets.items()}
+    return {**base, "budgets": kept}
 
 
 MAX_EXTENDS = 32  # files in one `extends:` chain: far above any real layering
@@ -887,6 +905,16 @@ def load(path: str | Path, budget: str = "paper", overrides: list[str] | tuple[s
     try:
         return resolve(raw, budget, overrides, source=str(path))
     except SpecError as e:
+        budget_entry = re.fullmatch(re.escape(str(path)) + r", budgets\.([\w-]+)", e.source)
+        if budget_entry and e.path:  # a budget's entry from a file this one extends: name that file
+            for file, own in _chain(path):
+                entries = (own.get("budgets") or {}).get(budget_entry.group(1))
+                if isinstance(entries, dict) and e.path in map(str, entries):
+                    if file != Path(path):
+                        raise SpecError(f"{file} (extended by {path}), budgets.{budget_entry.group(1)}", e.path,
+                                        e.problem) from None
+                    break
+            raise
         if e.source != str(path) or not e.path:
             raise
         # A bad value from a file this one extends: name the file that wrote it.

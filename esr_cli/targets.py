@@ -139,6 +139,10 @@ def exact_target(spec, store: Store, goal, gamma: float | None, robot: str | Non
     robot_spec = run_spec(run_path)
     if robot_spec.env != spec.env:
         raise StoreError(f"robot {robot} was trained on another environment than {spec.name}")
+    if robot_spec.method.kind in specs.POLICY_FREE_METHODS:  # no Q-values behind its actions
+        why = ("which acts uniformly at random: leave out --robot for the uniform robot" if robot_spec.method.kind == "random"
+               else "which acts by a rule, not by a policy over Q-values")
+        raise StoreError(f"robot {robot} is a {robot_spec.method.kind} run, {why}")
     if not 0 <= seed_index < len(robot_spec.train.seeds):
         raise StoreError(f"--seed-index {seed_index} out of range for a run with {len(robot_spec.train.seeds)} seeds")
     return goal, gamma, store.read_manifest(run_path)

@@ -39,9 +39,9 @@ def test_diagnose_reads_a_trained_run(smoke_run):
     assert set(report["reward"]) == set(SITUATIONS)
     counted = sum(r["n"] for r in report["reward"].values())
     assert counted == 3 * 16  # three smoke batches of 16, every transition in one situation
-    assert len(report["corner_starts"]) == 4
+    assert report["start"] == "corner" and len(report["start_states"]) == 4  # four distinct corner starts
     assert set(report["free_vs_trapped"]) == {"difference", "effect_size"}
-    for row in report["corner_starts"]:
+    for row in report["start_states"]:
         # A cornered human (N = 2): 4 robot actions free it, 2 push a block onto it.
         assert (row["free"]["actions"], row["dead"]["actions"], row["trapped"]["actions"]) == (4, 2, 119)
         assert abs(sum(row[e]["p"] for e in ("trapped", "free", "dead")) - 1) < 1e-4

@@ -139,6 +139,22 @@ def test_exact_and_estimator_cli(tmp_path):
         np.isnan(result["spearman_visited"])  # a constant estimate over few pairs has no rank correlation
     bad = esr("plot", "estimator", path.name, store=store, check=False)
     assert bad.returncode == 2 and "--robot" in bad.stderr
+    # a robot without a learned policy has no Boltzmann policy to analyse: refused, not faked
+    random_run = Path(esr("train", str(spec), "--budget", "smoke", "--set", "method.kind=random", store=store).stdout.strip())
+    refused = esr("exact", str(spec), "--goal", "1,1", "--robot", random_run.name, store=store, check=False)
+    assert refused.returncode == 2 and "leave out --robot for the uniform robot" in refused.stderr, refused.stderr
+
+
+def test_a_goal_that_no_start_leaves_free_is_refused_naming_the_goal(tmp_path):
+    """A center start puts the human on the default goal (the centre): no start state is left."""
+    from conftest import esr
+
+    spec = tmp_path / "center.yaml"
+    spec.write_text(TINY_SPEC.replace("start: corner", "start: center"))
+    store = tmp_path / "store"
+    refused = esr("exact", str(spec), store=store, check=False)
+    assert refused.returncode == 2 and "--goal (1, 1): no start state of tiny leaves this cell free" in refused.stderr
+    assert not list(store.rglob("*.partial"))
 
 
 def test_mi_is_zero_for_a_human_trapped_by_blocks():

@@ -147,6 +147,27 @@ def test_extends_merges_sections_and_replaces_a_changed_kind(tmp_path):
     assert spec.env.blocks == 2
 
 
+def test_a_child_replacing_a_kind_drops_the_base_budgets_entries_for_that_section(tmp_path):
+    """The base's budgets were written for its kind (ESR's repr_lr); the child's random robot has
+    no such field. The child's own budgets still apply, and the base's for other sections."""
+    (tmp_path / "base.yaml").write_text(GOOD + "budgets:\n  quick: {method.repr_lr: 0.001, train.epochs: 7}\n")
+    child = tmp_path / "child.yaml"
+    child.write_text("extends: base.yaml\nname: c\nmethod: {kind: random}\nbudgets:\n  smoke: {train.epochs: 2}\n")
+    assert specs.load(child, "smoke").train.epochs == 2
+    quick = specs.load(child, "quick")
+    assert quick.method.kind == "random" and quick.train.epochs == 7
+    assert specs.load(tmp_path / "base.yaml", "quick").method.repr_lr == 0.001  # the base itself is unchanged
+
+
+def test_a_bad_budget_entry_from_an_extended_file_names_that_file(tmp_path):
+    (tmp_path / "base.yaml").write_text(GOOD + "budgets:\n  quick: {method.repr_lrr: 0.001}\n")
+    child = tmp_path / "child.yaml"
+    child.write_text("extends: base.yaml\nname: c\n")
+    with pytest.raises(specs.SpecError) as e:
+        specs.load(child, "smoke")
+    assert str(e.value).startswith(f"{tmp_path / 'base.yaml'} (extended by {child}), budgets.quick: method.repr_lrr:")
+
+
 def test_extends_errors_name_the_key(tmp_path):
     a, b = tmp_path / "a.yaml", tmp_path / "b.yaml"
     a.write_text("extends: b.yaml\n" + GOOD)

@@ -89,15 +89,22 @@ def stored_effects(buffer: replay.Buffer, human_cell) -> dict:
     return {name: int(np.sum(effect == SITUATIONS.index(name))) for name in EFFECTS}
 
 
-def corner_start_policy(trainer, state, key, starts: int = 4) -> list[dict]:
-    """For `starts` corner starts: per effect of the robot's action (the human staying), how many
-    actions have it, their largest and mean Q, the policy's probability of choosing one, and how
-    many of the buffer's transitions out of a trapped human at that corner had it (`stored_effects`)."""
+def start_policy(trainer, state, key, starts: int = 4, draws: int = 64) -> list[dict]:
+    """For up to `starts` distinct start states (of `draws` resets: a center start has one):
+    per effect of the robot's action (the human staying), how many actions have it, their
+    largest and mean Q, the policy's probability of choosing one, and how many of the buffer's
+    transitions out of a trapped human at that start cell had it (`stored_effects`)."""
     env, learner = trainer.env, trainer.learner
     actions = jnp.arange(env.num_robot_actions, dtype=jnp.int32)
-    rows = []
-    for i in range(starts):
+    rows, seen = [], set()
+    for i in range(draws):
+        if len(rows) == starts:
+            break
         s = env.reset(jax.random.fold_in(key, i))
+        layout = (np.asarray(s.human).tobytes(), np.sort(np.asarray(s.blocks), axis=0).tobytes())
+        if layout in seen:
+            continue
+        seen.add(layout)
         nxt = jax.vmap(lambda a: env.step(s, a, jnp.int32(env.num_human_actions - 1))[0])(actions)  # human stays
         next_obs = np.asarray(jax.vmap(env.observe)(nxt))
         effect = np.array([SITUATIONS[k] for k in situation(next_obs, np.zeros(len(next_obs)))])
