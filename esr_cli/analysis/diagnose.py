@@ -101,7 +101,7 @@ def start_policy(trainer, state, key, starts: int = 4, draws: int = 64) -> list[
         if len(rows) == starts:
             break
         s = env.reset(jax.random.fold_in(key, i))
-        layout = (np.asarray(s.human).tobytes(), np.sort(np.asarray(s.blocks), axis=0).tobytes())
+        layout = (tuple(np.asarray(s.human).tolist()), tuple(sorted(map(tuple, np.asarray(s.blocks).tolist()))))
         if layout in seen:
             continue
         seen.add(layout)
