@@ -43,6 +43,9 @@ class Recipe:
     record: dict = field(default_factory=dict)  # facts for the manifest beside the summary
     summary_file: bool = True  # also write the summary as summary.json
     on_wait: Callable[[str], None] | None = None  # told once if another process holds the lock
+    # The build reads what a killed process left in the partial directory (a played episode
+    # recovered as incomplete); any other artifact but a training run starts from an empty one.
+    builds_on_partial: bool = False
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -84,7 +87,7 @@ def ensure(recipe: Recipe, store: Store) -> Built:
         # The key components are in pending.json from the start: an unfinished run can then be
         # found by a longer run of the same lineage (runs.adopt_shorter_run).
         record = {**pending, "key_components": recipe.components, **first, "sessions": sessions}
-        if recipe.kind != RUN_KIND:  # what a build killed outright (SIGKILL) left: it starts again, with nothing of it
+        if recipe.kind != RUN_KIND and not recipe.builds_on_partial:  # what a build killed outright (SIGKILL) left
             shutil.rmtree(store.partial_path(recipe.kind, key), ignore_errors=True)
         out = store.begin(recipe.kind, key, record)
         started = time.time()

@@ -167,7 +167,7 @@ def recover_abandoned(store: Store, console: Console) -> list[Path]:
             return summarize(out, False)
 
         built = ensure(Recipe(PLAY_KIND, entry.manifest.get("name", "play"), components, build,
-                              record={"recovered": True}), store)
+                              record={"recovered": True}, builds_on_partial=True), store)
         console.print(f"an episode left unfinished was kept as incomplete: {built.path}")
         recovered.append(built.path)
     return recovered
