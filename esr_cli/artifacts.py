@@ -76,6 +76,8 @@ def ensure(recipe: Recipe, store: Store) -> Built:
         ensure(needed, store)
 
     def make() -> Path:
+        if recipe.kind != RUN_KIND and not recipe.builds_on_partial:  # what a build killed outright (SIGKILL) left
+            shutil.rmtree(store.partial_path(recipe.kind, key), ignore_errors=True)
         pending = {"kind": recipe.kind, "name": recipe.name, "key": key, "budget": recipe.budget,
                    "seeds": list(recipe.seeds)}
         # Every start and resume is a session (checkout, time, a run's device), kept in order:
@@ -87,8 +89,6 @@ def ensure(recipe: Recipe, store: Store) -> Built:
         # The key components are in pending.json from the start: an unfinished run can then be
         # found by a longer run of the same lineage (runs.adopt_shorter_run).
         record = {**pending, "key_components": recipe.components, **first, "sessions": sessions}
-        if recipe.kind != RUN_KIND and not recipe.builds_on_partial:  # what a build killed outright (SIGKILL) left
-            shutil.rmtree(store.partial_path(recipe.kind, key), ignore_errors=True)
         out = store.begin(recipe.kind, key, record)
         started = time.time()
         try:

@@ -80,10 +80,11 @@ def test_what_a_killed_build_left_is_cleared_before_the_next_one_unless_it_is_a_
     """SIGKILL leaves a partial directory behind; only a training run resumes from one."""
     store, calls = Store(tmp_path / "store"), []
     recipe = Recipe(FIGURE_KIND, "fig", {"n": "fig"}, _writer(calls, "fig"))
-    left = store.begin(FIGURE_KIND, recipe.key, {"kind": FIGURE_KIND})
+    left = store.begin(FIGURE_KIND, recipe.key, {"kind": FIGURE_KIND, "commit": "d" * 40, "device": "cpu"})
     (left / "half_written.png").write_text("cut short")
     built = ensure(recipe, store)
     assert sorted(p.name for p in built.path.iterdir()) == sorted([MANIFEST, "fig.txt", "summary.json"])
+    assert len(json.loads((built.path / MANIFEST).read_text())["sessions"]) == 1  # nor the killed one's session
 
 
 def test_unknown_kind_is_refused():
@@ -138,8 +139,8 @@ def test_a_pending_record_from_before_sessions_counts_as_the_last_session(tmp_pa
 
     monkeypatch.setattr(provenance, "git_state", lambda: {"commit": "c" * 40, "dirty": False})
     store = Store(tmp_path / "store")
-    recipe = Recipe(FIGURE_KIND, "fig", {"n": "fig"}, _writer([], "fig"))
-    partial = store.partial_path(FIGURE_KIND, recipe.key)
+    recipe = Recipe(RUN_KIND, "run", {"n": "run"}, _writer([], "run"))  # a run resumes what an older esr began
+    partial = store.partial_path(RUN_KIND, recipe.key)
     partial.mkdir(parents=True)
     (partial / "pending.json").write_text(json.dumps({"key": recipe.key, "commit": "d" * 40, "device": "gpu:X"}))
     manifest = json.loads((ensure(recipe, store).path / MANIFEST).read_text())
