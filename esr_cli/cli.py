@@ -880,13 +880,10 @@ def _run(argv: list[str], debug: bool) -> int:
 
     try:
         code = app(args=argv, standalone_mode=False)
-        if code != 130:
-            return code if isinstance(code, int) else 0
-        # The CLI library hands back Ctrl-C inside a command as the code 130 rather than
-        # raising: the command's cleanup has run, and the user is told.
-        err.print("interrupted")
-        return 130
-    except KeyboardInterrupt:  # Ctrl-C outside the CLI library's own handling (while importing, say)
+        if code == 130:  # the CLI library hands back Ctrl-C inside a command (cleanup done) as this code
+            raise KeyboardInterrupt
+        return code if isinstance(code, int) else 0
+    except KeyboardInterrupt:  # Ctrl-C, handed back as above or outside the CLI library (while importing, say)
         err.print("interrupted")
         return 130
     except Terminated:  # a BaseException, so not among the failures below

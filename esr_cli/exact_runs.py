@@ -7,6 +7,8 @@ robot action, and the effective empowerment (esr_cli/analysis/exact.py).
 
 from __future__ import annotations
 
+import functools
+
 import shutil
 from pathlib import Path
 
@@ -52,12 +54,16 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
         "toolchain": provenance.toolchain(),
     }
 
+    @functools.cache  # drawn once, for the check and the build (never on a cache hit)
+    def start_states():
+        return exact.start_states(make_env(spec.env), goal)
+
     def build(out: Path, store: Store) -> dict:
         env = make_env(spec.env)
         human = make_human(spec.human, env)
         with console.status("enumerating reachable states"):
             try:
-                space = exact.enumerate_states(env, goal, exact.start_states(env, goal), max_states=exact.MAX_STATES)
+                space = exact.enumerate_states(env, goal, start_states(), max_states=exact.MAX_STATES)
             except exact.TooManyStates as e:
                 raise StoreError(f"{spec.name}: {e}") from None
         console.print(f"{space.size} reachable states, {env.num_robot_actions} robot actions")
@@ -91,7 +97,7 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
         }
 
     def check(store: Store) -> None:  # before anything is written: the goal must leave some start free
-        if not len(exact.start_states(make_env(spec.env), goal).t):
+        if not len(start_states().t):
             raise StoreError(f"--goal {goal}: no start state of {spec.name} leaves this cell free "
                              f"(the human starts there or a block always covers it): choose another cell")
 

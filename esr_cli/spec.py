@@ -702,7 +702,7 @@ def _merge(base: dict, child: dict) -> dict:
     out = copy.deepcopy(base)
     for key, value in child.items():
         old = out.get(key)
-        if isinstance(old, dict) and isinstance(value, dict) and value.get("kind", old.get("kind")) == old.get("kind"):
+        if isinstance(old, dict) and isinstance(value, dict) and not _replaces(old, value):
             out[key] = _merge(old, value)
         else:
             out[key] = copy.deepcopy(value)
@@ -905,23 +905,23 @@ def load(path: str | Path, budget: str = "paper", overrides: list[str] | tuple[s
     try:
         return resolve(raw, budget, overrides, source=str(path))
     except SpecError as e:
-        budget_entry = re.fullmatch(re.escape(str(path)) + r", budgets\.([\w-]+)", e.source)
-        if budget_entry and e.path:  # a budget's entry from a file this one extends: name that file
-            for file, own in _chain(path):
-                entries = (own.get("budgets") or {}).get(budget_entry.group(1))
-                if isinstance(entries, dict) and e.path in map(str, entries):
-                    if file != Path(path):
-                        raise SpecError(f"{file} (extended by {path}), budgets.{budget_entry.group(1)}", e.path,
-                                        e.problem) from None
-                    break
+        # A bad value (or budget entry) from a file this one extends: name the file that wrote it.
+        own_source = re.fullmatch(re.escape(str(path)) + r"(?:, budgets\.([\w-]+))?", e.source)
+        if not own_source or not e.path:
             raise
-        if e.source != str(path) or not e.path:
-            raise
-        # A bad value from a file this one extends: name the file that wrote it.
+        entry_of = own_source.group(1)  # the budget whose entry it is, or None: a value of the spec
+
+        def writes(own: dict) -> bool:
+            if entry_of is None:
+                return _defines(own, e.path)
+            entries = (own.get("budgets") or {}).get(entry_of)
+            return isinstance(entries, dict) and e.path in map(str, entries)
+
         for file, own in _chain(path):
-            if _defines(own, e.path):
+            if writes(own):
                 if file != Path(path):
-                    raise SpecError(f"{file} (extended by {path})", e.path, e.problem) from None
+                    where = f"{file} (extended by {path})" + (f", budgets.{entry_of}" if entry_of else "")
+                    raise SpecError(where, e.path, e.problem) from None
                 break
         raise
 

@@ -52,15 +52,16 @@ def evaluate(trainer: Trainer, state: TrainState, episodes: int, seeds,
             return roll.episodes.reward.sum(axis=1), roll.states
 
         program = jax.jit(jax.vmap(run, in_axes=(0, 0, 0, None)), static_argnums=3)  # one compile per chunk size
-        parts, states = [], None
+        parts, states, done = [], None, m * episodes
         for c, n in enumerate(sizes):
             chunk_keys = keys if c == 0 else jax.vmap(lambda k, c=c: jax.random.fold_in(k, c))(keys)
             returns, chunk_states = program(state.learner, state.human, chunk_keys, n)
             parts.append(np.asarray(returns))
             if c == 0:
                 states = chunk_states  # for the GIF; later chunks' trajectories are dropped
+            done += n
             if progress is not None:
-                progress(m * episodes + sum(sizes[: c + 1]), len(modes) * episodes)
+                progress(done, len(modes) * episodes)
         returns = np.concatenate(parts, axis=1)
         out[mode] = {"return": returns, "success": returns > 0, "states": states}
     return out
