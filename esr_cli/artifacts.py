@@ -43,9 +43,10 @@ class Recipe:
     record: dict = field(default_factory=dict)  # facts for the manifest beside the summary
     summary_file: bool = True  # also write the summary as summary.json
     on_wait: Callable[[str], None] | None = None  # told once if another process holds the lock
-    # The build reads what a killed process left in the partial directory (a played episode
-    # recovered as incomplete); any other artifact but a training run starts from an empty one.
-    builds_on_partial: bool = False
+    # The partial directory holds what cannot be made again (a person's played steps): like a
+    # training run's, it is neither cleared before a build nor removed after a failed or stopped
+    # one, so the next `esr play` can commit it as incomplete. Any other artifact starts afresh.
+    keeps_partial: bool = False
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -76,7 +77,8 @@ def ensure(recipe: Recipe, store: Store) -> Built:
         ensure(needed, store)
 
     def make() -> Path:
-        if recipe.kind != RUN_KIND and not recipe.builds_on_partial:  # what a build killed outright (SIGKILL) left
+        starts_afresh = recipe.kind != RUN_KIND and not recipe.keeps_partial
+        if starts_afresh:  # what a build killed outright (SIGKILL) left
             shutil.rmtree(store.partial_path(recipe.kind, key), ignore_errors=True)
         pending = {"kind": recipe.kind, "name": recipe.name, "key": key, "budget": recipe.budget,
                    "seeds": list(recipe.seeds)}
@@ -101,9 +103,10 @@ def ensure(recipe: Recipe, store: Store) -> Built:
             store.begin(recipe.kind, key, {**record, "stopped": {"epoch": e.epoch, "why": why, "at": provenance.now_iso()}})
             raise
         except BaseException:
-            # Only a training run resumes from what it wrote; any other artifact (an evaluation,
-            # a figure, a cloned human) starts again, so an interrupted or failed one leaves nothing.
-            if recipe.kind != RUN_KIND:
+            # Only a training run resumes from what it wrote, and only a played episode is
+            # recovered from it; any other artifact (an evaluation, a figure, a cloned human)
+            # starts again, so an interrupted or failed one leaves nothing.
+            if starts_afresh:
                 shutil.rmtree(out, ignore_errors=True)
             raise
         if recipe.summary_file:

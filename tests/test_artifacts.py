@@ -8,7 +8,8 @@ import pytest
 
 from esr_cli import artifacts
 from esr_cli.artifacts import Recipe, ensure
-from esr_cli.store import FIGURE_KIND, MANIFEST, RUN_KIND, Store, StoreError
+from esr_cli.stop_signals import Terminated
+from esr_cli.store import FIGURE_KIND, MANIFEST, PLAY_KIND, RUN_KIND, Store, StoreError
 
 PACKAGE = Path(artifacts.__file__).parent
 
@@ -74,6 +75,26 @@ def test_a_failed_build_commits_nothing_and_the_next_resumes_its_partial_directo
         ensure(Recipe(FIGURE_KIND, "fig", components, _writer(calls, "fig", fail=True)), store)
     figure_key = Recipe(FIGURE_KIND, "fig", components, _writer(calls, "fig")).key
     assert not store.partial_path(FIGURE_KIND, figure_key).exists()
+
+
+def test_a_recipe_that_keeps_its_partial_loses_nothing_to_a_failed_or_stopped_build(tmp_path):
+    """What a person played cannot be made again: neither an error nor a stop signal during the
+    build, nor the next build, removes it."""
+    store, calls = Store(tmp_path / "store"), []
+    components = {"n": "episode"}
+    for stop in (RuntimeError("the front end failed"), Terminated()):
+        def build(out: Path, store: Store, stop=stop) -> dict:
+            with open(out / "steps.txt", "a") as f:
+                f.write("step\n")
+            raise stop
+
+        with pytest.raises(type(stop)):
+            ensure(Recipe(PLAY_KIND, "episode", components, build, keeps_partial=True), store)
+    key = Recipe(PLAY_KIND, "episode", components, build, keeps_partial=True).key
+    assert (store.partial_path(PLAY_KIND, key) / "steps.txt").read_text() == "step\nstep\n"
+    built = ensure(Recipe(PLAY_KIND, "episode", components, lambda out, store: {"steps": len(
+        (out / "steps.txt").read_text().split())}, keeps_partial=True), store)
+    assert built.summary() == {"steps": 2}
 
 
 def test_what_a_killed_build_left_is_cleared_before_the_next_one_unless_it_is_a_run(tmp_path):

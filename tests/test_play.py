@@ -229,7 +229,10 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path):
     assert proc.returncode == 2 and f"port {port}" in proc.stderr and "not free" in proc.stderr
 
 
-def test_an_episode_left_by_a_killed_process_is_kept_as_incomplete(tmp_path):
+@pytest.mark.parametrize("stop", [signal.SIGKILL, signal.SIGTERM])
+def test_an_episode_left_by_a_killed_process_is_kept_as_incomplete(tmp_path, stop):
+    """SIGKILL leaves the partial episode behind; SIGTERM (a closed terminal, a shutdown) ends the
+    command, but the person's steps must not go with it: both are recovered by the next play."""
     keys = grid_keys(0)
     term = Pty(["play", *GRID, "--participant", "p4"], tmp_path)
     term.read_until(b"steps left")
@@ -239,8 +242,8 @@ def test_an_episode_left_by_a_killed_process_is_kept_as_incomplete(tmp_path):
             not next((tmp_path / PLAY_KIND).rglob("steps.jsonl")).read_text():
         assert time.time() < deadline
         time.sleep(0.1)
-    os.kill(term.pid, signal.SIGKILL)
-    term.wait()
+    os.kill(term.pid, stop)
+    assert term.wait() == (-signal.SIGKILL if stop == signal.SIGKILL else 143)
     assert not played(tmp_path)
     again = Pty(["play", *GRID, "--participant", "p4"], tmp_path)
     again.read_until(b"kept as incomplete")

@@ -129,7 +129,7 @@ def episode_recipe(spec, opponent: Opponent, participant: str, session: str, epi
         return summarize(out, completed)
 
     return Recipe(PLAY_KIND, f"play {participant}", components, build, seeds=(seed,),
-                  record={"env": spec.env.kind, "participant": participant})
+                  record={"env": spec.env.kind, "participant": participant}, keeps_partial=True)
 
 
 def summarize(path: Path, completed: bool) -> dict:
@@ -167,7 +167,7 @@ def recover_abandoned(store: Store, console: Console) -> list[Path]:
             return summarize(out, False)
 
         built = ensure(Recipe(PLAY_KIND, entry.manifest.get("name", "play"), components, build,
-                              record={"recovered": True}, builds_on_partial=True), store)
+                              record={"recovered": True}, keeps_partial=True), store)
         console.print(f"an episode left unfinished was kept as incomplete: {built.path}")
         recovered.append(built.path)
     return recovered
