@@ -12,6 +12,7 @@ Nothing here trains; the estimator check computes exact artifacts for a stored r
 from __future__ import annotations
 
 import json
+import shlex
 from dataclasses import dataclass, field, replace
 from functools import cache
 from pathlib import Path
@@ -24,6 +25,7 @@ from esr_cli.artifacts import ensure
 from esr_cli.checkpoint_files import verified_steps
 from esr_cli.finals import FINAL_FRACTION, final_per_seed, read_rows, series
 from esr_cli.stats import describe, format_summary, probability_of_improvement, scored_seeds
+from esr_cli.suite import train_line
 from esr_cli.store import RUN_KIND, Store, atomic_write_bytes, atomic_write_text
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
@@ -425,7 +427,7 @@ def train_command(ev: Evidence, store: Store) -> str:
         shown = file.relative_to(EXPERIMENTS.parent)
     except ValueError:
         shown = file
-    return (f"esr --store {store.root} train {shown} --budget {ev.budget}" + "".join(f" --set {s}" for s in sets))
+    return train_line(f"esr --store {shlex.quote(str(store.root))}", shown, ev.budget, sets)
 
 
 MIN_CURVE_EPOCHS = 500

@@ -24,6 +24,7 @@ from esr_cli.core.train import make_trainer
 from esr_cli.finals import read_rows
 from esr_cli.resources import check_run_fits
 from esr_cli.stats import describe
+from esr_cli.suite import train_line
 from esr_cli.store import EVAL_KIND, HUMAN_KIND, LockBusy, RUN_KIND, Store, StoreError, atomic_write_text, content_key, nearest_existing, probe_writable
 from esr_cli.targets import is_spec_file, partner_spec, run_spec, seat_spec, stored_run
 
@@ -198,7 +199,7 @@ def find_run(target: str, budget: str, sets, store: Store) -> Path:
 
 
 def train_command(spec_file: str, budget: str, sets, store: Store) -> str:
-    return f"{store.invocation()} train {spec_file} --budget {budget}" + "".join(f" --set {s}" for s in (sets or []))
+    return train_line(store.invocation(), spec_file, budget, sets or [])
 
 
 def eval_key(run_manifest: dict, episodes: int, partner_key: str | None = None, seat: int | None = None) -> tuple[str, dict]:

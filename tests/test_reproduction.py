@@ -2,6 +2,8 @@
 real CLI writing docs-style markdown from a store."""
 
 import json
+import shlex
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +11,7 @@ import pytest
 
 from conftest import esr
 from esr_cli import reproduction as rep
+from esr_cli.suite import train_line
 
 
 def _evidence(stem, sets=(), finals=(10.0,), epochs=3000, status="complete", mi=None):
@@ -178,6 +181,19 @@ def test_the_command_that_made_a_run_resolves_to_its_spec():
     assert rep.train_command(ev, rep.Store(Path("/store"))) == (
         "esr --store /store train experiments/grid_5_ave.yaml --budget paper"
         " --set method.variant=original --set train.epochs=3000 --set train.seeds=1")
+    seeds = rep.specs.load(rep.EXPERIMENTS / "grid_5.yaml", "paper", ["train.seeds=[1]"])
+    line = rep.train_command(replace(ev, spec=seeds), rep.Store(Path("/my store")))
+    # pasted into a shell: a glob and a space in the store's path reach esr as they were
+    assert shlex.split(line) == ["esr", "--store", "/my store", "train", "experiments/grid_5.yaml", "--budget", "paper",
+                                 "--set", "train.seeds=[1]"]
+
+
+def test_a_train_line_survives_the_shell_whatever_the_values():
+    sets = ["name=it's mine", "train.seeds=[0, 1]", "env.blocks=5", "method.note=$HOME `x` *"]
+    line = train_line("esr", "my specs/a.yaml", "paper", sets)
+    assert shlex.split(line) == ["esr", "train", "my specs/a.yaml", "--budget", "paper",
+                                 *(w for s in sets for w in ("--set", s))]
+    assert "--set env.blocks=5" in line  # a plain value stays unquoted, as a person would type it
 
 
 def test_finished_runs_that_differ_only_in_their_seeds_are_pooled():
