@@ -1,4 +1,4 @@
-"""How esr prints to a terminal.
+"""How esr prints to a terminal, and the command lines it prints for a person to paste.
 
 Consoles print text exactly as written: a store path, spec name, suite label, participant or
 error message that looks like rich markup (`[bold]`, `[/x]`) is neither styled away nor a crash,
@@ -7,6 +7,8 @@ so a new print site is safe without escaping anything.
 """
 
 from __future__ import annotations
+
+import shlex
 
 from rich.console import Console
 from rich.text import Text
@@ -21,3 +23,10 @@ def plain_console(stderr: bool = False) -> Console:
 def tagged(tag: str, style: str, *rest: str) -> Text:
     """`tag` in `style`, then `rest` as written: tagged("ok", "green", " ", str(path))."""
     return Text.assemble((tag, style), *rest)
+
+
+def train_line(esr: str, spec_path, budget: str, sets) -> str:
+    """`esr train` as a shell line to paste: each word quoted where the shell would change it
+    (`train.seeds=[1]` is a glob; a value may hold a quote or a space)."""
+    words = ["train", str(spec_path), "--budget", budget, *(w for s in sets for w in ("--set", s))]
+    return " ".join([esr, *map(shlex.quote, words)])

@@ -24,7 +24,6 @@ import difflib
 import itertools
 import json
 import math
-import shlex
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
@@ -32,6 +31,7 @@ from typing import Any, Optional
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from esr_cli import spec as specs, yamlio
+from esr_cli.printing import train_line
 from esr_cli.store import content_key
 
 
@@ -133,13 +133,6 @@ class Run:
     def command(self, budget: str, esr: str = "esr") -> str:
         """The `esr train` line of this run; `esr`: how to call esr (Store.invocation)."""
         return train_line(esr, self.spec_path, budget, self.sets)
-
-
-def train_line(esr: str, spec_path, budget: str, sets) -> str:
-    """`esr train` as a shell line to paste: each word quoted where the shell would change it
-    (`train.seeds=[1]` is a glob; a value may hold a quote or a space)."""
-    words = ["train", str(spec_path), "--budget", budget, *(w for s in sets for w in ("--set", s))]
-    return " ".join([esr, *map(shlex.quote, words)])
 
 
 @dataclass(frozen=True)

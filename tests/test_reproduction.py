@@ -11,7 +11,7 @@ import pytest
 
 from conftest import esr
 from esr_cli import reproduction as rep
-from esr_cli.suite import train_line
+from esr_cli.printing import train_line
 
 
 def _evidence(stem, sets=(), finals=(10.0,), epochs=3000, status="complete", mi=None):
