@@ -24,8 +24,8 @@ from esr_cli import provenance, spec as specs, yamlio
 from esr_cli.artifacts import ensure
 from esr_cli.checkpoint_files import verified_steps
 from esr_cli.finals import FINAL_FRACTION, final_per_seed, read_rows, series
-from esr_cli.stats import describe, format_summary, probability_of_improvement, scored_seeds
 from esr_cli.printing import train_line
+from esr_cli.stats import describe, format_summary, probability_of_improvement, scored_seeds
 from esr_cli.store import RUN_KIND, Store, atomic_write_bytes, atomic_write_text
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"

@@ -22,9 +22,9 @@ from esr_cli.artifacts import Recipe
 from esr_cli.core import evaluate as ev, loop
 from esr_cli.core.train import make_trainer
 from esr_cli.finals import read_rows
+from esr_cli.printing import train_line
 from esr_cli.resources import check_run_fits
 from esr_cli.stats import describe
-from esr_cli.printing import train_line
 from esr_cli.store import EVAL_KIND, HUMAN_KIND, LockBusy, RUN_KIND, Store, StoreError, atomic_write_text, content_key, nearest_existing, probe_writable
 from esr_cli.targets import is_spec_file, partner_spec, run_spec, seat_spec, stored_run
 
