@@ -12,7 +12,6 @@ Nothing here trains; the estimator check computes exact artifacts for a stored r
 from __future__ import annotations
 
 import json
-import shlex
 from dataclasses import dataclass, field, replace
 from functools import cache
 from pathlib import Path
@@ -427,7 +426,7 @@ def train_command(ev: Evidence, store: Store) -> str:
         shown = file.relative_to(EXPERIMENTS.parent)
     except ValueError:
         shown = file
-    return train_line(f"esr --store {shlex.quote(str(store.root))}", shown, ev.budget, sets)
+    return train_line(store.invocation(always_named=True), shown, ev.budget, sets)
 
 
 MIN_CURVE_EPOCHS = 500

@@ -153,11 +153,11 @@ class Store:
     def lock_path(self, kind: str, key: str) -> Path:
         return self.root / kind / key[:2] / f"{key}.lock"
 
-    def invocation(self) -> str:
-        """`esr`, with `--store PATH` unless this is the store esr opens by default: a command
-        printed as a hint must reach the store the user named."""
+    def invocation(self, always_named: bool = False) -> str:
+        """`esr`, with `--store PATH` unless this is the store esr opens by default (or always,
+        for a record read elsewhere): a command printed as a hint must reach the store the user named."""
         default = Path(os.environ.get("ESR_STORE") or "artifacts")
-        if self.root.absolute() == default.absolute():
+        if not always_named and self.root.absolute() == default.absolute():
             return "esr"
         return f"esr --store {shlex.quote(str(self.root))}"
 
