@@ -326,10 +326,14 @@ class AvEMethodSpec(_Model):
 
 
 class GoalInferenceMethodSpec(_Model):
-    """Bayesian goal inference under the known human model, then a rule that clears the
-    human's way to the most probable goal (docs/baselines.md)."""
+    """Goal inference, then a rule that clears the human's way (docs/baselines.md): esr's exact
+    Bayesian belief under the known human model, or Du et al.'s published step rule."""
 
     kind: Literal["goal_inference"]
+    variant: Literal["exact", "original"] = Field(
+        "exact", description="original: Du et al.'s step update and goal-mass vote (docs/baselines.md)"
+    )
+    step: Float = Field(0.5, gt=0.0, le=10.0, description="original: alpha; each move shifts a goal's weight by alpha / |G|")
 
 
 class IQLearnMethodSpec(_Model):

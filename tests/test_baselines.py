@@ -15,6 +15,7 @@ from esr_cli.methods.goal_inference import GoalInference
 from esr_cli.methods.iq_learn import IQLearn
 
 STEPS = 800  # IQ-Learn updates in the fitted toy case
+KEY = jax.random.PRNGKey(0)
 MOVES = np.array([[0, -1], [1, 0], [0, 1], [-1, 0], [0, 0]])
 
 
@@ -105,11 +106,11 @@ def test_goal_belief_moves_toward_the_true_goal():
     prev_action = jnp.zeros((), jnp.int32)
     # A scripted human walking greedily to (4, 4): down, right, down, right, down, right.
     for action in [DOWN, RIGHT, DOWN, RIGHT, DOWN, RIGHT]:
-        _, memory = gi.rule_step(memory, env.observe(s), prev_action)
+        _, memory = gi.rule_step(memory, env.observe(s), prev_action, KEY)
         s = s._replace(human=jnp.clip(s.human + jnp.array(MOVES[action]), 0, 4))
         prev_action = jnp.array(action, jnp.int32)
         beliefs.append(float(memory.belief[true_index]))
-    _, memory = gi.rule_step(memory, env.observe(s), prev_action)
+    _, memory = gi.rule_step(memory, env.observe(s), prev_action, KEY)
     beliefs.append(float(memory.belief[true_index]))
     assert beliefs[-1] > 5 * beliefs[0]
     assert all(b1 >= b0 for b0, b1 in zip(beliefs, beliefs[1:]))
@@ -139,6 +140,75 @@ def test_goal_inference_does_nothing_when_the_way_is_clear():
     action = int(gi.clearing_action(env.observe(s), jnp.array([4, 4])))
     after, _ = env.step(s, jnp.array(action), jnp.array(STAY))
     assert after.blocks.tolist() == s.blocks.tolist()
+
+
+def test_published_goal_inference_moves_weights_by_fixed_steps_as_computed_by_hand():
+    """Du et al.'s rule on a 3 x 3 grid, one block at (0, 2), the human at (1, 1): the goal set is
+    the 7 other cells, each starting at 1/7; alpha = 0.5, so a move shifts a weight by 1/14."""
+    from fractions import Fraction as F
+
+    env = Gridworld(size=3, num_blocks=1, start="corner", episode_steps=10)
+    gi = GoalInference(env=env, human=NoisyGreedyHuman(env=env, noise=0.2), variant="original", step=0.5)
+    blocks = [[0, 2]]
+    path = [[1, 1], [1, 2], [1, 2], [2, 2]]  # right, stay (on (1, 2)), down
+    memory = gi.memory_init(env.observe(grid_state(path[0], blocks, [2, 2])))
+    assert int(memory.candidates.sum()) == 7
+    for cell in path:
+        _, memory = gi.rule_step(memory, env.observe(grid_state(cell, blocks, [2, 2])), jnp.int32(0), KEY)
+    # Step 1, (1,1) -> (1,2): closer to (1,2) and (2,2): 1/7 + 1/14 = 3/14; the five others away:
+    # 1/14; renormalised by 11/14: 3/11 and 1/11.
+    # Step 2, staying on (1,2): its weight goes to 0; by 8/11: (2,2) 3/8, the five others 1/8.
+    # Step 3, (1,2) -> (2,2): closer to (2,2), (2,0), (2,1): + 1/14; away from (0,0), (0,1), (1,0):
+    # 1/8 - 1/14 = 3/56; (1,2) stays floored at 0.
+    w = {(2, 2): F(3, 8) + F(1, 14), (2, 0): F(1, 8) + F(1, 14), (2, 1): F(1, 8) + F(1, 14),
+         (0, 0): F(3, 56), (0, 1): F(3, 56), (1, 0): F(3, 56), (1, 2): F(0)}
+    total = sum(w.values())
+    expected = np.zeros(9)
+    for (r, c), v in w.items():
+        expected[r * 3 + c] = float(v / total)
+    np.testing.assert_allclose(np.asarray(memory.belief), expected, atol=1e-6)
+
+
+def test_published_goal_inference_floors_weights_at_zero_and_keeps_a_belief_nothing_explains():
+    env = Gridworld(size=3, num_blocks=1, start="corner", episode_steps=10)
+    gi = GoalInference(env=env, human=NoisyGreedyHuman(env=env, noise=0.2), variant="original", step=10.0)
+    obs = lambda cell: env.observe(grid_state(cell, [[0, 2]], [2, 2]))  # noqa: E731
+    memory = gi.memory_init(obs([1, 1]))
+    _, memory = gi.rule_step(memory, obs([1, 1]), jnp.int32(0), KEY)
+    _, memory = gi.rule_step(memory, obs([1, 2]), jnp.int32(0), KEY)
+    # A step of 10/7 wipes every goal the move left: only (1,2) and (2,2) keep weight, equally.
+    expected = np.zeros(9)
+    expected[[5, 8]] = 0.5
+    np.testing.assert_allclose(np.asarray(memory.belief), expected, atol=1e-6)
+    # A goal at 0 comes back when approached (+ alpha / |G|): moving back to (1,1) approaches
+    # (0,0), (0,1), (1,0), (2,0), (2,1) and leaves (1,2) and (2,2), floored at 0.
+    _, memory = gi.rule_step(memory, obs([1, 1]), jnp.int32(0), KEY)
+    expected = np.zeros(9)
+    expected[[0, 1, 3, 6, 7]] = 0.2
+    np.testing.assert_allclose(np.asarray(memory.belief), expected, atol=1e-6)
+    # Standing still on the one goal with weight zeroes it: nothing is left, so the belief stays
+    # as it was (the published code divides by zero there).
+    only = jnp.zeros(9).at[8].set(1.0)
+    after = gi.step_belief(only, memory.candidates, obs([2, 2]), obs([2, 2]))
+    np.testing.assert_allclose(np.asarray(after), np.asarray(only))
+
+
+def test_published_goal_inference_helps_the_goal_mass_and_breaks_ties_at_random():
+    env = Gridworld(size=5, num_blocks=2, start="corner", episode_steps=50)
+    gi = GoalInference(env=env, human=NoisyGreedyHuman(env=env, noise=0.2), variant="original")
+    obs = env.observe(grid_state([0, 0], [[0, 1], [1, 0]], [4, 4]))
+    # (0,4) is reached by moving right, through the block on (0,1); (4,0) by moving down, through
+    # the block on (1,0). The published push order is left, down, right, up, never onto the human.
+    push_right_block = (0 * 5 + 1) * 5 + DOWN  # left would land on the human
+    push_down_block = (1 * 5 + 0) * 5 + DOWN  # left would leave the grid
+    belief = jnp.zeros(25).at[4].set(0.6).at[20].set(0.4)
+    assert int(gi.expected_help(obs, belief, KEY)) == push_right_block
+    belief = jnp.zeros(25).at[4].set(0.5).at[20].set(0.5)
+    chosen = {int(gi.expected_help(obs, belief, k)) for k in jax.random.split(KEY, 40)}
+    assert chosen == {push_right_block, push_down_block}
+    # esr's exact variant pushes sideways first: the block on (1,0) goes right, onto (1,1).
+    exact = GoalInference(env=env, human=NoisyGreedyHuman(env=env, noise=0.2))
+    assert int(exact.clearing_action(obs, jnp.array([4, 0]))) == (1 * 5 + 0) * 5 + RIGHT
 
 
 def test_iq_learn_reward_ranks_the_humans_actions_above_random_ones():

@@ -149,7 +149,7 @@ class Trainer(NamedTuple):
             k_robot, k_human = jax.random.split(key)
             obs = jax.vmap(env.observe)(states)
             if self.acts_by_rule:
-                a_r, memory = jax.vmap(method.rule_step)(memory, obs, prev_ah)
+                a_r, memory = jax.vmap(method.rule_step)(memory, obs, prev_ah, jax.random.split(k_robot, num_envs))
                 log_probs = jnp.zeros((num_envs, env.num_robot_actions))
             else:
                 log_probs, a_r = self.robot_action(lstate, obs, k_robot, mode, uniform)

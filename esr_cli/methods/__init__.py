@@ -13,7 +13,7 @@ them all with the shared soft-Q learner:
 
 A method with `acts_by_rule = True` (Goal Inference) instead decides every step itself:
     memory_init(obs) -> memory                 per environment, at an episode's start
-    rule_step(memory, obs, prev_human_action) -> (action, memory)
+    rule_step(memory, obs, prev_human_action, key) -> (action, memory)
     rule_metrics(memory, final_env_state) -> dict   end-of-episode metrics
 
 Catalogue (docs/baselines.md): esr, random, ave, goal_inference, iq_learn, oracle. Build one

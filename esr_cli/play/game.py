@@ -47,7 +47,7 @@ class Robot:
         if self.by_rule:
             method = trainer.method
             self._start = jax.jit(lambda state: method.memory_init(env.observe(state)))
-            self._rule = jax.jit(lambda memory, state, prev: method.rule_step(memory, env.observe(state), prev))
+            self._rule = jax.jit(lambda memory, state, prev, key: method.rule_step(memory, env.observe(state), prev, key))
         else:
             def act(state, key):
                 if uniform:
@@ -59,7 +59,7 @@ class Robot:
     def warm(self, state) -> None:
         """Compile the robot's step now, so that the first ticks of a game are not late."""
         if self.by_rule:
-            self._rule(self._start(state), state, jnp.int32(0))
+            self._rule(self._start(state), state, jnp.int32(0), jax.random.PRNGKey(0))
         else:
             self._act(state, jax.random.PRNGKey(0))
 
@@ -68,7 +68,7 @@ class Robot:
 
     def act(self, state, key, prev_human_action: int) -> int:
         if self.by_rule:
-            action, self.memory = self._rule(self.memory, state, jnp.int32(prev_human_action))
+            action, self.memory = self._rule(self.memory, state, jnp.int32(prev_human_action), key)
             return int(action)
         return int(self._act(state, key))
 
