@@ -24,7 +24,7 @@ from esr_cli.artifacts import ensure
 from esr_cli.checkpoint_files import verified_steps
 from esr_cli.finals import FINAL_FRACTION, final_per_seed, read_rows, series
 from esr_cli.printing import train_line
-from esr_cli.stats import describe, format_summary, probability_of_improvement, scored_seeds
+from esr_cli.stats import describe, format_summary, mean_difference_ci, probability_of_improvement, scored_seeds
 from esr_cli.store import RUN_KIND, Store, atomic_write_bytes, atomic_write_text
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
@@ -33,12 +33,20 @@ PAPER_EPOCHS = 10_000
 # gridworld at 30% of the paper's 10,000 epochs (beyond which ESR's return in the paper's
 # figure changes little), Overcooked at its full length (cheap enough to run whole).
 COMPARABLE_EPOCHS = {"gridworld": 3000, "overcooked": 10_000}
-SIMILAR_WITHIN = 0.15  # "similar" returns: within 15% of the larger one
+# "Similar" returns: the difference of the means within this share of the larger mean, by two
+# one-sided tests (the 90% bootstrap interval of the difference inside the margin) where a side
+# has several seeds, by the point difference where both have one.
+EQUIVALENCE_MARGIN = 0.15
+# A verdict needs this many seeds on every side; with fewer a row is only indicative.
+MIN_SEEDS = 3
 # "Positive" MI estimate: above this many nats at the end (a grid_2 run that learned ends near
 # +0.17; an estimate stuck at +0.002 carries no signal however many epochs are above zero).
 MI_POSITIVE = 0.01
 REPRODUCED, NOT_REPRODUCED, INCONCLUSIVE, NOT_YET = (
     "reproduced", "not reproduced", "inconclusive", "not yet run at a comparable budget")
+INDICATIVE = "indicative"
+# What an indicative row's numbers say, before enough seeds: holds, does not hold, open.
+LEANINGS = {True: "holds", False: "does not hold", None: "open"}
 
 
 # ---------------------------------------------------------------- evidence in the store
@@ -195,10 +203,13 @@ class Claim:
     a: tuple[str, tuple[str, ...]]  # (spec stem in experiments/, --set values)
     b: Optional[tuple[str, tuple[str, ...]]] = None
     variants: list[tuple[str, tuple[str, ...]]] = field(default_factory=list)  # esr's variants of `a`, shown too
+    # esr's stronger versions of the baseline `b` (the paper ran the published one): extra rows
+    baseline_variants: list[tuple[str, tuple[str, ...]]] = field(default_factory=list)
 
 
 QUICK_CHANGES = ("learner.warmup_epochs=20", "method.repr_lr=0.001")
 PUBLISHED_AVE = ("method.variant=original",)
+PUBLISHED_GOAL_INFERENCE = ("method.variant=original",)
 NO_ROBOT_ACTION = ("method.condition_on_robot_action=false",)
 GREEDY = ("learner.gamma=0.0",)
 
@@ -217,15 +228,18 @@ def paper_claims() -> list[Claim]:
         if n == 2:
             claims.append(Claim("Figure 1", "N = 2: ESR and AvE end level",
                                 "at N = 2 ESR and AvE reach a similar final return (AvE sooner)",
-                                "similar", esr, (f"grid_{n}_ave", PUBLISHED_AVE), var))
+                                "similar", esr, (f"grid_{n}_ave", PUBLISHED_AVE), var, [(f"grid_{n}_ave", ())]))
         else:
+            fixed_ave = [(f"grid_{n}_ave", ())]
             claims.append(Claim("Figure 1", f"N = {n}: ESR ends above AvE", "from N = 5 on ESR is clearly the best method",
-                                "above", esr, (f"grid_{n}_ave", PUBLISHED_AVE), var))
+                                "above", esr, (f"grid_{n}_ave", PUBLISHED_AVE), var, fixed_ave))
             claims.append(Claim("Figure 1", f"N = {n}: AvE ends below Random", "from N = 5 on AvE falls below Random",
-                                "above", (f"grid_{n}_random", ()), (f"grid_{n}_ave", PUBLISHED_AVE)))
-            for base, label in (("goal_inference", "Goal Inference"), ("iq_learn", "Reward Inference")):
-                claims.append(Claim("Figure 1", f"N = {n}: ESR ends above {label}",
-                                    f"{label} fails except at N = 2", "above", esr, (f"grid_{n}_{base}", ()), var))
+                                "above", (f"grid_{n}_random", ()), (f"grid_{n}_ave", PUBLISHED_AVE), [], fixed_ave))
+            claims.append(Claim("Figure 1", f"N = {n}: ESR ends above Goal Inference", "Goal Inference fails except at N = 2",
+                                "above", esr, (f"grid_{n}_goal_inference", PUBLISHED_GOAL_INFERENCE), var,
+                                [(f"grid_{n}_goal_inference", ())]))
+            claims.append(Claim("Figure 1", f"N = {n}: ESR ends above Reward Inference",
+                                "Reward Inference fails except at N = 2", "above", esr, (f"grid_{n}_iq_learn", ()), var))
     from esr_cli.figures import PAPER_OVERCOOKED  # the paper's table: mean, SE (Random: mean only)
 
     for layout in ("cramped_room", "coord_ring", "asymm_advantages"):
@@ -262,6 +276,8 @@ class Finding:
     verdict: str
     measured: str
     variants: list[tuple[str, Optional[Evidence], str]] = field(default_factory=list)
+    # esr's stronger baselines: (label, evidence, measured, what the row would say against it)
+    baselines: list[tuple[str, Optional[Evidence], str, str]] = field(default_factory=list)
     # The other stored runs of the first spec (fewer epochs, another seed set or device), with
     # their own comparison: a one-seed verdict is read beside the several-seed runs that exist.
     others: list[tuple[Evidence, str]] = field(default_factory=list)
@@ -297,6 +313,8 @@ def run_label(spec: specs.Spec) -> str:
     method, notes = spec.method, []
     if isinstance(method, specs.AvEMethodSpec) and method.variant == "original":
         notes.append("published")
+    if isinstance(method, specs.GoalInferenceMethodSpec):
+        notes.append("published" if method.variant == "original" else "exact posterior")
     if isinstance(method, specs.ESRMethodSpec):
         if not method.condition_on_robot_action:
             notes.append("without aR")
@@ -317,16 +335,28 @@ def _compare(kind: str, a: Evidence, b: Evidence) -> tuple[bool | None, str]:
     text = f"{run_label(a.spec)} {format_summary(fa)} against {run_label(b.spec)} {format_summary(fb)}"
     if not scored_seeds(fa) or not scored_seeds(fb):  # a side without a finite final score decides nothing
         return None, text
+    if kind == "similar":
+        return _equivalent(fa, fb, text)
     if scored_seeds(fa) >= 2 or scored_seeds(fb) >= 2:
         p, low, high = probability_of_improvement(fa["per_seed"], fb["per_seed"])
         text += f"; P(improvement) {p:.2f} [{low:.2f}, {high:.2f}]"
-        if kind == "above":
-            return (True if low > 0.5 else False if high < 0.5 else None), text
-        return (low <= 0.5 <= high), text
+        return (True if low > 0.5 else False if high < 0.5 else None), text
     if kind == "above":
         return fa["mean"] > fb["mean"], text
-    larger = max(abs(fa["mean"]), abs(fb["mean"]), 1e-9)
-    return abs(fa["mean"] - fb["mean"]) <= SIMILAR_WITHIN * larger, text
+    return _equivalent(fa, fb, text)
+
+
+def _equivalent(fa: dict, fb: dict, text: str) -> tuple[bool | None, str]:
+    """Two one-sided tests: similar when the 90% interval of the difference of the means lies
+    inside +- EQUIVALENCE_MARGIN of the larger mean, different when it lies wholly outside it."""
+    margin = EQUIVALENCE_MARGIN * max(abs(fa["mean"]), abs(fb["mean"]), 1e-9)
+    diff, low, high = mean_difference_ci(fa["per_seed"], fb["per_seed"])
+    if low is None:
+        return abs(diff) <= margin, text + f"; difference {diff:+.2f}, margin ±{margin:.2f}"
+    text += f"; difference {diff:+.2f} [{low:+.2f}, {high:+.2f}], margin ±{margin:.2f}"
+    if -margin <= low and high <= margin:
+        return True, text
+    return (False if low > margin or high < -margin else None), text
 
 
 def judge(claim: Claim, index: dict[str, list[Evidence]]) -> Finding:
@@ -343,9 +373,10 @@ def judge(claim: Claim, index: dict[str, list[Evidence]]) -> Finding:
         else:
             other = b and _compare(claim.kind, ev, b)[1]
             variants.append((label, ev, other or f"{run_label(ev.spec)} {format_summary(ev.finals())}"))
+    baselines = _baseline_rows(claim, a, index)
     needed = [a] + ([b] if claim.b else [])
     if any(e is None for e in needed):
-        return Finding(claim, a, b, NOT_YET, "not run", variants)
+        return Finding(claim, a, b, NOT_YET, "not run", variants, baselines)
     more = [(ev, _mi_summary(ev)[1] if claim.kind == "mi_positive" else _compare(claim.kind, ev, b)[1])
             for ev in others(index, claim_spec(claim.a), a)]
     if claim.kind == "mi_positive":
@@ -353,18 +384,57 @@ def judge(claim: Claim, index: dict[str, list[Evidence]]) -> Finding:
     else:
         holds, measured = _compare(claim.kind, a, b)
     if not all(e.comparable() for e in needed):
-        return Finding(claim, a, b, NOT_YET, measured, variants, more)
-    verdict = INCONCLUSIVE if holds is None else REPRODUCED if holds else NOT_REPRODUCED
-    return Finding(claim, a, b, verdict + _seed_note([e.seeds for e in needed]), measured, variants, more)
+        return Finding(claim, a, b, NOT_YET, measured, variants, baselines, more)
+    verdict = tiered_verdict(holds, [_scored(e) for e in needed])
+    differs = [label for label, _, _, other in baselines if other != NOT_YET and _leaning(other) != _leaning(verdict)]
+    if differs:
+        measured += f"; the verdict depends on the baseline: against {', '.join(differs)} it is different (below)"
+    return Finding(claim, a, b, verdict, measured, variants, baselines, more)
+
+
+def _baseline_rows(claim: Claim, a: Optional[Evidence], index) -> list[tuple[str, Optional[Evidence], str, str]]:
+    """The claim judged against each of esr's stronger baselines instead of the published one."""
+    rows = []
+    for ref in claim.baseline_variants:
+        ev = pooled(index, claim_spec(ref))
+        label = f"esr's {run_label(claim_spec(ref))}"
+        if ev is None or a is None:
+            rows.append((label, ev, "not run" if ev is None else format_summary(ev.finals()), NOT_YET))
+            continue
+        holds, measured = _compare(claim.kind, a, ev)
+        comparable = a.comparable() and ev.comparable()
+        rows.append((label, ev, measured, tiered_verdict(holds, [_scored(a), _scored(ev)]) if comparable else NOT_YET))
+    return rows
+
+
+def _scored(ev: Evidence) -> int:
+    """Seeds with a final score: a seed without one counts towards no tier."""
+    return scored_seeds(ev.finals())
+
+
+def tiered_verdict(holds: bool | None, seeds: list[int]) -> str:
+    """reproduced / not reproduced / inconclusive with MIN_SEEDS seeds on every side; below that
+    only indicative, with which way the numbers lean; always with the seeds it rests on."""
+    note = _seed_note(seeds)
+    if min(seeds) >= MIN_SEEDS:
+        return (INCONCLUSIVE if holds is None else REPRODUCED if holds else NOT_REPRODUCED) + note
+    return f"{INDICATIVE}: {LEANINGS[holds]}{note}"
+
+
+def _leaning(verdict: str) -> str:
+    """holds / does not hold / open, whatever the tier."""
+    for tier, leaning in ((REPRODUCED, "holds"), (NOT_REPRODUCED, "does not hold"), (INCONCLUSIVE, "open")):
+        if verdict.startswith(tier):
+            return leaning
+    return verdict.removeprefix(f"{INDICATIVE}: ").split(" (")[0]
 
 
 def _seed_note(seeds: list[int]) -> str:
-    """A verdict resting on a single seed says so, and against how many on the other side."""
-    if min(seeds) > 1:
-        return ""
-    if max(seeds) == 1:
-        return " (1 seed)"
-    return " (" + " against ".join(f"{n:,} seed{'s' if n > 1 else ''}" for n in seeds) + ")"
+    """The seeds a verdict rests on: ' (3 seeds each)', ' (1 seed)', ' (5 seeds against 1 seed)'."""
+    count = lambda n: f"{n:,} seed{'' if n == 1 else 's'}"  # noqa: E731
+    if len(set(seeds)) == 1:
+        return f" ({count(seeds[0])}{' each' if len(seeds) > 1 and seeds[0] > 1 else ''})"
+    return " (" + " against ".join(count(n) for n in seeds) + ")"
 
 
 # ---------------------------------------------------------------- the report
@@ -522,8 +592,18 @@ def estimator_section(index: dict[str, list[Evidence]], store: Store, console, c
 
 
 def verdict_counts(findings: list[Finding]) -> dict[str, int]:
-    """How many statements have each verdict, whatever their seed note."""
-    return {v: sum(f.verdict.startswith(v) for f in findings) for v in (REPRODUCED, NOT_REPRODUCED, INCONCLUSIVE, NOT_YET)}
+    """How many statements have each verdict, whatever their seed note; indicative rows by how
+    their numbers lean."""
+    tiers = [REPRODUCED, NOT_REPRODUCED, INCONCLUSIVE] + [f"{INDICATIVE}: {v}" for v in LEANINGS.values()] + [NOT_YET]
+    return {v: sum(f.verdict.startswith(v) for f in findings) for v in tiers}
+
+
+def summary_line(findings: list[Finding]) -> str:
+    c = verdict_counts(findings)
+    lean = [c[f"{INDICATIVE}: {v}"] for v in LEANINGS.values()]
+    return (f"{len(findings)} statements: {c[REPRODUCED]} {REPRODUCED}, {c[NOT_REPRODUCED]} {NOT_REPRODUCED} and "
+            f"{c[INCONCLUSIVE]} {INCONCLUSIVE} with at least {MIN_SEEDS} seeds on every side; {sum(lean)} {INDICATIVE} "
+            f"on fewer seeds ({lean[0]} holding, {lean[1]} not holding, {lean[2]} open); {c[NOT_YET]} {NOT_YET}.")
 
 
 def report(store: Store, out: Path, console, exact: bool = True, now: Optional[str] = None) -> list[Finding]:
@@ -532,7 +612,6 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
 
     index = index_store(store)
     findings = [judge(c, index) for c in paper_claims()]
-    counts = verdict_counts(findings)
     lines = [
         "# Reproduction report", "",
         f"Generated by `esr --store {store.root} paper --report --out {out}` on "
@@ -547,15 +626,22 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
         f"- Final return: each seed's mean over its last {FINAL_FRACTION:.0%} of epochs. Several seeds: mean ± SE, "
         "the interquartile mean (IQM) with its 95% stratified bootstrap interval, and the probability that the first run "
         "improves on the second with its interval. One seed: its value, marked as one seed.",
-        f"- Verdict: *{REPRODUCED}* or *{NOT_REPRODUCED}* once every run behind the row has "
-        f"{COMPARABLE_EPOCHS['gridworld']:,} epochs (gridworld) or {COMPARABLE_EPOCHS['overcooked']:,} (Overcooked); "
-        "with several seeds the statement holds when the lower end of the probability-of-improvement interval is above 0.5, "
-        f"and is *{INCONCLUSIVE}* when the interval contains 0.5. Before that: *{NOT_YET}*, with the numbers so far. "
-        f"'Similar' means within {SIMILAR_WITHIN:.0%} of the larger return (one seed) or an interval containing 0.5. "
+        f"- Verdict: a row is judged once every run behind it has {COMPARABLE_EPOCHS['gridworld']:,} epochs (gridworld) "
+        f"or {COMPARABLE_EPOCHS['overcooked']:,} (Overcooked); before that it is *{NOT_YET}*, with the numbers so far. "
+        f"With at least {MIN_SEEDS} seeds on every side it is *{REPRODUCED}*, *{NOT_REPRODUCED}* or *{INCONCLUSIVE}*; "
+        f"with fewer it is only *{INDICATIVE}*, saying which way its numbers lean (holds, does not hold, open). "
+        "'Above': with several seeds on a side, holds when the lower end of the probability-of-improvement interval is "
+        "above 0.5, does not when its upper end is below 0.5, open otherwise; one seed against one: the sign of the "
+        f"difference. 'Similar' (an equivalence test): the margin is {EQUIVALENCE_MARGIN:.0%} of the larger mean; holds "
+        "when the 90% bootstrap interval of the difference of the means lies inside it (two one-sided tests at 5%), does "
+        "not when the interval lies wholly outside it, open otherwise; one seed against one: the difference itself. "
         f"The MI estimate 'stays positive' when its mean over the last {FINAL_FRACTION:.0%} of epochs is above "
         f"{MI_POSITIVE} nats and it is above 0 in at least 90% of the second half's epochs.",
+        "- Baselines: each claim is judged against the baseline the paper ran (the published AvE, Du et al.'s Goal "
+        "Inference); esr's stronger versions (AvE with its sampling fixed, Goal Inference by the exact posterior) are "
+        "extra rows marked as esr's, and a verdict that would change with them says so.",
         "- The paper ran 20 seeds (gridworld) and 5 to 15 (Overcooked) for 10,000 epochs.", "",
-        f"**Summary:** {len(findings)} statements; " + ", ".join(f"{n} {v}" for v, n in counts.items()) + ".", "",
+        f"**Summary:** {summary_line(findings)}", "",
     ]
     for figure in dict.fromkeys(f.claim.figure for f in findings):
         lines += [f"## {figure}", "", "| statement | the paper | measured | runs | verdict |", "|---|---|---|---|---|"]
@@ -567,8 +653,12 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
             for label, ev, measured in f.variants:
                 if ev is not None:
                     lines.append(f"| ↳ esr's variant `{label}` | | {measured} | {_run_cell(ev)} | |")
+            for label, ev, measured, verdict in f.baselines:
+                if ev is not None:
+                    lines.append(f"| ↳ against {label} | | {measured} | {_run_cell(ev)} | {verdict} |")
         lines.append("")
-    behind = {part.key: part for f in findings for ev in [f.a, f.b] + [v[1] for v in f.variants] + [o[0] for o in f.others]
+    behind = {part.key: part for f in findings
+              for ev in [f.a, f.b] + [v[1] for v in f.variants] + [o[0] for o in f.others] + [r[1] for r in f.baselines]
               if ev is not None for part in (ev.parts or (ev,))}
     if behind:
         lines += ["## The runs behind this report", "",
@@ -602,5 +692,7 @@ def findings_json(findings: list[Finding]) -> list[dict]:
                                        "commit": e.commit, "final_return": e.finals()}
 
     return [{"figure": f.claim.figure, "statement": f.claim.text, "paper": f.claim.paper, "verdict": f.verdict,
-             "measured": f.measured, "a": ev(f.a), "b": ev(f.b)} for f in findings]
+             "measured": f.measured, "a": ev(f.a), "b": ev(f.b),
+             "baselines": [{"baseline": label, "verdict": verdict, "measured": measured, "run": ev(e)}
+                           for label, e, measured, verdict in f.baselines]} for f in findings]
 

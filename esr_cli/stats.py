@@ -15,6 +15,7 @@ from typing import Sequence
 import numpy as np
 
 CONFIDENCE = 0.95
+EQUIVALENCE_CONFIDENCE = 0.90  # two one-sided tests at 5% each
 RESAMPLES = 2000
 TRIM = 0.25  # the IQM drops the bottom and top quarter of all runs
 
@@ -92,6 +93,24 @@ def probability_of_improvement(x: Sequence[float], y: Sequence[float], confidenc
     if max(len(x), len(y)) < 2:
         return point, None, None
     return (point, *_bootstrap_ci(_improvement, [x, y], confidence, resamples, seed))
+
+
+def _mean_difference(x, y, axis=-1):
+    return np.mean(x, axis=axis) - np.mean(y, axis=axis)
+
+
+def mean_difference_ci(x: Sequence[float], y: Sequence[float], confidence: float = EQUIVALENCE_CONFIDENCE,
+                       resamples: int = RESAMPLES, seed: int = 0) -> tuple[float, float | None, float | None]:
+    """(mean(X) - mean(Y), low, high): a bootstrap interval resampling each side's seeds on its
+    own (a one-seed side held fixed; None, None when both have one seed). At 90% it is the
+    interval of the two one-sided tests of equivalence at the 5% level."""
+    x, y = finite(x), finite(y)
+    if not len(x) or not len(y):
+        return float("nan"), None, None
+    point = float(_mean_difference(x, y))
+    if max(len(x), len(y)) < 2:
+        return point, None, None
+    return (point, *_bootstrap_ci(_mean_difference, [x, y], confidence, resamples, seed))
 
 
 def describe(per_seed: Sequence[float]) -> dict:

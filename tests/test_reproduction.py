@@ -36,9 +36,9 @@ def _claim(text):
 def test_one_seed_verdicts_and_the_comparable_length():
     above = _claim("N = 5: ESR ends above Random")
     index = _index(_evidence("grid_5", finals=(20.0,)), _evidence("grid_5_random", finals=(9.0,)))
-    assert rep.judge(above, index).verdict == "reproduced (1 seed)"
+    assert rep.judge(above, index).verdict == "indicative: holds (1 seed)"
     index = _index(_evidence("grid_5", finals=(2.0,)), _evidence("grid_5_random", finals=(9.0,)))
-    assert rep.judge(above, index).verdict == "not reproduced (1 seed)"
+    assert rep.judge(above, index).verdict == "indicative: does not hold (1 seed)"
     short = _index(_evidence("grid_5", finals=(20.0,), epochs=2999, status="partial"), _evidence("grid_5_random", finals=(9.0,)))
     finding = rep.judge(above, short)
     assert finding.verdict == rep.NOT_YET and finding.measured.startswith("ESR 20.00 (1 seed) against Random 9.00 (1 seed)")
@@ -80,7 +80,8 @@ def test_several_seeds_against_one_hold_the_single_seed_fixed():
     # 9 of 10 seeds above 3.5: a resample's P is k/10, k ~ Binomial(10, 0.9); P(k <= 6) = 0.013
     # and P(k <= 7) = 0.070 put the 2.5% quantile at 0.7, so the lower end is above 0.5
     assert "P(improvement) 0.90 [0.70, 1.00]" in finding.measured
-    assert finding.verdict == "reproduced (10 seeds against 1 seed)"  # one side has a single seed, and says so
+    # one side has a single seed: however clear the 10 seeds are, the row is only indicative
+    assert finding.verdict == "indicative: holds (10 seeds against 1 seed)"
 
 
 def test_the_longest_matching_run_is_used_whatever_its_length_or_seeds():
@@ -103,21 +104,21 @@ def test_several_seeds_use_the_probability_of_improvement_interval():
     clear = _index(_evidence("grid_7", finals=(20, 21, 22, 23, 24)),
                    _evidence("grid_7_ave", rep.PUBLISHED_AVE, finals=(1, 2, 3, 4, 5)))
     finding = rep.judge(above, clear)
-    assert finding.verdict == "reproduced" and "P(improvement) 1.00 [1.00, 1.00]" in finding.measured
+    assert finding.verdict == "reproduced (5 seeds each)" and "P(improvement) 1.00 [1.00, 1.00]" in finding.measured
     mixed = _index(_evidence("grid_7", finals=(1, 3, 5, 7, 9)),
                    _evidence("grid_7_ave", rep.PUBLISHED_AVE, finals=(2, 4, 6, 8, 10)))
-    assert rep.judge(above, mixed).verdict == "inconclusive"
+    assert rep.judge(above, mixed).verdict == "inconclusive (5 seeds each)"
     reversed_ = _index(_evidence("grid_7", finals=(1, 2, 3, 4, 5)),
                        _evidence("grid_7_ave", rep.PUBLISHED_AVE, finals=(20, 21, 22, 23, 24)))
-    assert rep.judge(above, reversed_).verdict == "not reproduced"
+    assert rep.judge(above, reversed_).verdict == "not reproduced (5 seeds each)"
 
 
 def test_mi_claim_needs_a_positive_end_and_a_positive_second_half():
     claim = _claim("N = 2: the MI estimate turns positive and stays positive")
     good = _index(_evidence("grid_2", mi=lambda e: 0.2))
-    assert rep.judge(claim, good).verdict == "reproduced (1 seed)"
+    assert rep.judge(claim, good).verdict == "indicative: holds (1 seed)"
     fading = _index(_evidence("grid_2", mi=lambda e: 0.2 if e < 1000 else -0.001))
-    assert rep.judge(claim, fading).verdict == "not reproduced (1 seed)"
+    assert rep.judge(claim, fading).verdict == "indicative: does not hold (1 seed)"
 
 
 def test_cli_writes_the_report_from_a_store(tmp_path):
@@ -161,7 +162,7 @@ def test_the_estimator_check_takes_the_longest_finished_n2_esr_run_that_learned(
 def test_an_mi_estimate_stuck_near_zero_is_not_positive():
     claim = _claim("N = 5: the MI estimate turns positive and stays positive")
     stuck = _index(_evidence("grid_5", mi=lambda e: 0.002))
-    assert rep.judge(claim, stuck).verdict == "not reproduced (1 seed)"
+    assert rep.judge(claim, stuck).verdict == "indicative: does not hold (1 seed)"
 
 
 def test_the_command_that_made_a_run_resolves_to_its_spec():
@@ -209,7 +210,7 @@ def test_finished_runs_that_differ_only_in_their_seeds_are_pooled():
     finding = rep.judge(above, _index(seed1, seed0, random))
     assert finding.a.seeds == 2 and [p.key for p in finding.a.parts] == [seed0.key, seed1.key]
     assert finding.a.finals()["per_seed"] == pytest.approx([0.06, 19.5]) and finding.others == []
-    assert finding.verdict == "inconclusive (2 seeds against 1 seed)"  # P(improvement) 0.5 [0, 1] against one Random seed
+    assert finding.verdict == "indicative: open (2 seeds against 1 seed)"  # P(improvement) 0.5 [0, 1] against one Random seed
     assert rep._run_cell(finding.a).startswith("seeds pooled from `aaaaaaaa` (paper; 10,000 epochs, 1 seed")
     seed1.commit = "af75888"
     finding = rep.judge(above, _index(seed1, seed0, random))
@@ -249,7 +250,83 @@ def test_a_side_without_a_final_score_gives_no_verdict():
     above = _claim("N = 5: ESR ends above Random")
     index = _index(_evidence("grid_5", finals=(float("nan"),)), _evidence("grid_5_random", finals=(9.0,)))
     finding = rep.judge(above, index)
-    assert finding.verdict.startswith(rep.INCONCLUSIVE) and finding.measured.startswith("ESR no value")
+    assert finding.verdict == "indicative: open (0 seeds against 1 seed)" and finding.measured.startswith("ESR no value")
     several = _index(_evidence("grid_5", finals=(20.0, 21.0, float("nan"))), _evidence("grid_5_random", finals=(9.0,)))
     finding = rep.judge(above, several)
-    assert finding.verdict.startswith(rep.REPRODUCED) and "(1 of 3 seeds without a final score)" in finding.measured
+    assert finding.verdict == "indicative: holds (2 seeds against 1 seed)"  # the seed without a score counts nowhere
+    assert "(1 of 3 seeds without a final score)" in finding.measured
+
+
+@pytest.mark.parametrize("seeds_a, seeds_b, verdict", [
+    ((20.0,), (9.0,), "indicative: holds (1 seed)"),
+    ((20.0, 21.0), (9.0, 8.0), "indicative: holds (2 seeds each)"),
+    ((20.0, 21.0, 22.0), (9.0, 8.0), "indicative: holds (3 seeds against 2 seeds)"),
+    ((20.0, 21.0, 22.0), (9.0, 8.0, 10.0), "reproduced (3 seeds each)"),
+    ((2.0, 1.0, 3.0), (9.0, 8.0, 10.0), "not reproduced (3 seeds each)"),
+    ((1.0, 9.5, 3.0, 12.0), (9.0, 8.0, 10.0), "inconclusive (4 seeds against 3 seeds)"),
+    ((1.0, 9.5), (9.0, 8.0), "indicative: open (2 seeds each)"),
+])
+def test_a_verdict_needs_three_seeds_on_every_side(seeds_a, seeds_b, verdict):
+    above = _claim("N = 5: ESR ends above Random")
+    index = _index(_evidence("grid_5", finals=seeds_a), _evidence("grid_5_random", finals=seeds_b))
+    assert rep.judge(above, index).verdict == verdict
+
+
+def test_similar_is_an_equivalence_test_with_a_stated_margin():
+    """N = 2: ESR and AvE end level. Margin: 15% of the larger mean."""
+    level = _claim("N = 2: ESR and AvE end level")
+    ave = lambda finals: _evidence("grid_2_ave", rep.PUBLISHED_AVE, finals=finals)  # noqa: E731
+    # 20 vs 19.5 with tight seeds: the 90% interval of the difference is inside +-3.0
+    close = rep.judge(level, _index(_evidence("grid_2", finals=(19.9, 20.0, 20.1)), ave((19.4, 19.5, 19.6))))
+    assert close.verdict == "reproduced (3 seeds each)" and "margin ±3.00" in close.measured
+    # 20 vs 10: the interval is wholly outside the margin
+    apart = rep.judge(level, _index(_evidence("grid_2", finals=(19.9, 20.0, 20.1)), ave((9.9, 10.0, 10.1))))
+    assert apart.verdict == "not reproduced (3 seeds each)"
+    # equal means but seeds spread far wider than the margin: equivalence is not shown (the old
+    # rule, an improvement interval containing 0.5, called this similar)
+    wide = rep.judge(level, _index(_evidence("grid_2", finals=(5.0, 20.0, 35.0)), ave((4.0, 21.0, 35.0))))
+    assert wide.verdict == "inconclusive (3 seeds each)"
+    # one seed each: the difference itself against the margin, and only indicative
+    one = rep.judge(level, _index(_evidence("grid_2", finals=(20.0,)), ave((18.0,))))
+    assert one.verdict == "indicative: holds (1 seed)" and "difference +2.00, margin ±3.00" in one.measured
+
+
+def test_the_mean_difference_interval_matches_a_hand_computed_case():
+    from esr_cli.stats import mean_difference_ci
+
+    # one seed each: no interval; a constant sample resampled gives a point interval
+    assert mean_difference_ci([5.0], [3.0]) == (2.0, None, None)
+    diff, low, high = mean_difference_ci([5.0, 5.0, 5.0], [3.0])
+    assert (diff, low, high) == (2.0, 2.0, 2.0)
+    # X in {0, 10}: resampled means are k * 10 / 2 for k ~ Binomial(2, 1/2): 0, 5 or 10, so the
+    # 90% percentile interval of mean(X) - 1 is [-1, 9]
+    diff, low, high = mean_difference_ci([0.0, 10.0], [1.0])
+    assert diff == 4.0 and (low, high) == (-1.0, 9.0)
+
+
+def test_goal_inference_claims_use_du_et_al_and_show_the_exact_posterior_as_esrs():
+    claim = _claim("N = 7: ESR ends above Goal Inference")
+    assert rep.claim_spec(claim.b).method.variant == "original"
+    index = _index(_evidence("grid_7", finals=(22.0, 23.0, 24.0)),
+                   _evidence("grid_7_goal_inference", rep.PUBLISHED_GOAL_INFERENCE, finals=(15.0, 15.5, 16.0)),
+                   _evidence("grid_7_goal_inference", finals=(32.0, 33.0, 32.5)))
+    finding = rep.judge(claim, index)
+    assert finding.verdict == "reproduced (3 seeds each)"
+    assert "against Goal Inference (published) 15.50" in finding.measured
+    [(label, ev, measured, verdict)] = finding.baselines
+    assert label == "esr's Goal Inference (exact posterior)" and verdict == "not reproduced (3 seeds each)"
+    # the verdict depends on which baseline is used, and the row says so
+    assert "the verdict depends on the baseline: against esr's Goal Inference (exact posterior)" in finding.measured
+    only_published = _index(index[rep._without_train(rep.claim_spec(claim.a))][0],
+                            _evidence("grid_7_goal_inference", rep.PUBLISHED_GOAL_INFERENCE, finals=(15.0, 15.5, 16.0)))
+    assert "depends on the baseline" not in rep.judge(claim, only_published).measured
+
+
+def test_the_summary_counts_each_tier():
+    claims = [_claim("N = 5: ESR ends above Random"), _claim("N = 7: ESR ends above Random")]
+    index = _index(_evidence("grid_5", finals=(20.0, 21.0, 22.0)), _evidence("grid_5_random", finals=(9.0, 8.0, 10.0)),
+                   _evidence("grid_7", finals=(20.0,)), _evidence("grid_7_random", finals=(9.0,)))
+    findings = [rep.judge(c, index) for c in claims]
+    line = rep.summary_line(findings)
+    assert line.startswith("2 statements: 1 reproduced, 0 not reproduced and 0 inconclusive with at least 3 seeds")
+    assert "1 indicative on fewer seeds (1 holding, 0 not holding, 0 open); 0 not yet" in line
