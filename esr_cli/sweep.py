@@ -11,6 +11,11 @@ The store does the coordination: a committed key is skipped, a run whose lock is
 to its holder, and a re-submitted or duplicated job waits on the lock and then finds the
 artifact committed. Job ids go to a small state file, <store>/sweeps/<suite>-<budget>-<key>.json,
 so `--status` can tell a queued or crashed job from a run that was never submitted.
+
+A store may be shared, so nothing read from it here is unpickled: each job writes how it ended
+as a small JSON record beside submitit's files (`<job id>_esr_outcome.json`), and status reads
+that, bounded, and only from a job folder inside the store's own sweeps/ folder. Submitit's
+result pickles are left unread.
 """
 
 from __future__ import annotations
@@ -19,9 +24,11 @@ import errno
 import fcntl
 import json
 import os
+import re
+import stat
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterable, Optional
 
@@ -40,6 +47,9 @@ from esr_cli.suite import Run, SlurmOptions, Suite, SuiteError, load as load_sui
 EXECUTORS = ("local", "slurm", "submitit-local")
 STATES = ("done", "running", "queued", "stopped", "failed", "missing")
 SWEEPS_DIR = "sweeps"
+OUTCOME_SUFFIX = "_esr_outcome.json"  # a job's own record of how it ended, beside submitit's files
+MAX_RECORD_BYTES = 1 << 20  # far above any state file or outcome record esr writes
+_JOB_ID = re.compile(r"\w[\w+-]*")  # a SLURM job (4242, 4242_0) or a local pid: never a path
 
 # SLURM job states (sacct) grouped by what they mean for a run that is not committed.
 # UNKNOWN (sacct unreachable) counts as queued: a sweep then does not submit the run twice.
@@ -72,11 +82,28 @@ def state_path(store: Store, suite: Suite) -> Path:
     return store.root / SWEEPS_DIR / f"{suite.name}-{suite.budget}-{suite.key[:16]}.json"
 
 
-def read_state(store: Store, suite: Suite) -> dict:
+def read_record(path: Path) -> Optional[dict]:
+    """A JSON object esr wrote, or None where `path` is missing, a link, not a regular file (a
+    FIFO would block), larger than any esr writes, or not a JSON object."""
     try:
-        return json.loads(state_path(store, suite).read_text())
-    except (OSError, json.JSONDecodeError):
-        return {}
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW)
+    except OSError:
+        return None
+    try:
+        data = os.read(fd, MAX_RECORD_BYTES + 1) if stat.S_ISREG(os.fstat(fd).st_mode) else b""
+    except OSError:
+        return None
+    finally:
+        os.close(fd)
+    try:
+        value = json.loads(data) if 0 < len(data) <= MAX_RECORD_BYTES else None
+    except (ValueError, RecursionError):
+        return None
+    return value if isinstance(value, dict) else None
+
+
+def read_state(store: Store, suite: Suite) -> dict:
+    return read_record(state_path(store, suite)) or {}
 
 
 @contextmanager
@@ -131,33 +158,65 @@ def _lock_holder(store: Store, key: str) -> Optional[str]:
         os.close(fd)  # also releases the probe's lock if it was taken
 
 
-def _job_outcome(rec: dict) -> tuple[str, str]:
-    """(scheduler-level state, detail) of a recorded job: SUCCESS, ERROR, or a scheduler state."""
-    from submitit.core.utils import JobPaths, pickle_load
+class _Refused(Exception):
+    """A job record that status will not follow; `str()` says why, in one line."""
 
+
+def _job_folder(store: Store, rec: object) -> Path:
+    """The recorded job's folder, resolved, only where it lies inside the store's own sweeps/
+    folder: the state file is a store file, and anyone who can write there could point it anywhere."""
+    from submitit.core.utils import JobPaths
+
+    if not (isinstance(rec, dict) and all(isinstance(rec.get(k), str) for k in ("job_id", "folder", "executor"))
+            and _JOB_ID.fullmatch(rec["job_id"])):
+        raise _Refused("its job record is damaged; not read")
+    try:
+        folder = Path(os.path.realpath(JobPaths(rec["folder"], job_id=rec["job_id"]).folder))
+    except (ValueError, RuntimeError):  # a NUL byte in the path; ~user of no such user
+        raise _Refused("its job record is damaged; not read") from None
+    area = Path(os.path.realpath(store.root / SWEEPS_DIR))
+    if not folder.is_relative_to(area):
+        raise _Refused(f"its job folder {rec['folder']} is outside {area}; not read")
+    return folder
+
+
+def outcome_path(folder: Path, job_id: str) -> Path:
+    return Path(folder) / f"{job_id}{OUTCOME_SUFFIX}"
+
+
+def _last_line(text: str, default: str) -> str:
+    lines = [ln.strip() for ln in text.strip().splitlines() if ln.strip()]
+    return (lines[-1] if lines else default)[:160]
+
+
+def _from_outcome(outcome: dict) -> tuple[str, str]:
+    """(state, detail) of a job from its own outcome record."""
+    kind, epoch, total = outcome.get("outcome"), outcome.get("epoch"), outcome.get("total")
+    if kind == "success":
+        return "SUCCESS", ""
+    if kind == "stopped" and isinstance(epoch, int) and isinstance(total, int):
+        return "STOPPED", str(JobStopped(epoch, total))
+    if kind == "error":
+        return "ERROR", _last_line(str(outcome.get("error", "")), "job raised")
+    return "ENDED", "its outcome record is unreadable"
+
+
+def _job_outcome(store: Store, rec: object) -> tuple[str, str]:
+    """(state, detail) of a recorded job: SUCCESS, STOPPED or ERROR from the job's own outcome
+    record; else a SLURM state, RUNNING or GONE (a local job's process); ENDED (a result but no
+    record: never unpickled); REFUSED (a record status does not follow)."""
+    try:
+        folder = _job_folder(store, rec)
+    except _Refused as e:
+        return "REFUSED", str(e)
     job_id = rec["job_id"]
-    paths = JobPaths(rec["folder"], job_id=job_id, task_id=0)
-    if paths.result_pickle.exists():
-        try:
-            outcome, payload = pickle_load(paths.result_pickle)
-        except Exception as e:  # noqa: BLE001 - a truncated pickle says as much as a crash
-            return "ERROR", f"unreadable result ({type(e).__name__})"
-        if outcome == "success":
-            return ("STOPPED", str(payload)) if isinstance(payload, JobStopped) else ("SUCCESS", "")
-        last = [ln for ln in str(payload).strip().splitlines() if ln.strip()]
-        return "ERROR", (last[-1].strip() if last else "job raised")[:160]
+    outcome = read_record(outcome_path(folder, job_id))
+    if outcome is not None and outcome.get("job_id") == job_id:
+        return _from_outcome(outcome)
+    if (folder / f"{job_id}_0_result.pkl").exists():  # an older esr's job, or a planted pickle
+        return "ENDED", "finished without esr's outcome record (its submitit result is not read)"
     if rec["executor"] == "slurm":
-        import logging
-
-        import submitit
-
-        # Off the cluster submitit warns on every sacct call; UNKNOWN below says it once per run.
-        logging.getLogger("submitit").setLevel(logging.ERROR)
-        try:
-            state = str(submitit.SlurmJob(folder=rec["folder"], job_id=job_id).state).upper()
-        except Exception:  # noqa: BLE001 - sacct missing or refusing: the state is unknown
-            state = "UNKNOWN"
-        return state, "SLURM state unknown here (no sacct?)" if state == "UNKNOWN" else ""
+        return _slurm_state(rec["folder"], job_id)
     # submitit-local: the job id is the controller's pid.
     try:
         os.kill(int(job_id), 0)
@@ -168,44 +227,68 @@ def _job_outcome(rec: dict) -> tuple[str, str]:
         return "RUNNING", ""
 
 
+def _slurm_state(folder: str, job_id: str) -> tuple[str, str]:
+    import logging
+
+    import submitit
+
+    # Off the cluster submitit warns on every sacct call; UNKNOWN below says it once per run.
+    logging.getLogger("submitit").setLevel(logging.ERROR)
+    try:
+        state = str(submitit.SlurmJob(folder=folder, job_id=job_id).state).upper()
+    except Exception:  # noqa: BLE001 - sacct missing or refusing: the state is unknown
+        state = "UNKNOWN"
+    return state, "SLURM state unknown here (no sacct?)" if state == "UNKNOWN" else ""
+
+
+_OVER = {"SUCCESS", "STOPPED", "GONE", "ENDED"}  # ended, not in error: the run's own files say more
+
+
 def status(suite: Suite, store: Store) -> list[RunStatus]:
     """done: committed; running: its lock is held; queued: a recorded job not started yet;
-    failed: a partial run nobody holds, or a recorded job that ended in error; missing: none of those."""
-    jobs = read_state(store, suite).get("jobs", {})
-    out = []
-    for run in suite.runs:
-        hit = store.lookup(RUN_KIND, run.key)
-        if hit:
-            out.append(RunStatus(run, "done", path=hit))
-            continue
-        partial = store.partial_path(RUN_KIND, run.key)
-        holder = _lock_holder(store, run.key)
-        if holder:
-            out.append(RunStatus(run, "running", holder, partial))
-            continue
-        rec = jobs.get(run.key)
-        job_state, detail = _job_outcome(rec) if rec else ("", "")
-        job = f"job {rec['job_id']}" if rec else ""
-        if job_state == "STOPPED" and partial.is_dir():
-            out.append(RunStatus(run, "stopped", f"{job}: {detail}", partial))
-        elif job_state == "ERROR" or (job_state and job_state not in _QUEUED | _ALIVE | {"SUCCESS", "STOPPED", "GONE"}):
-            out.append(RunStatus(run, "failed", f"{job} {job_state}: {detail}".rstrip(": "), partial if partial.is_dir() else None))
-        elif job_state in _QUEUED:
-            out.append(RunStatus(run, "queued", f"{job} {job_state}: {detail}".rstrip(": ")))
-        elif job_state in _ALIVE:
-            out.append(RunStatus(run, "running", f"{job} started"))
-        elif partial.is_dir() and isinstance(stop := (read_pending(partial) or {}).get("stopped"), dict):
-            note = f"stopped ({stop.get('why')}) after epoch {stop.get('epoch')}; sweep again (or esr train) to continue it"
-            out.append(RunStatus(run, "stopped", f"{job}: {note}" if job else note, partial))
-        elif partial.is_dir():
-            note = "partial run with no live writer; sweep again (or esr train) to resume it"
-            out.append(RunStatus(run, "failed", f"{job} {job_state}: {note}" if job else note, partial))
-        elif job_state == "SUCCESS":
-            # The job committed a different key: the code or toolchain changed since.
-            out.append(RunStatus(run, "missing", f"{job} finished, but under another key (code changed since?)"))
-        else:
-            out.append(RunStatus(run, "missing", f"{job} {job_state}: {detail}".strip(" :") if job else ""))
-    return out
+    failed: a partial run nobody holds, or a recorded job that ended in error; missing: none of those.
+    A job record status does not follow counts as no record, and the row says why."""
+    jobs = read_state(store, suite).get("jobs")
+    jobs = jobs if isinstance(jobs, dict) else {}
+    return [_run_status(store, run, jobs.get(run.key)) for run in suite.runs]
+
+
+def _run_status(store: Store, run: Run, rec: object) -> RunStatus:
+    hit = store.lookup(RUN_KIND, run.key)
+    if hit:
+        return RunStatus(run, "done", path=hit)
+    partial = store.partial_path(RUN_KIND, run.key)
+    holder = _lock_holder(store, run.key)
+    if holder:
+        return RunStatus(run, "running", holder, partial)
+    job_state, detail = _job_outcome(store, rec) if rec is not None else ("", "")
+    if job_state == "REFUSED":
+        row = _job_status(run, partial, None, "", "")
+        return replace(row, note="; ".join(filter(None, (f"job record refused: {detail}", row.note))))
+    return _job_status(run, partial, rec, job_state, detail)
+
+
+def _job_status(run: Run, partial: Path, rec: Optional[dict], job_state: str, detail: str) -> RunStatus:
+    """A run neither committed nor held: what its job and its partial directory say."""
+    job = f"job {rec['job_id']}" if rec else ""
+    if job_state == "STOPPED" and partial.is_dir():
+        return RunStatus(run, "stopped", f"{job}: {detail}", partial)
+    if job_state == "ERROR" or (job_state and job_state not in _QUEUED | _ALIVE | _OVER):
+        return RunStatus(run, "failed", f"{job} {job_state}: {detail}".rstrip(": "), partial if partial.is_dir() else None)
+    if job_state in _QUEUED:
+        return RunStatus(run, "queued", f"{job} {job_state}: {detail}".rstrip(": "))
+    if job_state in _ALIVE:
+        return RunStatus(run, "running", f"{job} started")
+    if partial.is_dir() and isinstance(stop := (read_pending(partial) or {}).get("stopped"), dict):
+        note = f"stopped ({stop.get('why')}) after epoch {stop.get('epoch')}; sweep again (or esr train) to continue it"
+        return RunStatus(run, "stopped", f"{job}: {note}" if job else note, partial)
+    if partial.is_dir():
+        note = "partial run with no live writer; sweep again (or esr train) to resume it"
+        return RunStatus(run, "failed", f"{job} {job_state}: {note}" if job else note, partial)
+    if job_state == "SUCCESS":
+        # The job committed a different key: the code or toolchain changed since.
+        return RunStatus(run, "missing", f"{job} finished, but under another key (code changed since?)")
+    return RunStatus(run, "missing", f"{job} {job_state}: {detail}".strip(" :") if job else "")
 
 
 _STYLE = {"done": "green", "running": "cyan", "queued": "blue", "stopped": "magenta", "failed": "red", "missing": "yellow"}
@@ -352,7 +435,33 @@ def train_job(spec_path: str, budget: str, sets: list[str], store_root: str,
               stop_after_s: float | None = None) -> str | JobStopped:
     """One job: `esr train spec_path --budget budget --set ... --stop-after stop_after_s`
     in-process. -> the artifact path, or JobStopped if the time budget came first (the run is
-    saved at a chunk boundary). Module-level so that submitit pickles it by reference."""
+    saved at a chunk boundary). Module-level so that submitit pickles it by reference. How it
+    ended is also written as the job's outcome record, which is what status reads."""
+    try:
+        result = _train(spec_path, budget, sets, store_root, stop_after_s)
+    except Exception as e:
+        _record_outcome({"outcome": "error", "error": f"{type(e).__name__}: {e}"[-2000:]})
+        raise
+    if isinstance(result, JobStopped):
+        _record_outcome({"outcome": "stopped", "epoch": result.epoch, "total": result.total})
+    else:
+        _record_outcome({"outcome": "success", "path": result})
+    return result
+
+
+def _record_outcome(record: dict) -> None:
+    """Write `record` as <job folder>/<job id>_esr_outcome.json, atomically. Outside a submitit
+    job (train_job called directly) there is no job to record."""
+    import submitit
+
+    try:
+        env = submitit.JobEnvironment()
+    except RuntimeError:
+        return
+    atomic_write_text(outcome_path(env.paths.folder, env.job_id), json.dumps({"job_id": env.job_id, **record}))
+
+
+def _train(spec_path: str, budget: str, sets: list[str], store_root: str, stop_after_s: float | None) -> str | JobStopped:
     import time
 
     from esr_cli import runs  # jax and the training core load only where a run is made here
@@ -502,15 +611,14 @@ def _submit(todo, executor, opts, suite, store, console, result, wait) -> None:
     if not wait:
         return
     for s, j in zip(todo, jobs):
-        try:
-            outcome = j.result()
-            if isinstance(outcome, JobStopped):
-                console.print(tagged("stopped", "magenta", f": {s.run.label} (job {j.job_id}): {outcome}"))
-                result.stopped.append((s.run, str(outcome)))
-                continue
+        j.wait()  # until it ends; its outcome comes from its own record, as for --status
+        state, detail = _job_outcome(store, {"job_id": j.job_id, "folder": str(logs / "%j"), "executor": executor})
+        if state == "SUCCESS":
             console.print(tagged("done", "green", f": {s.run.label} (job {j.job_id})"))
-        except Exception as e:  # noqa: BLE001 - submitit's FailedJobError / UncompletedJobError
-            last = [ln for ln in str(e).strip().splitlines() if ln.strip()]
-            msg = last[-1].strip() if last else type(e).__name__
+        elif state == "STOPPED":
+            console.print(tagged("stopped", "magenta", f": {s.run.label} (job {j.job_id}): {detail}"))
+            result.stopped.append((s.run, detail))
+        else:
+            msg = detail if state == "ERROR" else f"{state}: {detail}".strip(" :") + f"; its log: {j.paths.stderr}"
             console.print(tagged("failed", "red", f": {s.run.label} (job {j.job_id}): {msg}"))
             result.failed.append((s.run, msg))

@@ -4,8 +4,10 @@ episode to the goal and an Overcooked episode, and the logged artifact must matc
 sent."""
 
 import json
+import io
 import os
 import pty
+import re
 import select
 import shutil
 import signal
@@ -282,17 +284,17 @@ def free_port() -> int:
 
 
 def serve(args, store, port):
+    """`esr play --web` started -> (the process, the address it printed for the participant)."""
     proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli", "play", *args, "--web", "--port", str(port)], cwd=ROOT,
                             env=esr_env(store), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 240
-    while True:
-        try:
-            socket.create_connection(("127.0.0.1", port), timeout=1).close()
-            return proc
-        except OSError:
-            assert proc.poll() is None, proc.communicate()
-            assert time.time() < deadline, "the play server did not start"
-            time.sleep(0.2)
+    deadline, printed = time.time() + 240, b""
+    # Read the raw pipe (no buffer of its own) so that communicate() later reads the rest.
+    while not (url := re.search(rb"(http://127\.0\.0\.1:\d+/\?token=[\w-]+)\s", printed)):
+        assert proc.poll() is None, printed.decode() + proc.communicate()[1]
+        assert time.time() < deadline, "the play server did not start"
+        if select.select([proc.stderr], [], [], 0.2)[0]:
+            printed += os.read(proc.stderr.fileno(), 65536)
+    return proc, url.group(1).decode()
 
 
 def wait_for(driver, script, timeout=120):
@@ -311,8 +313,8 @@ def press(driver, key):
 
 def test_browser_gridworld_to_the_goal(browser, tmp_path):
     keys, port = grid_keys(0), free_port()
-    proc = serve([*GRID, "--participant", "w1"], tmp_path, port)
-    browser.get(f"http://127.0.0.1:{port}/")
+    proc, url = serve([*GRID, "--participant", "w1"], tmp_path, port)
+    browser.get(url)
     wait_for(browser, "return document.body.dataset.stepsLeft === '50'")
     assert browser.execute_script("return document.getElementById('frame').naturalWidth") > 0
     for i, k in enumerate(keys):
@@ -334,8 +336,8 @@ def test_browser_overcooked_and_a_closed_tab(browser, tmp_path):
     # 40 ticks at 8 fps: the second episode lasts 5 s, time enough for the tab to leave it
     # even on a loaded machine (with 12 ticks it could end first).
     cook = [a.replace("episode_steps=12", "episode_steps=40") for a in COOK]
-    proc = serve([*cook, "--participant", "w2", "--episodes", "2"], tmp_path, port)
-    browser.get(f"http://127.0.0.1:{port}/")
+    proc, url = serve([*cook, "--participant", "w2", "--episodes", "2"], tmp_path, port)
+    browser.get(url)
     wait_for(browser, "return document.body.dataset.stepsLeft !== ''", timeout=240)
     for k in ("up", "space"):
         press(browser, k)
@@ -350,6 +352,111 @@ def test_browser_overcooked_and_a_closed_tab(browser, tmp_path):
     assert len(steps) == 40 and is_subsequence([s["key"] for s in steps if s["key"]], ["up", "space"])
     assert json.loads((first / "summary.json").read_text())["completed"]
     assert not json.loads((second / "summary.json").read_text())["completed"]
+
+
+# ---------------------------------------------------------------- who may play
+def refused(url: str, **headers) -> int:
+    """The HTTP status of a websocket handshake (ws://) or page request (http://) with these headers."""
+    import urllib.error
+    import urllib.request
+
+    import websocket
+
+    try:
+        if url.startswith("ws:"):
+            websocket.create_connection(url, timeout=10, **headers).close()
+        else:
+            urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=10).close()
+        return 200
+    except websocket.WebSocketBadStatusException as e:
+        return e.status_code
+    except urllib.error.HTTPError as e:
+        return e.code
+
+
+def test_only_the_printed_address_plays(tmp_path):
+    """Any web page on the participant's machine can reach 127.0.0.1: the server answers only
+    requests with the printed token, for its own host name, and (a websocket) from its own page.
+    The refused ones play nothing and log nothing; the one with the token plays."""
+    import websocket
+
+    port = free_port()
+    proc, url = serve([*GRID, "--participant", "w3"], tmp_path, port)
+    token = url.split("token=")[1]
+    page, ws = f"http://127.0.0.1:{port}/", f"ws://127.0.0.1:{port}/ws"
+    origin = f"http://127.0.0.1:{port}"
+    attempts = [(page, {}), (page + "?token=wrong", {}), (url, {"Host": f"attacker.example:{port}"}),
+                (ws, {"origin": origin}), (f"{ws}?token={token[:-1]}", {"origin": origin}),
+                (f"{ws}?token={token}", {"origin": "http://attacker.example"}),
+                (f"{ws}?token={token}", {"origin": origin, "host": f"attacker.example:{port}"}),
+                (f"{ws}?token={token}", {"suppress_origin": True})]
+    assert [refused(u, **h) for u, h in attempts] == [403] * len(attempts)
+    assert refused(url) == 200 and refused(url.replace("127.0.0.1", "localhost")) == 200
+    assert not (tmp_path / PLAY_KIND).exists()  # nothing has begun
+
+    # The page's own websocket plays: a key, then a binary frame, which ends the connection
+    # (and the session, as a closed tab would) with one line.
+    keys = grid_keys(0)
+    conn = websocket.create_connection(f"{ws}?token={token}", timeout=60, origin=origin)
+    assert "frame" in json.loads(conn.recv())
+    conn.send(json.dumps({"key": keys[0]}))
+    assert json.loads(conn.recv())["steps_left"] == 49
+    conn.send_binary(b"\x00\x01")
+    _, errs = proc.communicate(timeout=60)
+    assert proc.returncode == 130, errs
+    lines = errs.splitlines()
+    assert sum("esr play: refused a" in line for line in lines) == len(attempts)
+    assert sum("the browser sent binary data; its connection is closed" in line for line in lines) == 1
+    assert "Traceback" not in errs
+    (path,) = played(tmp_path)
+    assert [s["key"] for s in logged_steps(path)] == keys[:1]
+    assert not json.loads((path / "summary.json").read_text())["completed"]
+
+
+def test_bad_frames_end_the_connection_with_one_line_each():
+    import websocket
+    from rich.console import Console
+
+    from esr_cli.play.web import MAX_MESSAGE_BYTES, Web
+
+    said = io.StringIO()
+    port = free_port()
+    web = Web(port, Console(file=said, markup=False, soft_wrap=True, width=200))
+    sent = [(b"\x00\x01", websocket.ABNF.OPCODE_BINARY, "binary data"),
+            ("not json", websocket.ABNF.OPCODE_TEXT, "text that is not a key"),
+            ('["up"]', websocket.ABNF.OPCODE_TEXT, "text that is not a key"),
+            (b"\xff\xfe", websocket.ABNF.OPCODE_TEXT, "text that is not UTF-8"),
+            ("x" * (MAX_MESSAGE_BYTES + 1), websocket.ABNF.OPCODE_TEXT, f"a message over {MAX_MESSAGE_BYTES:,} bytes")]
+    with web:
+        for data, opcode, what in sent:
+            conn = websocket.create_connection(f"ws://127.0.0.1:{port}/ws?token={web.token}", timeout=10,
+                                               origin=f"http://127.0.0.1:{port}")
+            conn.send(data, opcode=opcode)
+            assert web.key(timeout=10) == QUIT  # the episode ends as with a closed tab
+            conn.close()
+            assert said.getvalue().splitlines()[-1] == f"esr play: the browser sent {what}; its connection is closed"
+    assert len(said.getvalue().splitlines()) == len(sent) and "Traceback" not in said.getvalue()
+
+
+def test_a_port_left_in_time_wait_is_free_to_serve_on():
+    from rich.console import Console
+
+    from esr_cli.play.web import Web
+
+    # The side that closes a connection first keeps its port in TIME_WAIT, as the last
+    # session's server (uvicorn, with SO_REUSEADDR) does; a new session on that port must start.
+    with socket.socket() as server:
+        server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+        client = socket.create_connection(("127.0.0.1", port))
+        accepted, _ = server.accept()
+        accepted.close()
+        time.sleep(0.1)
+        client.close()
+    with Web(port, Console(file=io.StringIO())) as web:
+        assert web.url.startswith(f"http://127.0.0.1:{port}/?token=")
 
 
 # ---------------------------------------------------------------- the data it leaves

@@ -149,8 +149,9 @@ def test_sweep_through_submitit_local(smoke_run, tmp_path):
     logs = state_file.parent / "logs" / state_file.stem
     job_dirs = sorted(d.name for d in logs.iterdir() if d.name != "%j")  # submitit's own template dir
     assert job_dirs == sorted(j["job_id"] for j in state["jobs"].values())
-    for d in job_dirs:
+    for d in job_dirs:  # submitit's result, and the job's own outcome record that status reads
         assert (logs / d / f"{d}_0_result.pkl").exists()
+        assert json.loads(sweep.outcome_path(logs / d, d).read_text())["outcome"] == "success"
 
     # Again: everything is committed, so nothing is submitted and the state file is untouched.
     before = state_file.read_text()
@@ -221,15 +222,16 @@ def test_status_tells_running_failed_queued_missing(tmp_path):
     # 0: a partial run that nobody holds (a killed writer) -> failed.
     store.partial_path("runs", r[0].key).mkdir(parents=True)
     # 2: a job that raised; 3: a job whose process is alive but has not taken the lock yet;
-    # 5: a job that reached its time budget and saved its run at a chunk boundary.
-    folder = tmp_path / "logs" / "%j"
+    # 5: a job that reached its time budget and saved its run at a chunk boundary. Each job's
+    # outcome record is what the job itself writes (train_job) in its folder under the store.
+    folder = store.root / "sweeps" / "logs" / "x" / "%j"
     sweep._record_jobs(store, suite, "submitit-local",
                        [(r[2], "999999", folder), (r[3], str(os.getpid()), folder), (r[5], "999998", folder)])
-    for job, outcome in (("999999", ("error", "Traceback (most recent call last):\n  ...\nValueError: boom\n")),
-                         ("999998", ("success", sweep.JobStopped(1, 2)))):
-        result = tmp_path / "logs" / job / f"{job}_0_result.pkl"
-        result.parent.mkdir(parents=True)
-        result.write_bytes(pickle.dumps(outcome))
+    for job, outcome in (("999999", {"outcome": "error", "error": "ValueError: boom"}),
+                         ("999998", {"outcome": "stopped", "epoch": 1, "total": 2})):
+        record = sweep.outcome_path(folder.parent / job, job)
+        record.parent.mkdir(parents=True)
+        record.write_text(json.dumps({"job_id": job, **outcome}))
     store.partial_path("runs", r[5].key).mkdir(parents=True)
     # 1: its lock is held (flock conflicts between two open files, even in one process).
     with store.lock("runs", r[1].key):
@@ -249,6 +251,76 @@ def test_status_tells_running_failed_queued_missing(tmp_path):
     # the command reaches this store, which is not the default one
     assert res[4]["command"] == f"esr --store {store.root} train {GRID_2} --budget smoke --set 'train.seeds=[4]'"
     assert "return" not in res[4]
+
+
+class Planted:
+    """A pickle that, once loaded, runs a shell command: what anyone who can write into a
+    shared store could leave there for the next `esr sweep --status` to load."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
+
+
+def test_status_never_unpickles_what_it_finds_in_the_store(tmp_path):
+    store = Store(tmp_path / "store")
+    suite = sweep.load_suite(seeds_suite(tmp_path, 3), "smoke")
+    r = suite.runs
+    outside, inside = tmp_path / "elsewhere" / "%j", store.root / "sweeps" / "logs" / "x" / "%j"
+    markers = [tmp_path / f"ran-{i}" for i in range(2)]
+    # 0: the state file points at a planted result pickle outside the store; 1: one inside the
+    # store's sweeps/ folder, with no outcome record beside it; 2: a job folder reached through
+    # a link that leaves the store.
+    (store.root / "sweeps" / "logs").mkdir(parents=True)
+    (store.root / "sweeps" / "logs" / "link").symlink_to(tmp_path / "elsewhere")
+    for folder, marker in zip((outside, inside), markers):
+        pkl = folder.parent / "4242" / "4242_0_result.pkl"
+        pkl.parent.mkdir(parents=True, exist_ok=True)
+        pkl.write_bytes(pickle.dumps(("success", Planted(marker))))
+    sweep._record_jobs(store, suite, "submitit-local", [(r[0], "4242", outside), (r[1], "4242", inside),
+                                                         (r[2], "4242", store.root / "sweeps" / "logs" / "link" / "%j")])
+    rows = sweep.status(suite, store)
+    assert not any(m.exists() for m in markers)
+    assert [row.state for row in rows] == ["missing"] * 3
+    area = os.path.realpath(store.root / "sweeps")
+    assert rows[0].note == f"job record refused: its job folder {outside} is outside {area}; not read"
+    assert rows[1].note == "job 4242 ENDED: finished without esr's outcome record (its submitit result is not read)"
+    assert rows[2].note.startswith("job record refused: its job folder") and "is outside" in rows[2].note
+    # Through the command: one line per run, and still nothing ran.
+    table = esr("sweep", str(suite.path), "--budget", "smoke", "--status", store=store.root, **WIDE).stdout
+    assert "suite seeds (smoke): 3 missing" in table and table.count("job record refused") == 2
+    assert not any(m.exists() for m in markers)
+
+
+def test_a_damaged_job_record_is_named_not_followed(tmp_path):
+    store = Store(tmp_path / "store")
+    suite = sweep.load_suite(seeds_suite(tmp_path, 2), "smoke")
+    state = {"jobs": {suite.runs[0].key: {"job_id": "../../x", "folder": str(store.root / "sweeps" / "%j"), "executor": "slurm"},
+                      suite.runs[1].key: ["not", "a", "record"]}}
+    sweep.state_path(store, suite).parent.mkdir(parents=True)
+    sweep.state_path(store, suite).write_text(json.dumps(state))
+    rows = sweep.status(suite, store)
+    assert [(row.state, row.note) for row in rows] == [("missing", "job record refused: its job record is damaged; not read")] * 2
+
+
+def test_a_job_that_raises_records_its_error_for_status(tmp_path, monkeypatch):
+    # The environment submitit-local gives a job: its id and its folder under the store.
+    store = Store(tmp_path / "store")
+    suite = sweep.load_suite(seeds_suite(tmp_path, 1), "smoke")
+    folder = store.root / "sweeps" / "logs" / "x" / "%j"
+    for var, value in {"SUBMITIT_EXECUTOR": "local", "SUBMITIT_LOCAL_JOB_ID": "4242", "SUBMITIT_FOLDER": str(folder),
+                       "SUBMITIT_LOCAL_GLOBALID": "0", "SUBMITIT_LOCAL_LOCALID": "0", "SUBMITIT_LOCAL_NTASKS": "1"}.items():
+        monkeypatch.setenv(var, value)
+    (folder.parent / "4242").mkdir(parents=True)  # submitit makes it, for the job's logs
+    with pytest.raises(specs.SpecError):
+        sweep.train_job(str(tmp_path / "gone.yaml"), "smoke", [], str(store.root))
+    record = json.loads(sweep.outcome_path(folder.parent / "4242", "4242").read_text())
+    assert record == {"job_id": "4242", "outcome": "error", "error": f"SpecError: {tmp_path / 'gone.yaml'}: file not found"}
+    sweep._record_jobs(store, suite, "submitit-local", [(suite.runs[0], "4242", folder)])
+    (row,) = sweep.status(suite, store)
+    assert row.state == "failed" and row.note == f"job 4242 ERROR: SpecError: {tmp_path / 'gone.yaml'}: file not found"
 
 
 def test_a_job_that_reaches_its_time_budget_returns_stopped_and_the_next_finishes(smoke_run, tmp_path):

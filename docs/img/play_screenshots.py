@@ -45,18 +45,16 @@ def web_png() -> None:
         port = s.getsockname()[1]
     store = tempfile.mkdtemp()
     proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli", "--store", store, "play", "experiments/grid_5.yaml",
-                             "--robots", "random", "--web", "--port", str(port), "--seed", "3"], cwd=ROOT)
+                             "--robots", "random", "--web", "--port", str(port), "--seed", "3"], cwd=ROOT,
+                            stderr=subprocess.PIPE, text=True)
+    # The address esr prints once it serves, with the session's token.
+    url = next(line.strip() for line in proc.stderr if "?token=" in line)
     options = webdriver.ChromeOptions()
     for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=560,820"):
         options.add_argument(arg)
     driver = webdriver.Chrome(service=Service("/usr/bin/chromedriver"), options=options)
     try:
-        for _ in range(600):
-            try:
-                driver.get(f"http://127.0.0.1:{port}/")
-                break
-            except Exception:  # noqa: BLE001 - the server is still starting
-                time.sleep(0.2)
+        driver.get(url)
         while driver.execute_script("return document.body.dataset.stepsLeft") != "50":
             time.sleep(0.1)
         body = driver.find_element("tag name", "body")

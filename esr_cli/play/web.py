@@ -4,15 +4,24 @@ on localhost only, in a thread beside the game loop.
 The page draws each state as a PNG from esr's own renderer and sends the keys; the loop, the
 robot and the log stay in Python (esr_cli/play/game.py). One browser tab plays at a time.
 Closing the tab ends the episode (kept as incomplete), as does Ctrl-C in the terminal.
+
+Any web page the participant has open can reach 127.0.0.1, so the server answers only its own
+page: the address esr prints carries a random token that the page and its websocket must send,
+the Host header must name this server (a DNS-rebound name reaches 127.0.0.1 under another), and
+the websocket must come from this server's page (its Origin). Anything else is refused with
+one line on the console and never plays.
 """
 
 from __future__ import annotations
 
 import asyncio
 import base64
+import hmac
 import io
 import json
+import logging
 import queue
+import secrets
 import socket
 import threading
 import time
@@ -21,14 +30,19 @@ import numpy as np
 import uvicorn
 from PIL import Image
 from starlette.applications import Starlette
-from starlette.responses import HTMLResponse
+from starlette.requests import HTTPConnection
+from starlette.responses import HTMLResponse, PlainTextResponse
 from starlette.routing import Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from esr_cli.play.game import QUIT, View
 
 HOST = "127.0.0.1"  # never reachable from another machine
+HOST_NAMES = (HOST, "localhost", "[::1]")  # the names a browser on this machine may give it
 MAX_KEY_TEXT = 40
+MAX_MESSAGE_BYTES = 4096  # a key message is a few bytes; the server's frames go the other way
+# Close codes with which the websocket layer ends a connection over a bad frame from the browser.
+BAD_FRAMES = {1002: "a malformed frame", 1007: "text that is not UTF-8", 1009: f"a message over {MAX_MESSAGE_BYTES:,} bytes"}
 SCALE = {True: 3, False: 2}  # a small picture (the gridworld's) drawn larger than a large one
 
 PAGE = """<!doctype html>
@@ -49,7 +63,8 @@ PAGE = """<!doctype html>
 const KEYS = {ArrowUp: "up", ArrowDown: "down", ArrowLeft: "left", ArrowRight: "right", " ": "space", q: "quit", Q: "quit"};
 const IGNORED = ["Shift", "Control", "Alt", "Meta", "CapsLock", "Tab"];
 const $ = (id) => document.getElementById(id);
-const ws = new WebSocket(`ws://${location.host}/ws`);
+const token = new URLSearchParams(location.search).get("token") ?? "";
+const ws = new WebSocket(`ws://${location.host}/ws?token=${encodeURIComponent(token)}`);
 ws.onopen = () => { document.body.dataset.connected = "true"; };
 ws.onmessage = (event) => {
   const m = JSON.parse(event.data);
@@ -79,6 +94,32 @@ class PortInUse(Exception):
     pass
 
 
+class OneLine(logging.Handler):
+    """uvicorn's log records on esr's console, one line each, never a traceback. Its record of a
+    text frame that is not UTF-8 is left out: the connection's close code (1007) reports that."""
+
+    def __init__(self, console):
+        super().__init__(logging.WARNING)
+        self.console = console
+
+    def emit(self, record: logging.LogRecord) -> None:
+        error = record.exc_info[1] if record.exc_info else None
+        if isinstance(error, UnicodeDecodeError):
+            return
+        text = " ".join(record.getMessage().split())[:200]
+        self.console.print(f"esr play: web server: {text}" + (f" ({type(error).__name__}: {error})"[:200] if error else ""))
+
+
+def key_of(text: str | None) -> str | None:
+    """The key a page's message names ({"key": "up"}), cut to MAX_KEY_TEXT; None for a binary
+    frame or anything that is not such an object."""
+    try:
+        message = json.loads(text) if text is not None else None
+    except (ValueError, RecursionError):
+        return None
+    return str(message["key"])[:MAX_KEY_TEXT] if isinstance(message, dict) and "key" in message else None
+
+
 def png_base64(frame: np.ndarray) -> str:
     buf = io.BytesIO()
     Image.fromarray(np.asarray(frame, np.uint8)).save(buf, format="PNG")
@@ -93,27 +134,36 @@ class Web:
     def __init__(self, port: int, console):
         self.port, self.console = port, console
         probe = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        # As the server's own socket does: a port whose last connections are in TIME_WAIT (a
+        # session just ended) is free to listen on.
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind((HOST, port))
         except OSError as e:
             raise PortInUse(f"port {port} on {HOST} is not free ({e.strerror}): choose another with --port") from None
         finally:
             probe.close()
+        self.token = secrets.token_urlsafe(32)  # only who reads esr's console can open the page
         self.keys: queue.Queue = queue.Queue()
         self.latest: str | None = None
         self.socket: WebSocket | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
         self.connected = threading.Event()
         app = Starlette(routes=[Route("/", self._page), WebSocketRoute("/ws", self._play)])
-        config = uvicorn.Config(app, host=HOST, port=port, log_level="warning", lifespan="off", ws="websockets-sansio")
+        config = uvicorn.Config(app, host=HOST, port=port, log_level="warning", lifespan="off", ws="websockets-sansio",
+                                ws_max_size=MAX_MESSAGE_BYTES, log_config=None)  # logs: OneLine, while served
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, name="esr-play-web", daemon=True)
 
     @property
     def url(self) -> str:
-        return f"http://{HOST}:{self.port}/"
+        return f"http://{HOST}:{self.port}/?token={self.token}"
 
     def __enter__(self):
+        # uvicorn's records go to OneLine only: a handler on the root logger would print tracebacks.
+        self.log, uvicorn_log = OneLine(self.console), logging.getLogger("uvicorn")
+        self.propagate, uvicorn_log.propagate = uvicorn_log.propagate, False
+        uvicorn_log.addHandler(self.log)
         self.thread.start()
         deadline = time.monotonic() + 20
         while not self.server.started:
@@ -125,34 +175,72 @@ class Web:
     def __exit__(self, *exc):
         self.server.should_exit = True
         self.thread.join(timeout=10)
+        logging.getLogger("uvicorn").removeHandler(self.log)
+        logging.getLogger("uvicorn").propagate = self.propagate
         return False
 
     # ---------------------------------------------------------------- the server side
+    def _refusal(self, conn: HTTPConnection) -> str | None:
+        """Why a request is not this session's page or its websocket, or None."""
+        host = conn.headers.get("host", "")
+        if host not in {f"{name}:{self.port}" for name in HOST_NAMES}:
+            return f"its Host {host[:80]!r} is not this server"
+        if not hmac.compare_digest(conn.query_params.get("token", "").encode(), self.token.encode()):
+            return "it has no token, or not this session's"
+        origin = conn.headers.get("origin", "")
+        if conn.scope["type"] == "websocket" and origin != f"http://{host}":
+            return f"its Origin {origin[:80]!r} is not this server's page"
+        return None
+
+    def _refuse(self, conn: HTTPConnection, why: str) -> None:
+        self.console.print(f"esr play: refused a {'websocket' if conn.scope['type'] == 'websocket' else 'page request'}: {why}")
+
     async def _page(self, request):
+        if why := self._refusal(request):
+            self._refuse(request, why)
+            return PlainTextResponse("forbidden: open the address esr play printed", status_code=403)
         return HTMLResponse(PAGE)
 
     async def _play(self, websocket: WebSocket):
+        if why := self._refusal(websocket):
+            self._refuse(websocket, why)
+            await websocket.close(code=1008)  # before the handshake: an HTTP 403
+            return
         if self.socket is not None:  # one player at a time
             await websocket.close(code=1013)
             return
         await websocket.accept()
         self.socket, self.loop = websocket, asyncio.get_running_loop()
-        if self.latest is not None:
-            await websocket.send_text(self.latest)
-        self.connected.set()
         try:
-            while True:
-                data = await websocket.receive_text()
-                try:
-                    key = json.loads(data).get("key")
-                except (json.JSONDecodeError, AttributeError):
-                    key = None
-                self.keys.put(str(key)[:MAX_KEY_TEXT] if key is not None else "?")
+            if self.latest is not None:
+                await websocket.send_text(self.latest)
+            self.connected.set()
+            await self._receive_keys(websocket)
         except WebSocketDisconnect:
-            pass
+            pass  # the browser left while esr was sending
         finally:
             self.socket = None
             self.keys.put(QUIT)  # a closed tab ends the episode
+
+    async def _receive_keys(self, websocket: WebSocket) -> None:
+        """Queue each key the page sends until it closes; anything but a key message (a binary
+        frame, text that is not {"key": ...}, a bad frame) ends the connection with one line, as a
+        closed tab ends it."""
+        while True:
+            message = await websocket.receive()
+            if message["type"] == "websocket.disconnect":
+                if why := BAD_FRAMES.get(message.get("code")):
+                    self._bad_message(why)
+                return
+            key = key_of(message.get("text"))
+            if key is None:
+                self._bad_message("binary data" if message.get("bytes") is not None else "text that is not a key")
+                await websocket.close(code=1003)
+                return
+            self.keys.put(key)
+
+    def _bad_message(self, what: str) -> None:
+        self.console.print(f"esr play: the browser sent {what}; its connection is closed")
 
     def _send(self, message: dict) -> None:
         text = json.dumps(message)
@@ -168,7 +256,7 @@ class Web:
     # ---------------------------------------------------------------- the game side
     def ready(self) -> None:
         """Wait for the browser (Ctrl-C gives up)."""
-        self.console.print(f"open {self.url} in a browser to play (Ctrl-C ends)")
+        self.console.print(f"open this address in a browser to play (Ctrl-C ends); its token lets only you in:\n  {self.url}")
         while not self.connected.wait(timeout=0.2):
             pass
 
