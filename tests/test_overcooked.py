@@ -36,7 +36,8 @@ def test_env_interface(cramped):
 
 def test_human_view_is_the_humans_position_and_orientation(cramped):
     """In the robot's view the human is layer 1 (position) and 6-9 (orientation, one-hot at its
-    cell); the human's own view has them as 0 and 2-5. Everything else is zeroed."""
+    cell); the human's own view has them as 0 and 2-5. At the start it holds nothing, so
+    everything else is zeroed."""
     env = cramped
     s = jax.jit(env.reset)(jax.random.PRNGKey(0))
     obs, h = np.asarray(env.observe(s)), np.asarray(env.observe_human(s))
@@ -47,6 +48,31 @@ def test_human_view_is_the_humans_position_and_orientation(cramped):
     assert view[..., 6:10].sum() == 1  # one orientation at the human's cell
     others = [c for c in range(obs.shape[-1]) if c not in (1, 6, 7, 8, 9)]
     assert view[..., others].sum() == 0 and obs[..., others].sum() > 0
+
+
+def test_human_view_keeps_what_the_human_holds_and_nothing_else_of_the_items(cramped):
+    """A hand-built robot observation: the human at (1, 2) holding a plated soup, the robot at
+    (2, 3) holding an onion, an onion and a plate on counters. The human's part keeps its soup
+    (layers 18 and 21 at its cell) and drops every other item."""
+    obs = np.zeros((4, 5, 26), np.uint8)
+    obs[2, 3, 0] = obs[1, 2, 1] = 1  # robot, human positions
+    obs[2, 3, 2] = obs[1, 2, 7] = 1  # orientations
+    obs[1, 2, 18], obs[1, 2, 21] = 3, 1  # the human's plated soup
+    obs[2, 3, 23] = 1  # the robot's onion
+    obs[0, 1, 23] = obs[0, 4, 22] = 1  # an onion and a plate on counters
+    obs[0, :, 11] = 1  # counters
+    obs[3, 0, 18], obs[3, 0, 21] = 3, 1  # a soup done in a pot
+    obs[..., 25] = 1  # urgency
+    view = np.asarray(cramped.human_view(jnp.asarray(obs)))
+    expected = np.zeros_like(obs)
+    expected[1, 2, 1] = expected[1, 2, 7] = expected[1, 2, 21] = 1
+    expected[1, 2, 18] = 3
+    np.testing.assert_array_equal(view, expected)
+    # an empty-handed human: position and orientation only
+    obs[1, 2, 18] = obs[1, 2, 21] = 0
+    obs[1, 2, 22] = 1  # now an empty plate
+    view = np.asarray(cramped.human_view(jnp.asarray(obs)))
+    assert view[1, 2, 22] == 1 and view.sum() == 3
 
 
 def test_an_episode_runs_400_steps_without_reset(cramped):

@@ -31,6 +31,10 @@ NUM_ACTIONS = 6
 UP, DOWN, RIGHT, LEFT, STAY, INTERACT = range(NUM_ACTIONS)
 ACTION_NAMES = ("up", "down", "right", "left", "stay", "interact")
 HUMAN_LAYERS = (1, 6, 7, 8, 9)  # in agent_0's view: the other agent's position and orientation
+HUMAN_POSITION = 1
+# What an agent holds shows in the item layers at its own cell (loose items and agents never
+# share a cell): 18 onions in a soup (3 for a plated soup), 21 soup done, 22 plate, 23 onion.
+HELD_ITEM_LAYERS = (18, 21, 22, 23)
 URGENCY_CHANNEL = 25  # 1 everywhere in the last 40 steps of an episode
 # JaxMARL's OBJECT_TO_INDEX values used when decoding an observation.
 _EMPTY, _ONION, _PLATE, _DISH, _AGENT = 1, 3, 5, 9, 10
@@ -167,11 +171,13 @@ class Overcooked(NamedTuple):
         return self.base.get_obs(state)[self.human_agent].astype(jnp.uint8)
 
     def human_view(self, obs: jax.Array) -> jax.Array:
-        """A robot observation with all but the human's own layers zeroed (same shape): its
-        position (layer 1) and orientation (layers 6-9). What it holds is in the shared item
-        layers, so it is not part of this view."""
+        """A robot observation with all but the human's own part zeroed (same shape): its
+        position (layer 1), orientation (layers 6-9) and what it holds (the item layers at its
+        own cell only; items on counters, pots and the robot's hands are the world's part)."""
         keep = jnp.zeros((obs.shape[-1],), obs.dtype).at[jnp.array(HUMAN_LAYERS)].set(1)
-        return obs * keep
+        held = jnp.zeros((obs.shape[-1],), obs.dtype).at[jnp.array(HELD_ITEM_LAYERS)].set(1)
+        at_human = obs[..., HUMAN_POSITION:HUMAN_POSITION + 1]
+        return obs * keep + obs * held * at_human
 
     def _action_planes(self, action: jax.Array) -> jax.Array:
         onehot = jax.nn.one_hot(action, NUM_ACTIONS, dtype=jnp.float32)
