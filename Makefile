@@ -9,7 +9,7 @@ comma  := ,
 STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 DEMO_SET := --budget quick --set train.epochs=40
 
-.PHONY: install browser demo test bench sweep paper-figures clean-venv
+.PHONY: install browser demo test bench sweep paper-figures report-store report report-check clean-venv
 BUDGET   ?= paper
 EXECUTOR ?= local
 
@@ -59,6 +59,20 @@ bench: install
 SUITE    ?= experiments/suites/gridworld.yaml
 sweep: install
 	$(BIN)/esr sweep $(SUITE) --budget $(BUDGET) --executor $(EXECUTOR)
+
+# docs/reproduction.md from the archived runs in evidence/ (imported into REPORT_STORE first;
+# an import that is already there is skipped). report-check fails when the committed report is
+# not what the archives give.
+REPORT_STORE ?= artifacts
+report-store: install
+	$(BIN)/esr --store $(REPORT_STORE) import $(wildcard evidence/runs/*.tar.gz)
+	$(BIN)/esr --store $(REPORT_STORE) import --without-checkpoint $(wildcard evidence/records/*.tar.gz)
+
+report: report-store
+	$(BIN)/esr --store $(REPORT_STORE) paper --report --no-exact --out docs/reproduction.md
+
+report-check: report-store
+	$(BIN)/esr --store $(REPORT_STORE) paper --report --no-exact --check --out docs/reproduction.md
 
 clean-venv:
 	rm -rf $(VENV)

@@ -18,7 +18,7 @@ from rich.text import Text
 
 from esr_cli import spec as specs, targets
 from esr_cli.artifacts import ensure
-from esr_cli.printing import plain_console, tagged
+from esr_cli.printing import plain_console, printable, tagged
 from esr_cli.stop_signals import Terminated, stop_signals_raise
 from esr_cli.store import RUN_KIND, Store, StoreError, nearest_existing, probe_writable
 
@@ -553,16 +553,18 @@ def paper_(
     exact: bool = typer.Option(True, "--exact/--no-exact", help="with --report: compute the estimator check's exact "
                                "artifacts (a few minutes the first time)"),
     as_json: bool = typer.Option(False, "--json", help="with --report: also print every verdict as JSON on stdout"),
+    check: bool = typer.Option(False, "--check", help="with --report: write nothing; exit 1 if --out differs from "
+                               "what the store's runs give now (the generated-on line aside)"),
 ):
     """Train what the paper suite lacks, draw every figure and write the report (make paper-figures);
     with --report, the reproduction report instead (docs/reproduction.md)."""
     # The two modes take different options; one the chosen mode would ignore is a mistake to
     # name (a forgotten --report must not start hours of training).
-    given = {name for name in ("budget", "executor", "report_out", "exact", "as_json")
+    given = {name for name in ("budget", "executor", "report_out", "exact", "as_json", "check")
              if getattr(ctx.get_parameter_source(name), "name", "DEFAULT") not in ("DEFAULT", "DEFAULT_MAP")}
     options = {"budget": "--budget", "executor": "--executor", "report_out": "--out", "exact": "--exact/--no-exact",
-               "as_json": "--json"}
-    wrong = given & ({"budget", "executor"} if report else {"report_out", "exact", "as_json"})
+               "as_json": "--json", "check": "--check"}
+    wrong = given & ({"budget", "executor"} if report else {"report_out", "exact", "as_json", "check"})
     if wrong:
         names = ", ".join(options[n] for n in sorted(wrong))
         verb = "applies" if len(wrong) == 1 else "apply"
@@ -580,9 +582,19 @@ def paper_(
     if report:
         from esr_cli import reproduction
 
+        if check:
+            differences = reproduction.check(STATE.store, report_out, err, exact=exact)
+            if differences:
+                err.print(printable(f"{report_out} differs from what the store's runs give now "
+                                    f"(esr paper --report --out {report_out} brings it up to date):"),
+                          highlight=False, markup=False)
+                err.print(printable("\n".join(differences)), highlight=False, markup=False)
+                raise Exit(1, f"{report_out} is stale")
+            err.print(tagged("reproduction report", "green", f": {report_out} is what the store's runs give"))
+            return
         _check_output_file(report_out, "--out")
         findings = reproduction.report(STATE.store, report_out, err, exact=exact)
-        err.print(", ".join(f"{n} {v}" for v, n in reproduction.verdict_counts(findings).items()))
+        err.print(reproduction.summary_line(findings))
         err.print(tagged("reproduction report", "green", f": {report_out}"))
         if as_json:
             out.print(json.dumps(reproduction.findings_json(findings), indent=2), highlight=False)
@@ -617,13 +629,14 @@ def ls():
                           "averaged over seeds, as in figures and reports; an evaluation's mean episode return")
     for col in ("kind", "name", "key", "budget", "seeds", "status", "epochs", "final return"):
         table.add_column(col, no_wrap=col in ("key", "epochs"))
-    n = damaged = 0
+    n, damaged = 0, []
     for e in STATE.store.entries():
         m = e.manifest or {}
         status = "damaged" if e.status == "complete" and e.manifest is None else e.status  # unreadable manifest
         if e.status == "partial" and isinstance(m.get("stopped"), dict):
             status = "stopped"  # saved at a chunk boundary on purpose; the same command continues it
-        damaged += status == "damaged"
+        if status == "damaged":
+            damaged.append(e.problem)
         seeds = m.get("seeds")
         epochs = ""
         if e.kind == RUN_KIND:
@@ -649,8 +662,8 @@ def ls():
                   f"no store at {STATE.store.root} (nothing has been made there yet)")
         return
     out.print(table)
-    if damaged:
-        err.print(f"{damaged} artifact(s) have a damaged manifest: `esr verify` says what is wrong")
+    for problem in damaged:  # one line each; the others are listed above all the same
+        err.print(f"damaged manifest: {problem}")
 
 
 # ---------------------------------------------------------------- play
@@ -783,7 +796,7 @@ def verify(ref: Optional[str] = typer.Argument(None, help="artifact key or path 
         err.print(f"store {STATE.store.root} holds no finished artifact to verify")
     bad = 0
     for p in paths:
-        problems = STATE.store.verify(p)
+        problems = _verify_problems(p)
         if problems:
             bad += 1
             err.print(tagged("CORRUPT", "red", f" {p}"))
@@ -793,6 +806,17 @@ def verify(ref: Optional[str] = typer.Argument(None, help="artifact key or path 
             err.print(tagged("ok", "green", f" {p}"))
     if bad:
         raise Exit(1, f"{bad} of {len(paths)} artifact(s) failed verification")
+
+
+def _verify_problems(path: Path) -> list[str]:
+    """What `Store.verify` finds; an artifact it cannot read to the end (a disk error, say) is
+    one more problem, never the end of checking the others."""
+    try:
+        from esr_cli.checkpoint_files import verify_artifact
+
+        return verify_artifact(STATE.store, path)
+    except OSError as e:
+        return [f"cannot be read to the end: {e.strerror or e}: {e.filename}"]
 
 
 # ---------------------------------------------------------------- export / import

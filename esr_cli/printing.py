@@ -9,6 +9,7 @@ so a new print site is safe without escaping anything.
 from __future__ import annotations
 
 import shlex
+import unicodedata
 
 from rich.console import Console
 from rich.text import Text
@@ -30,3 +31,10 @@ def train_line(esr: str, spec_path, budget: str, sets) -> str:
     (`train.seeds=[1]` is a glob; a value may hold a quote or a space)."""
     words = ["train", str(spec_path), "--budget", budget, *(w for s in sets for w in ("--set", s))]
     return " ".join([esr, *map(shlex.quote, words)])
+
+
+def printable(text: str, keep: str = "\n\t") -> str:
+    """`text` with every control character except those in `keep` shown as an escape (\\x1b,
+    \\u202e): names, keys and messages read from a store or archive never drive the terminal."""
+    return "".join(c if c in keep or (c.isprintable() and not unicodedata.category(c).startswith("C"))
+                   else c.encode("unicode_escape").decode("ascii") for c in text)

@@ -19,6 +19,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from esr_cli import human_runs, provenance, spec as specs
 from esr_cli.artifacts import Recipe
+from esr_cli.checkpoint_files import run_length
 from esr_cli.core import evaluate as ev, loop
 from esr_cli.core.train import make_trainer
 from esr_cli.finals import read_rows
@@ -59,6 +60,15 @@ def lineage_key(components: dict) -> str:
     return content_key({**components, "spec": {**spec, "train": train}})
 
 
+def _lineage_of(record: dict | None) -> str | None:
+    """The lineage key a stored run's manifest or pending.json names; None where its components
+    are not a run's (a damaged or foreign record must not stop another run from training)."""
+    try:
+        return lineage_key(record["key_components"])
+    except (KeyError, TypeError, AttributeError, ValueError):
+        return None
+
+
 def adopt_shorter_run(store: Store, key: str, components: dict, run_dir: Path, epochs: int, console: Console) -> None:
     """Start an empty run directory from the longest run of its lineage that got no further than
     `epochs`: a committed run, or an unfinished one that no process is writing."""
@@ -67,11 +77,9 @@ def adopt_shorter_run(store: Store, key: str, components: dict, run_dir: Path, e
     lineage = lineage_key(components)
     donors = []
     for entry in store.entries():
-        info = entry.manifest or {}
-        theirs = info.get("key_components")
-        if entry.kind != RUN_KIND or entry.key == key or not theirs or lineage_key(theirs) != lineage:
+        if entry.kind != RUN_KIND or entry.key == key or _lineage_of(entry.manifest) != lineage:
             continue
-        done = int(info.get("summary", {}).get("epochs", 0)) if entry.status == "complete" else \
+        done = (run_length(entry.manifest) or 0) if entry.status == "complete" else \
             next((s for s in loop.verified_steps(entry.path) if s <= epochs), 0)
         if 0 < done <= epochs:
             donors.append((done, entry))

@@ -31,10 +31,12 @@ from pathlib import Path, PurePosixPath
 from typing import Callable, Iterator
 
 from esr_cli import faults
+from esr_cli.jsonl import JsonInputError, read_json
 
 MANIFEST = "manifest.json"
 PENDING = "pending.json"  # an unfinished artifact's record: what it is and who has worked on it
 MAX_PENDING_BYTES = 1 << 20
+MAX_MANIFEST_BYTES = 16 << 20  # a run's manifest is a few KiB; a figure's lists its inputs
 # The artifact kinds, each a top-level folder of the store; every module names them from here.
 RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND = "runs", "evals", "exact", "figures", "humandata", "humans"
 PLAY_KIND = "play"  # an episode a person played with a robot (esr play)
@@ -112,6 +114,7 @@ class Entry:
     path: Path
     status: str  # complete | partial
     manifest: dict | None
+    problem: str | None = None  # why a committed artifact's manifest could not be read (manifest None)
 
 
 def nearest_existing(path: Path) -> Path:
@@ -197,13 +200,14 @@ class Store:
                     if status == "partial":
                         yield Entry(kind, key, d, "partial", read_pending(d))
                     elif (d / MANIFEST).is_file():
-                        yield Entry(kind, key, d, "complete", self._manifest_or_none(d))
+                        yield self._complete_entry(kind, key, d)
 
-    def _manifest_or_none(self, path: Path) -> dict | None:
+    def _complete_entry(self, kind: str, key: str, path: Path) -> Entry:
+        """A committed artifact, listed even where its manifest is damaged (manifest None)."""
         try:
-            return self.read_manifest(path)
-        except StoreError:
-            return None
+            return Entry(kind, key, path, "complete", self.read_manifest(path))
+        except StoreError as e:
+            return Entry(kind, key, path, "complete", None, problem=str(e))
 
     def resolve(self, ref: str) -> Path:
         """A committed artifact from a key, a unique key prefix (>= 4 chars) or a path."""
@@ -320,8 +324,8 @@ class Store:
 
     # ---------------------------------------------------------------- checking
     def verify(self, path: Path) -> list[str]:
-        """Check that the manifest names this artifact and re-hash every file against it;
-        -> list of problems (empty: intact)."""
+        """Check that the manifest names this artifact and re-hash every file against it; -> list
+        of problems (empty: intact). checkpoint_files.verify_artifact adds a run's epoch check."""
         path = Path(path)
         try:
             manifest = load_manifest(path)
@@ -339,19 +343,31 @@ class Store:
         elif folder in KINDS and kind != folder:  # a directory outside a store has no kind folder
             problems.append(f"{MANIFEST} names kind {kind!r}, but the artifact is under {folder}/")
         listed = manifest["files"]
-        for rel, want in sorted(listed.items()):
-            f = path / rel
-            if PurePosixPath(rel).is_absolute() or ".." in PurePosixPath(rel).parts:  # never read outside it
-                problems.append(f"{MANIFEST} lists {rel[:80]!r}, which is not a file inside the artifact")
-            elif not f.is_file():
-                problems.append(f"missing file {rel}")
-            elif digest_file(f) != want:
-                problems.append(f"changed file {rel} (digest differs from the manifest)")
+        problems += [p for rel, want in sorted(listed.items()) if (p := _file_problem(path, rel, want))]
         for f in sorted(Path(path).rglob("*")):
             rel = f.relative_to(path).as_posix()
             if f.is_file() and rel != MANIFEST and rel not in listed:
                 problems.append(f"unexpected file {rel}")
         return problems
+
+
+def _file_problem(path: Path, rel: str, want) -> str | None:
+    """Why the file `rel` that a manifest lists does not match it, or None. Never reads outside
+    the artifact (an absolute name, `..`, a link: committed artifacts hold plain files only) and
+    never stops on a file it cannot read, so one bad file hides no other problem."""
+    inside = PurePosixPath(rel)
+    if inside.is_absolute() or ".." in inside.parts:
+        return f"{MANIFEST} lists {rel[:80]!r}, which is not a file inside the artifact"
+    if any((path / PurePosixPath(*inside.parts[:i])).is_symlink() for i in range(1, len(inside.parts) + 1)):
+        return f"{rel} is a link, not a plain file"
+    f = path / rel
+    if not f.is_file():
+        return f"missing file {rel}"
+    try:
+        same = digest_file(f) == want
+    except OSError as e:
+        return f"unreadable file {rel} ({e.strerror or e})"
+    return None if same else f"changed file {rel} (digest differs from the manifest)"
 
 
 def components_problem(record: dict, name: str) -> str | None:
@@ -377,17 +393,16 @@ MANIFEST_FIELDS = {"kind": str, "key": str, "files": dict}
 
 def load_manifest(path: Path) -> dict:
     """The manifest of the artifact directory `path`; StoreError if it is missing or damaged, whose
-    text names the problem but not the path (callers say where)."""
+    text names the problem but not the path (callers say where). Read with bounded work
+    (esr_cli/jsonl.py): listing a store reads every manifest in it."""
     try:
-        data = (path / MANIFEST).read_bytes()
+        manifest = read_json(path / MANIFEST, MAX_MANIFEST_BYTES)
     except FileNotFoundError:
         raise StoreError(f"no {MANIFEST}: not a committed artifact") from None
     except OSError as e:
         raise StoreError(f"{MANIFEST} cannot be read ({e.strerror})") from None
-    try:
-        manifest = json.loads(data.decode())
-    except (ValueError, RecursionError):  # ValueError: bad UTF-8 or bad JSON
-        raise StoreError(f"{MANIFEST} is not UTF-8 JSON") from None
+    except JsonInputError as e:
+        raise StoreError(f"{MANIFEST} is {e}") from None
     if not isinstance(manifest, dict):
         raise StoreError(f"{MANIFEST} is not a JSON object")
     for field, kind in MANIFEST_FIELDS.items():
@@ -398,12 +413,9 @@ def load_manifest(path: Path) -> dict:
 
 def read_pending(directory: Path) -> dict | None:
     """An unfinished artifact's pending.json, or None where it is missing, unreadable, not a
-    JSON object, or larger than any esr writes (a few KiB: an archive's copy is read too)."""
-    path = Path(directory) / PENDING
+    JSON object, or larger or deeper than any esr writes (a few KiB: an archive's copy is read too)."""
     try:
-        if path.stat().st_size > MAX_PENDING_BYTES:
-            return None
-        value = json.loads(path.read_bytes())
-    except (OSError, ValueError, RecursionError):
+        value = read_json(Path(directory) / PENDING, MAX_PENDING_BYTES)
+    except (OSError, JsonInputError):
         return None
     return value if isinstance(value, dict) else None

@@ -23,7 +23,7 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
-from esr_cli.checkpoint_files import CHECKPOINT_DIR, verified_steps
+from esr_cli.checkpoint_files import CHECKPOINT_DIR, epochs_problem, run_length, verified_steps, verify_artifact
 from esr_cli.finals import read_rows
 from esr_cli.store import (KINDS, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, parse_dirname,
                            read_pending)
@@ -68,7 +68,7 @@ def export(store: Store, ref: str, out: Path | None = None) -> Moved:
         stage = Path(tmp) / arcroot  # laid out as in a store: verify checks the kind folder
         if status == "complete":
             shutil.copytree(src, stage)
-            problems = store.verify(stage)
+            problems = verify_artifact(store, stage)
             if problems:
                 raise StoreError(f"{kind} {key[:12]} fails its manifest ({problems[0]}); `esr verify {key[:12]}` lists every problem")
         else:
@@ -274,7 +274,7 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
         if not (stage / MANIFEST).is_file():
             raise StoreError(f"{archive}: {kind} {key[:12]} has no {MANIFEST}, so it is not a finished artifact "
                              "(an unfinished run's directory ends in .partial); nothing imported")
-        problems = store.verify(stage)  # what `esr verify` checks: the manifest names it, every digest
+        problems = verify_artifact(store, stage)  # what `esr verify` checks: the manifest names it, every digest
         if problems:
             more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
             raise StoreError(f"{archive}: {kind}/{key[:2]}/{key}: {problems[0]}{more}; nothing imported")
@@ -292,6 +292,11 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
         raise StoreError(f"{archive}: unfinished run {key[:12]}: {problem}; nothing imported")
     steps = verified_steps(stage)  # newest first
     if steps:
+        # Cheap, without JAX: the folder's number against the metrics and the run's length (a
+        # resume also checks the epoch the state holds).
+        problem = epochs_problem(stage, steps[0], run_length(pending))
+        if problem:
+            raise StoreError(f"{archive}: unfinished run {key[:12]}: {problem}; nothing imported")
         return False, steps[0]
     if not without_checkpoint:
         raise StoreError(f"{archive}: unfinished run {key[:12]} has no checkpoint matching its recorded digests; "

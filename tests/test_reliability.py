@@ -181,6 +181,63 @@ def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
     assert committed(store) == []
 
 
+def rename_checkpoint(run_dir: Path, old: int, new: int) -> None:
+    """Rename checkpoint `old` to `new`, its recorded digests following: a folder whose number
+    lies while every file still matches its digest."""
+    (run_dir / "checkpoints" / str(old)).rename(run_dir / "checkpoints" / str(new))
+    digests = json.loads((run_dir / "checkpoint_digests.json").read_text())
+    (run_dir / "checkpoint_digests.json").write_text(json.dumps({str(new): digests[str(old)]}))
+
+
+def test_a_checkpoint_folder_renamed_to_another_epoch_is_refused(tmp_path):
+    """The folder's number must be the epoch the checkpoint's state holds, an epoch the metrics
+    logged and one of the run's: an import and a resume refuse it, naming the epochs, and
+    nothing is committed."""
+    store = tmp_path / "store"
+    assert esr(*SMOKE, store=store, check=False, ESR_FAULT="after_checkpoint@1").returncode == -signal.SIGKILL
+    (part,) = partials(store)
+    rename_checkpoint(part, 1, 999)
+    archive = tmp_path / "renamed.tar.gz"
+    esr("export", part.name[:8], "--out", str(archive), store=store)
+    imported = esr("import", str(archive), store=tmp_path / "other", check=False)
+    assert imported.returncode == 2 and not (tmp_path / "other").exists()
+    assert "checkpoint folder says epoch 999 but metrics end at 1, in a run of 2 epochs; nothing imported" in imported.stderr
+
+    resumed = esr(*SMOKE, store=store, check=False)
+    assert resumed.returncode == 1 and "Traceback" not in resumed.stderr
+    assert "checkpoint folder says epoch 999 but its state holds epoch 1 and metrics end at 1, in a run of 2 epochs" \
+        in " ".join(resumed.stderr.split())
+    # Within the run, and with a metrics line forged to match: the state still holds epoch 1.
+    rename_checkpoint(part, 999, 2)
+    row = json.loads((part / "metrics.jsonl").read_text().splitlines()[0])
+    with open(part / "metrics.jsonl", "a") as f:
+        f.write(json.dumps({**row, "epoch": 2}) + "\n")
+    resumed = esr(*SMOKE, store=store, check=False)
+    assert resumed.returncode == 1
+    assert "checkpoint folder says epoch 2 but its state holds epoch 1 and metrics end at 2" in " ".join(resumed.stderr.split())
+    assert committed(store) == []
+
+
+def test_verify_finds_a_finished_run_whose_epochs_disagree(tmp_path, smoke_run):
+    """A committed run's length, newest checkpoint folder, digests, metrics and summary must
+    agree: a renamed checkpoint folder fails `esr verify` even with a manifest rewritten to match."""
+    from esr_cli.store import digest_file
+
+    _, path, _ = smoke_run
+    store = tmp_path / "store"
+    copy = store / path.relative_to(path.parents[2])
+    shutil.copytree(path, copy)
+    rename_checkpoint(copy, 2, 999)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    files = {rel.replace("checkpoints/2/", "checkpoints/999/"): d for rel, d in manifest["files"].items()}
+    files["checkpoint_digests.json"] = digest_file(copy / "checkpoint_digests.json")
+    (copy / "manifest.json").write_text(json.dumps({**manifest, "files": files}))
+    proc = esr("verify", store=store, check=False)
+    assert proc.returncode == 1
+    assert ("the run has 2 epochs but its newest checkpoint folder says 999 and its checkpoint digests end at 999"
+            in " ".join(proc.stderr.split())), proc.stderr
+
+
 def test_a_finished_run_keeps_only_its_newest_checkpoint(smoke_run):
     from esr_cli.core import loop
 

@@ -19,16 +19,23 @@ def test_content_key_is_canonical():
 COMPONENTS = {"kind": "runs", "spec": {"name": "x"}}
 
 
-def make_artifact(store, key=None):
+def make_artifact(store, key=None, components=COMPONENTS):
     """A committed run; by default under the key its components digest to, as training makes it
     (an explicit key, for tests of key prefixes, does not pass `verify`)."""
-    key = key or content_key(COMPONENTS)
-    d = store.begin("runs", key, {"name": "x", "key": key, "key_components": COMPONENTS})
+    key = key or content_key(components)
+    name = components["spec"]["name"]
+    d = store.begin("runs", key, {"name": name, "key": key, "key_components": components})
     (d / "metrics.jsonl").write_text('{"epoch": 1}\n')
     (d / "sub").mkdir()
     (d / "sub" / "data.bin").write_bytes(b"\x00\x01\x02")
     assert store.lookup("runs", key) is None  # not visible before commit
-    return store.commit("runs", key, {"kind": "runs", "name": "x", "key": key, "key_components": COMPONENTS})
+    return store.commit("runs", key, {"kind": "runs", "name": name, "key": key, "key_components": components})
+
+
+def make_artifacts(store, names):
+    """{name: committed run}, in the order `esr ls` and `esr verify` list them."""
+    paths = {n: make_artifact(store, components={"kind": "runs", "spec": {"name": n}}) for n in names}
+    return dict(sorted(paths.items(), key=lambda item: item[1].name))
 
 
 def test_commit_is_a_rename_with_digests(tmp_path):
@@ -287,3 +294,58 @@ def test_a_printed_command_names_the_store_unless_it_is_the_default(tmp_path, mo
     monkeypatch.setenv("ESR_STORE", str(tmp_path / "elsewhere"))
     assert Store(tmp_path / "elsewhere").invocation() == "esr"
     assert Store("artifacts").invocation() == "esr --store artifacts"
+
+
+def test_verify_checks_every_artifact_and_reports_every_problem(tmp_path, monkeypatch, capsys):
+    """A file that cannot be read, or a link (here to an endless device), is a problem of its
+    artifact: the artifacts after it are still checked, and the exit says some failed."""
+    from esr_cli import store as store_module
+    from esr_cli.cli import main
+
+    unreadable, linked, good = make_artifacts(Store(tmp_path), ["a", "b", "c"]).values()
+    digest = store_module.digest_file
+
+    def digest_or_refuse(path):
+        if path == unreadable / "sub" / "data.bin":
+            raise PermissionError(13, "Permission denied", str(path))
+        return digest(path)
+
+    monkeypatch.setattr(store_module, "digest_file", digest_or_refuse)
+    (linked / "sub" / "data.bin").unlink()
+    (linked / "sub" / "data.bin").symlink_to("/dev/zero")
+    assert main(["--store", str(tmp_path), "verify"]) == 1
+    err = " ".join(capsys.readouterr().err.split())
+    assert f"CORRUPT {unreadable} unreadable file sub/data.bin (Permission denied)" in err
+    assert f"CORRUPT {linked} sub/data.bin is a link, not a plain file" in err
+    assert f"ok {good}" in err and "2 of 3 artifact(s) failed verification" in err
+
+
+def test_one_bad_manifest_never_breaks_listing_the_others(tmp_path):
+    """A manifest that is garbage, 100 MB or nested 10,000 deep is refused with bounded work
+    (esr_cli/jsonl.py): `esr ls` lists every other artifact and names each bad one in one line."""
+    made = make_artifacts(Store(tmp_path), ["good", "garbage", "huge", "deep"])
+    good, garbage, huge, deep = (made[n] for n in ("good", "garbage", "huge", "deep"))
+    (garbage / "manifest.json").write_bytes(b"\x00garbage{")
+    with open(huge / "manifest.json", "wb") as f:
+        f.truncate(100 << 20)
+    (deep / "manifest.json").write_bytes(b"[" * 10_000 + b"]" * 10_000)
+    listed = esr("ls", store=tmp_path, timeout=60)
+    assert listed.returncode == 0
+    assert any("good" in line and good.name[:12] in line for line in listed.stdout.splitlines())
+    lines = listed.stderr.strip().splitlines()
+    assert sorted(lines) == sorted([
+        f"damaged manifest: {garbage}: manifest.json is not UTF-8 JSON",
+        f"damaged manifest: {huge}: manifest.json is 104,857,600 bytes, more than the 16,777,216 esr reads",
+        f"damaged manifest: {deep}: manifest.json is nested deeper than 64 levels",
+    ]), listed.stderr
+    assert esr("show", good.name[:8], store=tmp_path).returncode == 0
+
+
+@pytest.mark.parametrize("bad", [b'{"epoch": 2, "x": "' + b"y" * (1 << 20) + b'"}', b'{"epoch": 2, "x": ' + b"[" * 100 + b"]" * 100 + b"}",
+                                 b"[" * 10_000, b"3", b'{"epoch": 2'])
+def test_a_metrics_line_too_long_too_deep_or_not_an_object_ends_the_reading(tmp_path, bad):
+    """As a line cut short by a kill: it and everything after it are untrusted, never a crash."""
+    from esr_cli.jsonl import read_jsonl
+
+    (tmp_path / "metrics.jsonl").write_bytes(b'{"epoch": 1}\n' + bad + b'\n{"epoch": 3}\n')
+    assert read_jsonl(tmp_path / "metrics.jsonl") == [{"epoch": 1}]

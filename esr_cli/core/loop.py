@@ -26,7 +26,7 @@ import orbax.checkpoint as ocp
 from esr_cli import faults
 from esr_cli.finals import read_rows
 from esr_cli.checkpoint_files import (
-    CHECKPOINT_DIGESTS, CHECKPOINT_DIR, read_digests, record_digests, step_intact, verified_steps,
+    CHECKPOINT_DIGESTS, CHECKPOINT_DIR, epochs_problem, read_digests, record_digests, step_intact, verified_steps,
 )
 from esr_cli.store import atomic_write_text
 from esr_cli.core.stops import CorruptCheckpoint, Diverged, Interrupted, TimeLimitReached  # noqa: F401 (raised here)
@@ -95,7 +95,19 @@ def restore_latest(trainer: Trainer, run_dir: Path, seeds, repair: bool = True) 
             ) from None
     finally:
         mngr.close()
+    _check_epochs(trainer, run_dir, step, state, repair)
     return state, int(step)
+
+
+def _check_epochs(trainer: Trainer, run_dir: Path, step: int, state: TrainState, repair: bool) -> None:
+    """Refuse a checkpoint whose folder's number (only a name: an archive's folder can be
+    renamed) is not the epoch its state holds, an epoch its metrics logged, or within the run:
+    resuming from it would skip or repeat epochs and commit a run that never trained them."""
+    held = sorted({int(e) for e in np.asarray(jax.device_get(state.epoch)).ravel()})
+    problem = epochs_problem(run_dir, step, trainer.spec.train.epochs, held)
+    if problem:
+        what = f"remove {run_dir} to start this run over" if repair else "see `esr verify`"
+        raise CorruptCheckpoint(f"{Path(run_dir) / CHECKPOINT_DIR / str(step)}: {problem}; {what}")
 
 
 def adopt_checkpoint(source_dir: Path, run_dir: Path, at_most: int) -> int:
