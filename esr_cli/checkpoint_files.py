@@ -17,9 +17,10 @@ from pathlib import Path
 
 from esr_cli.finals import read_rows
 from esr_cli.jsonl import JsonInputError, read_json
-from esr_cli.store import MANIFEST, MAX_MANIFEST_BYTES, RUN_KIND, Store, atomic_write_text, digest_file, load_manifest
+from esr_cli.store import (CHECKPOINT_FOLDER, MANIFEST, MAX_MANIFEST_BYTES, RUN_KIND, Store, atomic_write_text, digest_file,
+                           load_manifest, without_checkpoint)
 
-CHECKPOINT_DIR = "checkpoints"
+CHECKPOINT_DIR = CHECKPOINT_FOLDER
 CHECKPOINT_DIGESTS = "checkpoint_digests.json"
 
 
@@ -113,6 +114,8 @@ def run_epochs_problem(run_dir: Path, manifest: dict) -> str | None:
             "its checkpoint digests end at": max(digested, default=None),
             "its metrics end at": (logged_epochs(run_dir) or [None])[-1],
             f"its {MANIFEST} summary says": summary.get("epochs") if isinstance(summary, dict) else None}
+    if without_checkpoint(run_dir):  # kept as metrics only: no folder to agree
+        said.pop("its newest checkpoint folder says")
     wrong = [f"{what} {'none' if epoch is None else epoch}" for what, epoch in said.items() if epoch != total]
     return f"the run has {total} epochs but {' and '.join(wrong)}" if wrong else None
 

@@ -824,6 +824,9 @@ def _verify_problems(path: Path) -> list[str]:
 def export_(
     ref: str = typer.Argument(..., help="artifact key, key prefix or directory; an unfinished run too", show_default=False),
     out_file: Optional[Path] = typer.Option(None, "--out", "-o", help="archive to write (default: ./KEY8.tar.gz)"),
+    without_checkpoint: bool = typer.Option(False, "--without-checkpoint", help="a run without its networks: a "
+                                            "finished one as metrics, spec and manifest (reports and figures, not "
+                                            "eval); an unfinished one as a record of its logged epochs"),
 ):
     """Write one artifact to a single file, to carry to another store (`esr import`). An
     unfinished run travels with its newest verified checkpoint and continues where imported."""
@@ -833,7 +836,7 @@ def export_(
         _check_output_file(out_file, "--out")
     from esr_cli.transfer import export
 
-    moved = export(STATE.store, ref, out_file)
+    moved = export(STATE.store, ref, out_file, without_checkpoint)
     err.print(tagged("exported", "green", f" {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files)"))
     out.print(str(moved.path), highlight=False)
 

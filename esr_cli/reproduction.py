@@ -212,6 +212,7 @@ PUBLISHED_AVE = ("method.variant=original",)
 PUBLISHED_GOAL_INFERENCE = ("method.variant=original",)
 NO_ROBOT_ACTION = ("method.condition_on_robot_action=false",)
 GREEDY = ("learner.gamma=0.0",)
+FUTURE_HUMAN = ("method.future=human",)  # esr's estimator: psi sees only the human's part of the future
 
 
 def _paper_cell(mean: float, se) -> str:
@@ -222,7 +223,7 @@ def paper_claims() -> list[Claim]:
     claims = []
     for n in (2, 5, 7, 10):
         esr = (f"grid_{n}", ())
-        var = [(f"grid_{n}", QUICK_CHANGES)]
+        var = [(f"grid_{n}", QUICK_CHANGES), (f"grid_{n}", FUTURE_HUMAN)]
         claims.append(Claim("Figure 1", f"N = {n}: ESR ends above Random", "ESR's final return is above Random's at every N",
                             "above", esr, (f"grid_{n}_random", ()), var))
         if n == 2:
@@ -258,7 +259,7 @@ def paper_claims() -> list[Claim]:
     for n in (2, 5, 7, 10):
         claims.append(Claim("Figure 5", f"N = {n}: the MI estimate turns positive and stays positive",
                             "the estimate turns positive early in training and stays positive", "mi_positive",
-                            (f"grid_{n}", ()), None, [(f"grid_{n}", QUICK_CHANGES)]))
+                            (f"grid_{n}", ()), None, [(f"grid_{n}", QUICK_CHANGES), (f"grid_{n}", FUTURE_HUMAN)]))
     return claims
 
 
@@ -318,6 +319,8 @@ def run_label(spec: specs.Spec) -> str:
     if isinstance(method, specs.ESRMethodSpec):
         if not method.condition_on_robot_action:
             notes.append("without aR")
+        if method.future == "human":
+            notes.append("human future")
         paper_rate = _paper_repr_lr(spec.name)
         if paper_rate is not None and method.repr_lr != paper_rate:
             notes.append(f"representation rate {method.repr_lr:g}")

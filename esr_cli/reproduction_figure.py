@@ -16,7 +16,7 @@ POINTS = 300  # points drawn per curve: smoothed over len/50 epochs, then thinne
 BAND_RESAMPLES = 500
 BAND_CONFIDENCE = 0.95
 # ESR's own variants are lines of their own in the ablation rows: a colour each.
-ESR_VARIANT_COLORS = {"without aR": "C5", "critic gamma 0": "C6"}
+ESR_VARIANT_COLORS = {"without aR": "C5", "critic gamma 0": "C6", "human future": "C8"}
 
 
 def line_style(spec) -> tuple[str, str]:
@@ -28,6 +28,8 @@ def line_style(spec) -> tuple[str, str]:
             return ESR_VARIANT_COLORS["without aR"], "-"
         if spec.learner.gamma == 0.0:
             return ESR_VARIANT_COLORS["critic gamma 0"], "-"
+        if method.future == "human":
+            return ESR_VARIANT_COLORS["human future"], "--"
     esrs_variant = getattr(method, "variant", None) in ("fixed", "exact") or (
         method.kind == "esr" and spec.learner.warmup_epochs > 0)
     return figs.METHOD_COLORS.get(method.kind, "C7"), "--" if esrs_variant else "-"

@@ -39,6 +39,7 @@ MAX_PENDING_BYTES = 1 << 20
 MAX_MANIFEST_BYTES = 16 << 20  # a run's manifest is a few KiB; a figure's lists its inputs
 # The artifact kinds, each a top-level folder of the store; every module names them from here.
 RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND = "runs", "evals", "exact", "figures", "humandata", "humans"
+CHECKPOINT_FOLDER = "checkpoints"  # a run's checkpoints, one folder per epoch (checkpoint_files.py)
 PLAY_KIND = "play"  # an episode a person played with a robot (esr play)
 KINDS = (RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND, PLAY_KIND)
 
@@ -343,12 +344,22 @@ class Store:
         elif folder in KINDS and kind != folder:  # a directory outside a store has no kind folder
             problems.append(f"{MANIFEST} names kind {kind!r}, but the artifact is under {folder}/")
         listed = manifest["files"]
+        if kind == RUN_KIND and without_checkpoint(path):  # kept as metrics only, on purpose
+            listed = {rel: want for rel, want in listed.items() if not rel.startswith(f"{CHECKPOINT_FOLDER}/")}
         problems += [p for rel, want in sorted(listed.items()) if (p := _file_problem(path, rel, want))]
         for f in sorted(Path(path).rglob("*")):
             rel = f.relative_to(path).as_posix()
             if f.is_file() and rel != MANIFEST and rel not in listed:
                 problems.append(f"unexpected file {rel}")
         return problems
+
+
+def without_checkpoint(path: Path) -> bool:
+    """Whether a committed run was kept as metrics only: `esr export --without-checkpoint` leaves
+    out its whole checkpoint folder (a folder that is there is checked file by file, so a
+    checkpoint damaged in part is still found). Its metrics, spec and manifest are checked as
+    always; reading its final networks needs the full archive."""
+    return not (Path(path) / CHECKPOINT_FOLDER).exists()
 
 
 def _file_problem(path: Path, rel: str, want) -> str | None:

@@ -52,10 +52,15 @@ class Moved:
 
 
 # ---------------------------------------------------------------- export
-def export(store: Store, ref: str, out: Path | None = None) -> Moved:
+def export(store: Store, ref: str, out: Path | None = None, without_checkpoint: bool = False) -> Moved:
     """Archive the artifact `ref` (key, unique key prefix or path; committed, or an unfinished
-    run) into `out` (default: ./<key[:8]>.tar.gz). A running run may keep writing meanwhile."""
+    run) into `out` (default: ./<key[:8]>.tar.gz). A running run may keep writing meanwhile.
+    without_checkpoint (runs only): a finished run as metrics, spec, manifest and digests (it
+    verifies, reports and plots, but cannot be evaluated or extended); an unfinished one as a
+    record of its logged epochs (`esr import --without-checkpoint`)."""
     kind, key, src, status = _find(store, ref)
+    if without_checkpoint and kind != RUN_KIND:
+        raise StoreError(f"{kind} {key[:12]} is not a run: only a run has a checkpoint to leave out")
     out = Path(out) if out is not None else Path(f"{key[:8]}.tar.gz")
     if out.is_dir():
         raise StoreError(f"{out} is a directory: give the archive's file name")
@@ -67,10 +72,12 @@ def export(store: Store, ref: str, out: Path | None = None) -> Moved:
     with tempfile.TemporaryDirectory(prefix=".export-", dir=store.root) as tmp:
         stage = Path(tmp) / arcroot  # laid out as in a store: verify checks the kind folder
         if status == "complete":
-            shutil.copytree(src, stage)
+            shutil.copytree(src, stage, ignore=_without_checkpoint(src) if without_checkpoint else None)
             problems = verify_artifact(store, stage)
             if problems:
                 raise StoreError(f"{kind} {key[:12]} fails its manifest ({problems[0]}); `esr verify {key[:12]}` lists every problem")
+        elif without_checkpoint:
+            shutil.copytree(src, stage, ignore=_record_only(src))
         else:
             snapshot_partial(src, stage)
         files = sorted(p for p in stage.rglob("*") if p.is_file())
@@ -112,6 +119,23 @@ def snapshot_partial(src: Path, stage: Path) -> None:
         if verified_steps(stage) == [step]:
             return
     raise StoreError(f"{src} kept changing while it was copied ({SNAPSHOT_TRIES} tries); try again")
+
+
+def _without_checkpoint(src: Path):
+    def ignore(directory: str, names: list[str]) -> list[str]:
+        return [CHECKPOINT_DIR] if Path(directory) == src and CHECKPOINT_DIR in names else []
+
+    return ignore
+
+
+RECORD_FILES = ("pending.json", "spec.yaml", "metrics.jsonl")  # what a record of an unfinished run holds
+
+
+def _record_only(src: Path):
+    def ignore(directory: str, names: list[str]) -> list[str]:
+        return [n for n in names if n not in RECORD_FILES] if Path(directory) == src else names
+
+    return ignore
 
 
 def _keep_checkpoint(ckpt: Path, step: int):

@@ -37,6 +37,31 @@ def test_a_finished_run_moves_to_another_store(smoke_run, tmp_path):
     assert "already in the store" in again.stderr and Path(again.stdout.strip()) == copy
 
 
+def test_a_finished_run_travels_as_metrics_only_and_says_what_it_cannot_do(smoke_run, tmp_path):
+    """`export --without-checkpoint`: the manifest, spec and metrics, no checkpoint folder. It
+    imports and verifies as a finished run and reports read it; evaluating it asks for the full
+    archive; a damaged metrics file is still found."""
+    store, path, _ = smoke_run
+    full, slim = tmp_path / "full.tar.gz", tmp_path / "slim.tar.gz"
+    esr("export", path.name[:8], "--out", str(full), store=store)
+    esr("export", path.name[:8], "--out", str(slim), "--without-checkpoint", store=store)
+    with tarfile.open(slim) as tar:
+        names = tar.getnames()
+    assert not any("/checkpoints/" in n for n in names) and any(n.endswith("/metrics.jsonl") for n in names)
+    assert slim.stat().st_size < full.stat().st_size / 2
+    other = tmp_path / "other"
+    copy = Path(esr("import", str(slim), store=other).stdout.strip())
+    assert esr("verify", store=other).returncode == 0
+    assert (copy / "metrics.jsonl").read_bytes() == (path / "metrics.jsonl").read_bytes()
+    listed = esr("ls", store=other)
+    assert path.name[:12] in listed.stdout
+    refused = esr("eval", path.name[:8], store=other, check=False)
+    assert refused.returncode != 0 and "kept as metrics only" in " ".join(refused.stderr.split())
+    (copy / "metrics.jsonl").write_bytes(b"{}\n")
+    broken = esr("verify", store=other, check=False)
+    assert broken.returncode == 1 and "metrics.jsonl" in broken.stderr
+
+
 def test_a_finished_archive_replaces_an_idle_unfinished_run_of_the_same_key(smoke_run, tmp_path):
     """The same key is the same computation: the run finished elsewhere takes the place of the
     local copy that stopped part-way (an unfinished archive over it is still refused)."""

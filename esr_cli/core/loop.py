@@ -28,7 +28,7 @@ from esr_cli.finals import read_rows
 from esr_cli.checkpoint_files import (
     CHECKPOINT_DIGESTS, CHECKPOINT_DIR, epochs_problem, read_digests, record_digests, step_intact, verified_steps,
 )
-from esr_cli.store import atomic_write_text
+from esr_cli.store import StoreError, atomic_write_text, without_checkpoint
 from esr_cli.core.stops import CorruptCheckpoint, Diverged, Interrupted, TimeLimitReached  # noqa: F401 (raised here)
 from esr_cli.core.train import TrainState, Trainer, compiled_chunk, compiled_init
 
@@ -289,6 +289,9 @@ def initial_state(trainer: Trainer, seeds) -> TrainState:
 
 def final_state(trainer: Trainer, run_dir: Path) -> TrainState:
     """The last checkpoint of a run (read-only)."""
+    if without_checkpoint(run_dir):
+        raise StoreError(f"{run_dir}: this run is kept as metrics only (exported with --without-checkpoint): its "
+                         "networks are not in this store; import its full archive, or train it again, to use them")
     state, epoch = restore_latest(trainer, run_dir, list(trainer.spec.train.seeds), repair=False)
     if epoch == 0:
         raise FileNotFoundError(f"no checkpoint in {run_dir}")
