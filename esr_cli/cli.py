@@ -20,7 +20,7 @@ from esr_cli import spec as specs, targets
 from esr_cli.artifacts import ensure
 from esr_cli.printing import plain_console, printable, tagged
 from esr_cli.stop_signals import Terminated, stop_signals_raise
-from esr_cli.store import RUN_KIND, Store, StoreError, nearest_existing, probe_writable
+from esr_cli.store import KINDS, RUN_KIND, Store, StoreError, nearest_existing, probe_writable
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -60,6 +60,8 @@ def main_options(
         raise Exit(2, "--store: an empty path; give the store's directory (or leave --store out for $ESR_STORE or ./artifacts)")
     STATE.store = Store(store or os.environ.get("ESR_STORE") or "artifacts")
     STATE.debug = debug
+    for left in STATE.store.remove_abandoned_imports():  # each command tidies what a killed import left
+        err.print(f"removed the staging folder a killed `esr import` left: {left}")
     # Several esr processes may share one GPU (runs side by side, a sweep's local jobs, which
     # inherit this): by default JAX takes 75% of the device for the first and the next fails.
     # esr's programs need a few hundred MiB; setting the variable yourself overrides this.
@@ -103,6 +105,15 @@ def parse_duration(text: str, option: str) -> float:
 
 
 # ---------------------------------------------------------------- train
+def _quick_spec(path: Path, sets: Optional[List[str]]):
+    """The spec at --budget quick, whose time a run estimates beside its own; None where the
+    --set values do not fit it."""
+    try:
+        return specs.load(path, "quick", list(sets or []))
+    except specs.SpecError:
+        return None
+
+
 @app.command()
 def train(
     spec_file: Path = typer.Argument(..., help="experiment spec (YAML)", show_default=False),
@@ -118,9 +129,10 @@ def train(
     # the limit counts from the command's start, as a scheduler's or a lent machine's does
     stop_at = None if stop_after is None else time.monotonic() + parse_duration(stop_after, "--stop-after")
     spec = _load_spec(spec_file, budget, set_)
+    quick = _quick_spec(spec_file, set_) if budget != "quick" else None
     from esr_cli import runs  # JAX and the training code: after the spec is known to be good
 
-    built = ensure(runs.run_recipe(spec, err, stop_at=stop_at), STATE.store)
+    built = ensure(runs.run_recipe(spec, err, stop_at=stop_at, quick=quick), STATE.store)
     path, cached = built.path, built.cached
     err.print(tagged("cache hit" if cached else "trained", "green", f": {spec.name} ({spec.budget}) -> {path}"))
     out.print(str(path), highlight=False)
@@ -527,6 +539,16 @@ def ablate(
     out.print(str(path), highlight=False)
 
 
+def _refuse_inside_store(path: Path, option: str) -> None:
+    """An output file must not land in the store's artifact folders: inside an artifact it would be
+    a file its manifest does not list (`esr verify` fails it), and a committed artifact never changes."""
+    here = nearest_existing(path.parent).resolve()
+    for kind in KINDS:
+        folder = (STATE.store.root / kind).resolve()
+        if here == folder or folder in here.parents:
+            raise Exit(2, f"{option}: {path} lies inside the store's {kind}/ folder; write it outside the store's artifacts")
+
+
 def _check_output_file(path: Path, option: str) -> None:
     """Refuse, before any work, an output path that cannot become a file: a directory, or one
     below an existing file."""
@@ -585,10 +607,9 @@ def paper_(
         if check:
             differences = reproduction.check(STATE.store, report_out, err, exact=exact)
             if differences:
-                err.print(printable(f"{report_out} differs from what the store's runs give now "
-                                    f"(esr paper --report --out {report_out} brings it up to date):"),
-                          highlight=False, markup=False)
-                err.print(printable("\n".join(differences)), highlight=False, markup=False)
+                err.print(f"{report_out} differs from what the store's runs give now "
+                          f"(esr paper --report --out {report_out} brings it up to date):", highlight=False)
+                err.print("\n".join(differences), highlight=False)
                 raise Exit(1, f"{report_out} is stale")
             err.print(tagged("reproduction report", "green", f": {report_out} is what the store's runs give"))
             return
@@ -782,7 +803,7 @@ def show(ref: str = typer.Argument(..., help="artifact key, key prefix or path",
     """Print an artifact's manifest, including every component of its key."""
     path = STATE.store.resolve(ref)
     manifest = STATE.store.read_manifest(path)
-    out.print(Text(str(path), style="bold"), highlight=False)
+    out.print(Text(printable(str(path)), style="bold"), highlight=False)
     out.print_json(json.dumps(manifest))
 
 
@@ -827,17 +848,24 @@ def export_(
     without_checkpoint: bool = typer.Option(False, "--without-checkpoint", help="a run without its networks: a "
                                             "finished one as metrics, spec and manifest (reports and figures, not "
                                             "eval); an unfinished one as a record of its logged epochs"),
+    sign: bool = typer.Option(False, "--sign", help="also write ARCHIVE.sig, an HMAC-SHA256 of the archive under the "
+                              "key in the file $ESR_ARCHIVE_KEY names (`esr import --require-signature` checks it)"),
 ):
     """Write one artifact to a single file, to carry to another store (`esr import`). An
     unfinished run travels with its newest verified checkpoint and continues where imported."""
+    from esr_cli import signing
+
+    key = signing.archive_key() if sign else None  # a missing key is named before any work
     if out_file is not None:
         if not out_file.name.endswith((".tar.gz", ".tgz")):
             raise Exit(2, f"--out: {out_file} would hold a gzipped tar archive: name it with .tar.gz")
         _check_output_file(out_file, "--out")
+        _refuse_inside_store(out_file, "--out")
     from esr_cli.transfer import export
 
     moved = export(STATE.store, ref, out_file, without_checkpoint)
-    err.print(tagged("exported", "green", f" {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files)"))
+    signed = f", signed in {signing.sign(moved.path, key).name}" if key else ""
+    err.print(tagged("exported", "green", f" {moved.kind} {moved.key[:12]} ({moved.status}, {moved.files} files{signed})"))
     out.print(str(moved.path), highlight=False)
 
 
@@ -847,12 +875,19 @@ def import_(
     without_checkpoint: bool = typer.Option(False, "--without-checkpoint", help="also accept an unfinished run "
                                             "whose checkpoint did not travel: its logged epochs, for reports and "
                                             "figures; training it again starts from epoch 0"),
+    require_signature: bool = typer.Option(False, "--require-signature", help="refuse an archive unless ARCHIVE.sig "
+                                           "beside it matches it under the key in the file $ESR_ARCHIVE_KEY names "
+                                           "(`esr export --sign`)"),
 ):
     """Put artifacts exported from another store into this one, each checked and then added in
     one step; an unfinished run continues with the command that started it."""
+    from esr_cli import signing
     from esr_cli.transfer import check_archive, import_archive
 
-    for archive in archives:  # every one readable before any is added
+    key = signing.archive_key() if require_signature else None
+    for archive in archives:  # every one readable (and signed, if asked) before any is added
+        if key:
+            signing.check_signature(archive, key)
         check_archive(archive)
     for archive in archives:
         moved = import_archive(STATE.store, archive, without_checkpoint)
@@ -939,7 +974,9 @@ def _run(argv: list[str], debug: bool) -> int:
             code, msg = 75, (f"stopped after epoch {e.epoch:,} of {e.total:,}: the next chunk would pass the time limit; "
                              "the checkpoint is saved: run the same command again to continue")
         elif isinstance(e, Interrupted):
-            code, msg = 130, f"interrupted after epoch {e.epoch}; the checkpoint is saved: run the same command again to resume"
+            how = "interrupted" if e.exit_code == 130 else "terminated (SIGTERM)"
+            code, msg = e.exit_code, (f"{how} after epoch {e.epoch}; the checkpoint is saved: run the same command again to resume"
+                                      if e.epoch else f"{how} before the first checkpoint: run the same command again to start over")
         elif isinstance(e, CorruptCheckpoint):
             code, msg = 1, str(e)
         elif isinstance(e, Diverged):

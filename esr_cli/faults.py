@@ -7,7 +7,8 @@ tests), `reached` does nothing.
 Points: compile (before the first chunk runs: the program is being compiled),
 after_metrics (a chunk's metrics are appended, its checkpoint not yet saved),
 after_checkpoint (a chunk's checkpoint is saved), before_rename (the manifest is written
-into the partial directory, which is not yet renamed into place).
+into the partial directory, which is not yet renamed into place), after_unpack (`esr import`
+has unpacked an archive into its staging folder, not yet checked or renamed into place).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from __future__ import annotations
 import os
 import signal
 
-POINTS = ("compile", "after_metrics", "after_checkpoint", "before_rename")
+POINTS = ("compile", "after_metrics", "after_checkpoint", "before_rename", "after_unpack")
 
 
 def reached(point: str, count: int = 1) -> None:

@@ -1,9 +1,13 @@
 """How esr prints to a terminal, and the command lines it prints for a person to paste.
 
-Consoles print text exactly as written: a store path, spec name, suite label, participant or
-error message that looks like rich markup (`[bold]`, `[/x]`) is neither styled away nor a crash,
-and a path printed for scripts to read is the path. Style is added explicitly, as `Text` spans,
-so a new print site is safe without escaping anything.
+Consoles print text as written: a store path, spec name, suite label, participant or error
+message that looks like rich markup (`[bold]`, `[/x]`) is neither styled away nor a crash, and a
+path printed for scripts to read is the path. The one exception is a control character (an
+escape sequence, a bidirectional override): names, keys, messages and paths read from a store,
+an archive or a played episode can hold any, so every text a console prints, a table's cells and
+titles included, shows them as escapes (`printable`), and JSON is printed in ASCII. Style is
+added explicitly, as `Text` spans (`tagged` escapes the text beside its tag), so a new print
+site is safe without escaping anything; a `Text` made elsewhere is printed as it is made.
 """
 
 from __future__ import annotations
@@ -15,15 +19,28 @@ from rich.console import Console
 from rich.text import Text
 
 
+class _EscapingConsole(Console):
+    """Every str printed (directly, or as a table's cell, title or caption) goes through
+    `render_str`: there its control characters become escapes, before its width is measured."""
+
+    def render_str(self, text: str, **options) -> Text:
+        return super().render_str(printable(text), **options)
+
+    def print_json(self, json: str | None = None, **options) -> None:
+        # rich writes JSON text as it is, \u202e included; in ASCII every such character is an escape
+        super().print_json(json, **{**options, "ensure_ascii": True})
+
+
 def plain_console(stderr: bool = False) -> Console:
     """A console that never reads markup in the text it prints, nor folds a long line (a path
-    stays one piece to copy; the terminal wraps it)."""
-    return Console(stderr=stderr, markup=False, soft_wrap=True)
+    stays one piece to copy; the terminal wraps it), and shows control characters as escapes."""
+    return _EscapingConsole(stderr=stderr, markup=False, soft_wrap=True)
 
 
 def tagged(tag: str, style: str, *rest: str) -> Text:
-    """`tag` in `style`, then `rest` as written: tagged("ok", "green", " ", str(path))."""
-    return Text.assemble((tag, style), *rest)
+    """`tag` in `style`, then `rest` as written but for control characters (`printable`):
+    tagged("ok", "green", " ", str(path))."""
+    return Text.assemble((tag, style), *map(printable, rest))
 
 
 def train_line(esr: str, spec_path, budget: str, sets) -> str:

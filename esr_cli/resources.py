@@ -21,7 +21,9 @@ the 20-seed gridworld at 1.35 GiB against 1.94.
 from __future__ import annotations
 
 import os
+import resource
 from dataclasses import dataclass
+from pathlib import Path
 
 GIB = 1 << 30
 RUNTIME_BYTES = 3 * GIB // 2
@@ -124,6 +126,14 @@ def estimate(spec, obs_bytes: int, seeds_at_once: int, obs_shape: tuple | None =
 
 
 def available_host_bytes() -> int | None:
+    """The memory this process can still take: the least of the machine's (`machine_bytes`), its
+    control groups' (a container's or a job's limit, which the kernel enforces by killing it) and
+    its address-space limit's (`ulimit -v`, which makes an allocation fail); None if none is known."""
+    known = [b for b in (machine_bytes(), cgroup_bytes(), address_space_bytes()) if b is not None]
+    return min(known, default=None)
+
+
+def machine_bytes() -> int | None:
     """MemAvailable from /proc/meminfo (Linux), else physical pages; None if unknown."""
     try:
         with open("/proc/meminfo") as f:
@@ -136,6 +146,59 @@ def available_host_bytes() -> int | None:
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (ValueError, OSError, AttributeError):
         return None
+
+
+CGROUP_ROOT, PROC_CGROUP = Path("/sys/fs/cgroup"), Path("/proc/self/cgroup")
+
+
+def cgroup_bytes() -> int | None:
+    """The least, over this process's memory cgroup and each one above it, of its limit less its
+    use (cgroup v2's memory.max and memory.current, v1's memory.limit_in_bytes and
+    memory.usage_in_bytes); None where none sets a limit."""
+    free = [_cgroup_free(d, *files) for base, own, files in _memory_cgroups()
+            for d in (own, *own.parents) if d == base or base in d.parents]
+    return min((b for b in free if b is not None), default=None)
+
+
+def _memory_cgroups():
+    """(hierarchy root, this process's folder in it, (limit file, usage file)) for each memory
+    hierarchy /proc/self/cgroup names."""
+    try:
+        lines = PROC_CGROUP.read_text().splitlines()
+    except OSError:
+        return
+    for line in lines:
+        _, controllers, path = (line.split(":", 2) + ["", ""])[:3]
+        if controllers == "":  # v2: one hierarchy for every controller
+            base, files = CGROUP_ROOT, ("memory.max", "memory.current")
+        elif "memory" in controllers.split(","):
+            base, files = CGROUP_ROOT / "memory", ("memory.limit_in_bytes", "memory.usage_in_bytes")
+        else:
+            continue
+        yield base, base / path.strip().lstrip("/"), files
+
+
+def _cgroup_free(folder: Path, limit_file: str, usage_file: str) -> int | None:
+    try:
+        limit = (folder / limit_file).read_text().strip()
+        used = int((folder / usage_file).read_text().strip() or 0)
+    except (OSError, ValueError):
+        return None
+    return max(int(limit) - used, 0) if limit.isdigit() else None  # v2 writes "max" for no limit
+
+
+def address_space_bytes() -> int | None:
+    """RLIMIT_AS less the address space this process maps already; None without a limit."""
+    limit = resource.getrlimit(resource.RLIMIT_AS)[0]
+    if limit == resource.RLIM_INFINITY:
+        return None
+    mapped = 0
+    try:
+        with open("/proc/self/status") as f:
+            mapped = next((int(l.split()[1]) * 1024 for l in f if l.startswith("VmSize:")), 0)
+    except (OSError, ValueError, IndexError):
+        pass
+    return max(limit - mapped, 0)
 
 
 def available_device_bytes() -> int | None:

@@ -15,7 +15,6 @@ from pathlib import Path
 import jax
 import numpy as np
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from esr_cli import human_runs, provenance, spec as specs
 from esr_cli.artifacts import Recipe
@@ -25,6 +24,7 @@ from esr_cli.core.train import make_trainer
 from esr_cli.finals import read_rows
 from esr_cli.printing import train_line
 from esr_cli.resources import check_run_fits
+from esr_cli.run_progress import TrainingReport, progress_bar
 from esr_cli.stats import describe
 from esr_cli.store import EVAL_KIND, HUMAN_KIND, LockBusy, RUN_KIND, Store, StoreError, atomic_write_text, content_key, nearest_existing, probe_writable
 from esr_cli.targets import is_spec_file, partner_spec, run_spec, seat_spec, stored_run
@@ -110,36 +110,11 @@ def _check_disk(store: Store, spec) -> None:
         raise StoreError(f"only {free >> 20} MiB free under {store.root}; this run needs about {need >> 20} MiB for checkpoints")
 
 
-def _progress(console: Console) -> Progress:
-    return Progress(
-        TextColumn("{task.description}", style="bold", markup=False),  # a spec's name, as written
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[stats]}"),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        console=console,
-        transient=False,
-        disable=not console.is_terminal,  # a log file gets a plain line per chunk instead (run_recipe)
-    )
-
-
-def _fmt_stats(row: dict, steps_per_s: float) -> str:
-    def mean(name):
-        vals = [v for v in row.get(name, []) if v is not None]
-        return float(np.mean(vals)) if vals else float("nan")
-
-    parts = [f"ret {mean('return'):.2f}", f"succ {mean('success'):.2f}"]
-    if "mi_estimate" in row:
-        parts.append(f"MI {mean('mi_estimate'):+.3f}")
-    parts.append(f"{steps_per_s:,.0f} steps/s")
-    return "  ".join(parts)
-
-
-def run_recipe(spec, console: Console, stop_at: float | None = None) -> Recipe:
+def run_recipe(spec, console: Console, stop_at: float | None = None, quick=None) -> Recipe:
     """The training run of `spec` as an artifact: trained, or resumed from its checkpoint, when
     the store lacks it; its BC humans (if any) are made first. stop_at (a time.monotonic()
-    value): stop at the last chunk boundary before it, resumable (loop.TimeLimitReached)."""
+    value): stop at the last chunk boundary before it, resumable (loop.TimeLimitReached).
+    quick: the same spec at --budget quick, whose time the run estimates too."""
     key, components = run_key(spec)
 
     def check(store: Store):  # memory and disk, before anything is built or written
@@ -151,22 +126,10 @@ def run_recipe(spec, console: Console, stop_at: float | None = None) -> Recipe:
         atomic_write_text(run_dir / "spec.yaml", specs.to_yaml(spec))
         adopt_shorter_run(store, key, components, run_dir, spec.train.epochs, console)
         trainer = build_trainer(spec, store)
-        label = f"{spec.name} [{spec.budget}]"
-        with _progress(console) as bar:
-            task = bar.add_task(label, total=spec.train.epochs, stats="compiling...")
-
-            def on_start(epoch, total):
-                if epoch:
-                    console.print(f"resuming {key[:12]} from epoch {epoch} of {total}")
-                bar.update(task, completed=epoch)
-
-            def on_chunk(epoch, total, row, steps_per_s):
-                stats = _fmt_stats(row, steps_per_s)
-                bar.update(task, completed=epoch, stats=stats)
-                if not console.is_terminal:  # a log file: no bar, a line per chunk
-                    console.print(f"{label} epoch {epoch:,}/{total:,}  {stats}", markup=False, highlight=False)
-
-            summary = loop.train(trainer, run_dir, on_chunk=on_chunk, on_start=on_start, stop_at=stop_at)
+        with progress_bar(console) as bar:
+            report = TrainingReport(spec, trainer, console, bar, key, quick)
+            summary = loop.train(trainer, run_dir, on_chunk=report.on_chunk, on_start=report.on_start, stop_at=stop_at,
+                                 on_phase=report.on_phase, on_stop=report.on_stop)
         from esr_cli import plots  # matplotlib: only once a run is trained
 
         plots.learning_curve(

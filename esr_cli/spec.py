@@ -716,7 +716,7 @@ def _merge(base: dict, child: dict) -> dict:
 def load_raw(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict:
     """The YAML tree of a spec file. `extends: other.yaml` (relative to this file) starts from
     that spec and applies this file's keys over it (see `_merge`)."""
-    raw = _read_yaml(path)
+    raw = _read_extended(path) if _seen else _read_yaml(path)
     if "extends" not in raw:
         return raw
     parent = raw.pop("extends")
@@ -758,6 +758,24 @@ def _budgets_for(base: dict, child: dict) -> dict:
 
 
 MAX_EXTENDS = 32  # files in one `extends:` chain: far above any real layering
+SPEC_FILE_KEYS = set(Spec.model_fields) | {"extends"}  # `budget` too: refused later, with its own message
+
+
+def _read_extended(path: Path) -> dict:
+    """A file that `extends:` names, read only if it is a spec: its top level a mapping of spec
+    sections. It may be any file the user can read (a spec from elsewhere could name
+    ~/.aws/credentials), so where it is not, the error names it and at most a line number,
+    never its content, which would reach a terminal or a job's log."""
+    try:
+        raw = yamlio.read(path)
+    except yamlio.YamlInputError as e:
+        line = re.search(r"\bline ([0-9]+)", str(e))
+        raise SpecError(str(path), "", "not a spec file esr can read" + (f" (line {line[1]})" if line else "")
+                        + "; `extends:` must name a spec file") from None
+    if not isinstance(raw, dict) or not set(raw) <= SPEC_FILE_KEYS:
+        raise SpecError(str(path), "", "not a spec file (its top level is not a mapping of spec sections); "
+                        "`extends:` must name a spec file")
+    return raw
 
 
 def _read_yaml(path: str | Path) -> dict:

@@ -1,7 +1,8 @@
 """The content-addressed artifact store (docs/store.md).
 
 Layout: <root>/<kind>/<key[:2]>/<key>/ for a committed artifact, <key>.partial/ beside it
-while it is being made, and <key>.lock for the lock. Kinds: `KINDS` below.
+while it is being made, <key>.lock for the lock, and an import's staging folder
+(.import-<pid>-<random>@<host>/) while `esr import` unpacks into it. Kinds: `KINDS` below.
 
 - A key is blake2b over the canonical JSON of its components (validated spec, budget,
   dependency keys, code hash, toolchain); the manifest lists each component, so `esr show`
@@ -323,6 +324,32 @@ class Store:
         fsync_dir(final.parent)
         return final
 
+    def staging(self, parent: Path) -> tempfile.TemporaryDirectory:
+        """A folder in `parent` (an artifact's shard) that an import unpacks into before one
+        rename puts the artifact in place; removed on the way out. Its name says whose it is
+        (STAGING_RE), so what a killed import leaves is found later (remove_abandoned_imports)."""
+        return tempfile.TemporaryDirectory(prefix=f"{STAGING_PREFIX}{os.getpid()}-", suffix=f"@{_host()}", dir=parent)
+
+    def remove_abandoned_imports(self) -> list[Path]:
+        """Remove the staging folders of imports that were killed on this machine (their process
+        is gone); -> those removed. A run the import had moved aside to take its place is put
+        back first. A running import's folder, or another machine's, is left alone."""
+        removed = []
+        for shard in (s for kind in KINDS for s in _folders(self.root / kind)):
+            for d in _folders(shard):
+                owner = STAGING_RE.fullmatch(d.name)
+                if not owner or owner["host"] != _host() or _alive(int(owner["pid"])):
+                    continue
+                try:
+                    for aside in _folders(d):
+                        if aside.name.endswith(PARTIAL_SUFFIX) and not (shard / aside.name).exists():
+                            aside.rename(shard / aside.name)
+                except OSError:
+                    continue  # it cannot be put back: all is kept, for a person to look at
+                shutil.rmtree(d, ignore_errors=True)
+                removed += [d] if not d.exists() else []
+        return removed
+
     # ---------------------------------------------------------------- checking
     def verify(self, path: Path) -> list[str]:
         """Check that the manifest names this artifact and re-hash every file against it; -> list
@@ -352,6 +379,34 @@ class Store:
             if f.is_file() and rel != MANIFEST and rel not in listed:
                 problems.append(f"unexpected file {rel}")
         return problems
+
+
+STAGING_PREFIX = ".import-"  # an import's staging folder: .import-<pid>-<random>@<host>
+STAGING_RE = re.compile(re.escape(STAGING_PREFIX) + r"(?P<pid>[0-9]{1,10})-[a-z0-9_]+@(?P<host>[A-Za-z0-9._-]+)")
+
+
+def _host() -> str:
+    """This machine's name as a staging folder's name holds it: a pid names a process on one machine only."""
+    return re.sub(r"[^A-Za-z0-9._-]", "_", os.uname().nodename)[:64] or "unknown"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):  # another user's process; a number no pid can be: left alone
+        pass
+    return True
+
+
+def _folders(path: Path) -> list[Path]:
+    """The folders (not links) directly in `path`; [] where it cannot be listed."""
+    try:
+        with os.scandir(path) as entries:
+            return [Path(e.path) for e in entries if e.is_dir(follow_symlinks=False)]
+    except OSError:
+        return []
 
 
 def without_checkpoint(path: Path) -> bool:

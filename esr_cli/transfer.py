@@ -6,11 +6,13 @@ An archive is a gzipped tar of one artifact's directory, named as the store name
 them this way: an unfinished run travels with its newest verified checkpoint and continues
 wherever it is imported (from a checkout of the commit its pending.json names).
 
-Importing treats the archive as untrusted: members must stay inside that one directory and be
-plain files or folders, sizes are bounded, a committed artifact's manifest (an unfinished run's
-pending.json) must name it (its kind, and a key that its listed key components digest to), a
-manifest must match every file, and the artifact appears in the store by one rename, or not
-at all (a refused import also removes the folders it made).
+Importing treats the archive as untrusted: esr_cli/tar_reader.py reads it, bounding its size,
+members, names and headers on the raw stream before anything is unpacked; members must stay
+inside that one directory and be plain files or folders, a committed artifact's manifest (an
+unfinished run's pending.json) must name it (its kind, and a key that its listed key components
+digest to), a run's spec.yaml must be the spec of those components, a manifest must match every
+file, and the artifact appears in the store by one rename, or not at all (a refused import also
+removes the folders it made; a killed one's staging folder is removed by the next command).
 """
 
 from __future__ import annotations
@@ -19,19 +21,18 @@ import re
 import shutil
 import tarfile
 import tempfile
-import zlib
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
+from typing import BinaryIO, Iterator
 
+from esr_cli import faults, tar_reader, yamlio
 from esr_cli.checkpoint_files import CHECKPOINT_DIR, epochs_problem, run_length, verified_steps, verify_artifact
 from esr_cli.finals import read_rows
-from esr_cli.store import (KINDS, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, parse_dirname,
-                           read_pending)
+from esr_cli.store import (KINDS, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, load_manifest,
+                           parse_dirname, read_pending)
 
 KEY_RE = re.compile(r"[0-9a-f]{32}")
-# Far above any real artifact (a 20-seed Overcooked checkpoint is tens of MiB), low enough that
-# a hostile archive cannot fill a disk or exhaust the inode table.
-MAX_MEMBERS, MAX_BYTES = 100_000, 16 << 30
 SNAPSHOT_TRIES = 5
 
 
@@ -155,11 +156,10 @@ def import_archive(store: Store, archive: Path, without_checkpoint: bool = False
     its logged epochs, e.g. what came back from a machine that could not send its checkpoint),
     so that reports and figures read it; training it again starts from epoch 0."""
     archive = Path(archive)
-    tar = _open(archive)
     made = [] if store.root.is_dir() else [store.root]  # folders to remove again if it is refused
     try:
-        with tar:
-            return _import(store, tar, archive, made, without_checkpoint)
+        with _open(archive) as f:
+            return _import(store, f, archive, made, without_checkpoint)
     except BaseException:
         for d in reversed(made):  # innermost first; rmdir leaves a folder another process filled
             try:
@@ -169,49 +169,50 @@ def import_archive(store: Store, archive: Path, without_checkpoint: bool = False
         raise
 
 
-def _open(archive: Path) -> tarfile.TarFile:
-    if archive.is_dir():
-        raise StoreError(f"{archive}: a directory, not an archive (`esr export` writes a .tar.gz file)")
-    if not archive.is_file():
-        raise StoreError(f"no archive {archive}")
+@contextmanager
+def _reading(archive: Path):
+    """What tar_reader refuses, and a read or write that fails, as one line naming the archive."""
     try:
-        return tarfile.open(archive, "r:*")
-    except (tarfile.TarError, OSError, EOFError):
-        raise StoreError(f"{archive} is not a tar archive, or a damaged one (`esr export` writes them)") from None
+        yield
+    except tar_reader.ArchiveError as e:
+        raise StoreError(f"{archive}: {e}") from None
+    except OSError as e:
+        raise StoreError(f"{archive} could not be read and unpacked to the end ({_first_line(e)})") from None
+
+
+@contextmanager
+def _open(archive: Path) -> Iterator[BinaryIO]:
+    with _reading(archive):
+        f = tar_reader.open_archive(archive)
+    with f:
+        yield f
 
 
 def check_archive(archive: Path) -> None:
     """Raise StoreError unless `archive` reads to the end as one artifact's folder: what can be
     known without unpacking it (`esr import` of several archives checks all before adding any)."""
-    with _open(Path(archive)) as tar:
-        try:
-            _checked_members(tar, archive)
-        except (tarfile.TarError, OSError, EOFError, zlib.error) as e:
-            raise StoreError(f"{archive} could not be read to the end ({_first_line(e)})") from None
+    with _open(Path(archive)) as f:
+        _checked_members(f, Path(archive))
 
 
-def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path], without_checkpoint: bool) -> Moved:
+def _import(store: Store, f: BinaryIO, archive: Path, made: list[Path], without_checkpoint: bool) -> Moved:
     store.ensure_writable()
-    try:
-        kind, dirname, members = _checked_members(tar, archive)
-    except (tarfile.TarError, OSError, EOFError, zlib.error) as e:
-        raise StoreError(f"{archive} could not be read to the end ({_first_line(e)})") from None
+    kind, dirname, members = _checked_members(f, archive)
     key, status = parse_dirname(dirname)
     final, partial = store.final_path(kind, key), store.partial_path(kind, key)
     if store.lookup(kind, key):  # already here: like a cache hit, nothing to do
         return Moved(kind, key, "complete", 0, final)
-    unpacked = sum(m.size for m in members if m.isfile())
+    unpacked = sum(m.size for m in members)
     free = shutil.disk_usage(store.root).free
     if unpacked > free:  # the headers' sizes, known before a byte is written
         raise StoreError(f"{archive} unpacks to {unpacked / (1 << 20):,.1f} MiB but the store's disk has "
                          f"{free / (1 << 20):,.1f} MiB free")
     made += [d for d in (final.parent.parent, final.parent) if not d.exists()]
     final.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix=".import-", dir=final.parent) as tmp:
-        try:
-            tar.extractall(tmp, members=members, filter="data")
-        except (tarfile.TarError, OSError, EOFError, zlib.error) as e:
-            raise StoreError(f"{archive} could not be read to the end ({_first_line(e)})") from None
+    with store.staging(final.parent) as tmp:
+        with _reading(archive):
+            tar_reader.unpack(f, Path(tmp), members)
+        faults.reached("after_unpack")
         stage = Path(tmp) / kind / key[:2] / dirname
         record, stage_epoch = _check_contents(store, stage, kind, key, status, archive, without_checkpoint)
         with store.lock(kind, key, wait=False):
@@ -223,9 +224,10 @@ def _import(store: Store, tar: tarfile.TarFile, archive: Path, made: list[Path],
             if status != "complete" and local_epoch is not None:
                 if local_epoch >= stage_epoch:
                     return Moved(kind, key, status, 0, partial, local_epoch=local_epoch)
-                # Moved aside into the temporary folder (removed with it) only now, just before
-                # the archive's copy takes its place.
-                partial.rename(Path(tmp) / "superseded")
+                # Moved aside into the staging folder (removed with it) only now, just before the
+                # archive's copy takes its place; a kill in between leaves it to be put back
+                # (Store.remove_abandoned_imports).
+                partial.rename(Path(tmp) / partial.name)
             target = final if status == "complete" else partial
             stage.rename(target)
             fsync_dir(target.parent)
@@ -246,43 +248,39 @@ def _first_line(e: Exception) -> str:
     return (str(e).splitlines() or [type(e).__name__])[0][:200]
 
 
-def _checked_members(tar: tarfile.TarFile, archive: Path) -> tuple[str, str, list[tarfile.TarInfo]]:
-    """The archive's members, all plain files or folders inside one `<kind>/<kk>/<key>[.partial]`."""
-    members, total, top = [], 0, None
+def _checked_members(f: BinaryIO, archive: Path) -> tuple[str, str, list[tar_reader.Member]]:
+    """The archive's members (tar_reader bounds their number, sizes and names), all plain files
+    or folders inside one `<kind>/<kk>/<key>[.partial]`."""
+    members, top = [], None
     files: set[tuple[str, ...]] = set()
-    for m in tar:
-        if len(members) >= MAX_MEMBERS:
-            raise StoreError(f"{archive} has more than {MAX_MEMBERS:,} members: not an esr artifact")
-        path = PurePosixPath(m.name)
-        if path.is_absolute() or ".." in path.parts:
-            raise StoreError(f"{archive}: member {m.name!r} points outside the artifact")
-        if not (m.isfile() or m.isdir()):
-            raise StoreError(f"{archive}: member {m.name!r} is not a plain file or folder (links and devices are refused)")
-        parts = [p for p in path.parts if p != "."]
-        if len(parts) < 3 or (len(parts) == 3 and not m.isdir()):
-            if m.isdir() and len(parts) < 3:
-                continue  # the folders above the artifact (kind/, kind/kk/)
-            raise StoreError(f"{archive}: member {m.name!r} is not inside an artifact directory <kind>/<kk>/<key>")
-        head = tuple(parts[:3])
-        if top is None:
-            top = head
-        elif head != top:
-            raise StoreError(f"{archive} holds more than one artifact ({'/'.join(top)} and {'/'.join(head)}): export one per archive")
-        here = tuple(parts)
-        if here in files or any(here[:i] in files for i in range(4, len(here))):
-            raise StoreError(f"{archive}: member {m.name!r} repeats a file or lies inside one: not an esr artifact")
-        if m.isfile():
-            files.add(here)
-        total += max(m.size, 0)
-        if total > MAX_BYTES:
-            raise StoreError(f"{archive} unpacks to more than {MAX_BYTES >> 30} GiB: not an esr artifact")
-        members.append(m)
+    with _reading(archive):
+        for m in tar_reader.members(f):
+            path = PurePosixPath(m.name)
+            if path.is_absolute() or ".." in path.parts:
+                raise StoreError(f"{archive}: member {m.name!r} points outside the artifact")
+            parts = [p for p in path.parts if p != "."]
+            if len(parts) < 3 or (len(parts) == 3 and not m.is_dir):
+                if m.is_dir and len(parts) < 3:
+                    members.append(m)
+                    continue  # the folders above the artifact (kind/, kind/kk/)
+                raise StoreError(f"{archive}: member {m.name!r} is not inside an artifact directory <kind>/<kk>/<key>")
+            head = tuple(parts[:3])
+            if top is None:
+                top = head
+            elif head != top:
+                raise StoreError(f"{archive} holds more than one artifact ({'/'.join(top)!r} and {'/'.join(head)!r}): export one per archive")
+            here = tuple(parts)
+            if here in files or any(here[:i] in files for i in range(4, len(here))):
+                raise StoreError(f"{archive}: member {m.name!r} repeats a file or lies inside one: not an esr artifact")
+            if not m.is_dir:
+                files.add(here)
+            members.append(m)
     if top is None:
         raise StoreError(f"{archive} holds no artifact")
     kind, shard, dirname = top
     key, status = parse_dirname(dirname)
     if kind not in KINDS or not KEY_RE.fullmatch(key) or shard != key[:2]:
-        raise StoreError(f"{archive}: {'/'.join(top)} is not an esr artifact directory (<kind>/<key[:2]>/<key>, kind one of {', '.join(KINDS)})")
+        raise StoreError(f"{archive}: {'/'.join(top)!r} is not an esr artifact directory (<kind>/<key[:2]>/<key>, kind one of {', '.join(KINDS)})")
     if status == "partial" and kind != RUN_KIND:
         raise StoreError(f"{archive}: an unfinished {kind} artifact cannot resume; only unfinished runs can be imported")
     return kind, dirname, members
@@ -302,6 +300,9 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
         if problems:
             more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
             raise StoreError(f"{archive}: {kind}/{key[:2]}/{key}: {problems[0]}{more}; nothing imported")
+        problem = _spec_problem(stage, load_manifest(stage)) if kind == RUN_KIND else None
+        if problem:
+            raise StoreError(f"{archive}: {kind}/{key[:2]}/{key}: {problem}; nothing imported")
         return False, 0
     if not (stage / "pending.json").is_file():
         raise StoreError(f"{archive}: unfinished run {key[:12]} has no pending.json; nothing imported")
@@ -311,7 +312,7 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
     if pending.get("key") != key:
         raise StoreError(f"{archive}: unfinished run {key[:12]}: its pending.json names key "
                          f"{str(pending.get('key'))[:40]!r}, not the directory's; nothing imported")
-    problem = components_problem(pending, "pending.json")
+    problem = components_problem(pending, "pending.json") or _spec_problem(stage, pending)
     if problem:
         raise StoreError(f"{archive}: unfinished run {key[:12]}: {problem}; nothing imported")
     steps = verified_steps(stage)  # newest first
@@ -335,3 +336,29 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
             raise StoreError(f"{archive}: unfinished run {key[:12]}: line {i} of metrics.jsonl is not an epoch's "
                              "metrics (an object with an integer 'epoch' and a 'return' list); nothing imported")
     return True, 0
+
+
+TRAINING_SECTIONS = ("env", "human", "method", "network", "learner", "train")  # spec.Spec.training_part's
+
+
+def _spec_problem(run_dir: Path, record: dict) -> str | None:
+    """Why a run's spec.yaml is not the spec its key components hold (`record`: its manifest or
+    pending.json, whose components digest to its key), or None (also where it has none: then
+    nothing reads one). Evaluating, extending and reporting a run read that file, so one swapped
+    under a genuine key would pass another spec's numbers off as this key's. Compared as written,
+    as `training_part` keys it, not validated again: a run made by older code holds the fields
+    that code had."""
+    if not (run_dir / "spec.yaml").exists():
+        return None
+    try:
+        spec = yamlio.read(run_dir / "spec.yaml")
+    except yamlio.YamlInputError as e:
+        return f"its spec.yaml cannot be read ({e})"
+    if not isinstance(spec, dict) or not isinstance(spec.get("human"), dict):
+        return "its spec.yaml is not a spec"
+    trained = {section: spec.get(section) for section in TRAINING_SECTIONS}
+    trained["human"] = {k: v for k, v in spec["human"].items() if k != "preset"}  # keyed by its values
+    components = record["key_components"]
+    if trained != components.get("spec") or spec.get("budget") != components.get("budget"):
+        return "its spec.yaml is not the spec its key was computed from (the key components' spec and budget)"
+    return None

@@ -20,7 +20,9 @@ bounded work, before anything walks the tree (docs/reliability.md):
 
 from __future__ import annotations
 
+import os
 import re
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -146,9 +148,12 @@ def read(path: str | Path) -> Any:
     if size > MAX_FILE_BYTES:
         raise YamlInputError(f"{size:,} bytes: {too_large}")
     try:
-        # At most one byte past the limit: a file whose size the system does not report
-        # (/proc, a FIFO's writer) cannot make esr read more than that.
-        with p.open("rb") as f:
+        # Opened without waiting for a writer (a FIFO put in the file's place since the check
+        # above is refused, not waited on), and read to at most one byte past the limit: a file
+        # whose size the system does not report (/proc) cannot make esr read more than that.
+        with open(os.open(p, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC), "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise YamlInputError("not a file")
             data = f.read(MAX_FILE_BYTES + 1)
         if len(data) > MAX_FILE_BYTES:
             raise YamlInputError(f"more than {MAX_FILE_BYTES:,} bytes: {too_large}")

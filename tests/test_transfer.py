@@ -1,23 +1,38 @@
 """`esr export` / `esr import`: an artifact, finished or not, moves between stores as one file,
 and a hostile archive changes nothing (esr_cli/transfer.py)."""
 
+import bz2
+import copy
+import gzip
 import io
 import json
+import lzma
 import os
 import shutil
 import signal
+import subprocess
 import tarfile
+import tempfile
+import time
+import tracemalloc
+import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, event, given, settings
+from hypothesis import strategies as st
 
-from conftest import esr
-from esr_cli.store import Store, StoreError, content_key
+from conftest import ROOT, esr
+from esr_cli import signing, spec as specs, tar_reader
+from esr_cli.checkpoint_files import verify_artifact
+from esr_cli.store import STAGING_PREFIX, STAGING_RE, Store, StoreError, _host, content_key, digest_bytes, digest_file
 from esr_cli.transfer import import_archive
 from test_reliability import SMOKE, final_arrays, partials
 
-COMPONENTS = {"kind": "runs", "spec": {"name": "x"}}
+SPEC = specs.load(ROOT / "experiments/grid_2.yaml", "smoke")
+SPEC_YAML = specs.to_yaml(SPEC).encode()  # a run's spec.yaml, as training writes it
+COMPONENTS = {"kind": "runs", "spec": SPEC.training_part(), "budget": "smoke"}
 KEY = content_key(COMPONENTS)
 
 
@@ -163,7 +178,10 @@ def _pending(**fields) -> bytes:
         ([(f"{RUN_DIR}/manifest.json", _manifest(files={"/proc/self/status": "00"}))], "not a file inside the artifact"),
         ([(f"{RUN_DIR}/manifest.json", _manifest()), (f"{RUN_DIR}/extra", b"x")], "unexpected file extra"),
         ([(f"{RUN_DIR}.partial/metrics.jsonl", b"{}\n")], "no pending.json"),
-        ([(f"{RUN_DIR}.partial/pending.json", _pending())], "no checkpoint matching"),
+        ([(f"{RUN_DIR}.partial/pending.json", _pending()), (f"{RUN_DIR}.partial/spec.yaml", SPEC_YAML)], "no checkpoint matching"),
+        ([(f"{RUN_DIR}.partial/pending.json", _pending()), (f"{RUN_DIR}.partial/spec.yaml", b"[1, 2")], "spec.yaml cannot be read"),
+        ([(f"{RUN_DIR}.partial/pending.json", _pending()),
+          (f"{RUN_DIR}.partial/spec.yaml", SPEC_YAML.replace(b"  lr: 0.001", b"  lr: 0.002"))], "spec.yaml is not the spec its key"),
         # a key is the digest of its components: an archive whose components name another key is
         # relabelled or edited, finished or not
         ([(f"{RUN_DIR}/manifest.json", _manifest(key_components={"kind": "runs", "spec": {"name": "y"}}))], "key_components digest to"),
@@ -190,13 +208,14 @@ def test_a_run_without_its_checkpoint_is_imported_only_when_asked_as_a_record(tm
     reports; never without a logged epoch."""
     pending = _pending(name="grid_10", seeds=[0, 1])
     rows = b"".join(json.dumps({"epoch": e, "return": [1.0, 2.0]}).encode() + b"\n" for e in (1, 2))
-    record = [(f"{RUN_DIR}.partial/pending.json", pending), (f"{RUN_DIR}.partial/metrics.jsonl", rows)]
+    record = [(f"{RUN_DIR}.partial/pending.json", pending), (f"{RUN_DIR}.partial/spec.yaml", SPEC_YAML),
+              (f"{RUN_DIR}.partial/metrics.jsonl", rows)]
     store = Store(tmp_path / "store")
     with pytest.raises(StoreError, match="no checkpoint matching.*--without-checkpoint"):
         import_archive(store, _archive(tmp_path, record))
     with pytest.raises(StoreError, match="neither an intact checkpoint nor a logged epoch"):
-        import_archive(store, _archive(tmp_path, record[:1], "empty.tar.gz"), without_checkpoint=True)
-    bad = [record[0], (f"{RUN_DIR}.partial/metrics.jsonl", rows + b'{"epoch": "3", "return": [1.0]}\n')]
+        import_archive(store, _archive(tmp_path, record[:2], "empty.tar.gz"), without_checkpoint=True)
+    bad = [*record[:2], (f"{RUN_DIR}.partial/metrics.jsonl", rows + b'{"epoch": "3", "return": [1.0]}\n')]
     with pytest.raises(StoreError, match="line 3 of metrics.jsonl is not an epoch's metrics"):
         import_archive(store, _archive(tmp_path, bad, "bad.tar.gz"), without_checkpoint=True)
     assert not (tmp_path / "store").exists()
@@ -293,5 +312,350 @@ def test_several_archives_are_all_checked_before_any_is_added(smoke_run, tmp_pat
     esr("export", path.name[:8], "--out", str(good), store=store)
     bad.write_bytes(b"not an archive at all")
     proc = esr("import", str(good), str(bad), store=tmp_path / "other", check=False)
-    assert proc.returncode == 2 and "bad.tar.gz is not a tar archive, or a damaged one" in proc.stderr
+    assert proc.returncode == 2 and "bad.tar.gz: not a tar archive, or a damaged one" in proc.stderr
     assert not list((tmp_path / "other").glob("runs/*/*"))  # the good one waits for the bad one to be mended
+
+
+# ---------------------------------------------------------------- archives bounded before they are read
+def _block(name: bytes, kind: bytes = b"0", size: int = 0) -> bytes:
+    """A ustar header, checksum included: what tarfile would not write for a hostile archive."""
+    block = bytearray(512)
+    block[:len(name)] = name[:100]
+    block[100:108] = b"0000644\0"
+    block[124:136] = b"%011o\0" % size if size < 8 ** 11 else b"\x80" + size.to_bytes(11, "big")
+    block[156:157] = kind
+    block[257:265] = b"ustar\x0000"
+    block[148:156] = b" " * 8
+    block[148:156] = b"%06o\0 " % sum(block)
+    return bytes(block)
+
+
+def _pax(path: str) -> bytes:
+    """A pax header naming the next member `path`, with its body."""
+    text = f"path={path}\n".encode()
+    n = len(text) + 1
+    record = b"%d %s" % (n + len(str(n)), text)
+    return _block(b"././@PaxHeader", b"x", len(record)) + record + bytes(-len(record) % 512)
+
+
+END = bytes(1024)
+
+
+def _gz(tmp_path, raw: bytes, name="hostile.tar.gz") -> Path:
+    path = tmp_path / name
+    path.write_bytes(gzip.compress(raw, compresslevel=1))
+    return path
+
+
+def _refused_within(store: Store, archive: Path, match: str, mib: int = 200, seconds: float = 5.0) -> None:
+    """`esr import`'s refusal of `archive`: matching `match`, under `mib` MiB of Python memory at
+    its peak and `seconds`, with nothing written where the store would be."""
+    tracemalloc.start()
+    start = time.monotonic()
+    try:
+        with pytest.raises(StoreError, match=match):
+            import_archive(store, archive)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < mib << 20, f"{peak / (1 << 20):.0f} MiB"
+    assert time.monotonic() - start < seconds
+    assert not store.root.exists()
+
+
+DEEP = f"{RUN_DIR}/" + "d/" * (tar_reader.MAX_DEPTH - 3) + "f"  # one folder past the limit
+LONG = f"{RUN_DIR}/" + "/".join(["n" * 200] * 6)  # parts within 255 bytes, the whole past 1,024
+
+
+@pytest.mark.parametrize("limit, raw, match", [
+    ("members", b"".join(_block(f"{RUN_DIR}/d{i}".encode(), b"5") for i in range(tar_reader.MAX_MEMBERS + 1)) + END,
+     "more than 10,000 members"),
+    ("unpacked size", _block(f"{RUN_DIR}/metrics.jsonl".encode(), size=tar_reader.MAX_UNPACKED_BYTES + 1),
+     "unpacks to more than 4,294,967,296 bytes"),
+    ("depth", _pax(DEEP) + _block(b"f") + END, "33 folders deep; at most 32"),
+    ("name length", _pax(LONG) + _block(b"f") + END, "a name of 1,246 bytes; at most 1,024"),
+    ("name part", _pax(f"{RUN_DIR}/{'n' * 256}") + _block(b"f") + END, "a part longer than 255 bytes"),
+    ("pax header", _block(b"././@PaxHeader", b"x", tar_reader.MAX_HEADER_BYTES + 1),
+     "an extended header of 65,537 bytes, more than the 65,536"),
+    ("GNU long name", _block(b"././@LongLink", b"L", 1 << 40), "an extended header of 1,099,511,627,776 bytes"),
+    ("chained headers", _pax(f"{RUN_DIR}/a") + _pax(f"{RUN_DIR}/b") + _block(b"f") + END,
+     "two extended headers of one kind"),
+])
+def test_an_archive_past_each_limit_is_refused_before_anything_is_unpacked(tmp_path, limit, raw, match):
+    """Each bound of tar_reader is met on the raw stream: the header that passes it is the last
+    thing read (a body of 1 TiB that a header announces is never read, nor needs to exist)."""
+    _refused_within(Store(tmp_path / "store"), _gz(tmp_path, raw), match)
+
+
+def test_an_archive_file_past_the_compressed_limit_is_refused_unread(tmp_path):
+    archive = tmp_path / "huge.tar.gz"
+    with open(archive, "wb") as f:  # sparse: no disk is used
+        f.truncate(tar_reader.MAX_ARCHIVE_BYTES + 1)
+    _refused_within(Store(tmp_path / "store"), archive, "4,294,967,297 bytes, more than the 4,294,967,296 esr imports")
+
+
+def _zeros_gz(head: bytes, zeros: int) -> bytes:
+    """`head` then `zeros` zero bytes, gzip-compressed a MiB at a time (about 1,000 to 1)."""
+    z = zlib.compressobj(9, zlib.DEFLATED, 31)
+    parts = [z.compress(head)] + [z.compress(bytes(1 << 20)) for _ in range(zeros >> 20)]
+    return b"".join(parts + [z.flush()])
+
+
+@pytest.mark.parametrize("head, match", [
+    (_block(f"{RUN_DIR}/metrics.jsonl".encode(), size=1 << 40), "unpacks to more than"),  # says 1 TiB
+    (_block(f"{RUN_DIR}/metrics.jsonl".encode(), size=3) + b"{}\n".ljust(512, b"\0") + END, "data after the end"),
+])
+def test_a_gzip_bomb_is_refused_in_a_moment(tmp_path, head, match):
+    """A few hundred KiB that inflate to 512 MiB of zeros: what a header announces is refused
+    before it is read, and zeros past the end of the archive after 64 KiB of them."""
+    archive = tmp_path / "bomb.tar.gz"
+    archive.write_bytes(_zeros_gz(head, 512 << 20))
+    assert archive.stat().st_size < 1 << 20
+    _refused_within(Store(tmp_path / "store"), archive, match, seconds=2.0)
+
+
+def _plain_tar() -> bytes:
+    return _block(f"{RUN_DIR}/metrics.jsonl".encode(), size=3) + b"{}\n".ljust(512, b"\0") + END
+
+
+@pytest.mark.parametrize("name, data, match", [
+    ("bz.tar.gz", bz2.compress(_plain_tar()), "bzip2-compressed, though its name says gzip"),
+    ("xz.tar.gz", lzma.compress(_plain_tar()), "xz-compressed, though its name says gzip"),
+    ("zst.tar.gz", b"\x28\xb5\x2f\xfd" + bytes(600), "zstd-compressed, though its name says gzip"),
+    ("plain.tar.gz", _plain_tar(), "an uncompressed tar, though its name says gzip"),
+    ("gzip.tar.bz2", gzip.compress(_plain_tar()), "not named .tar.gz or .tgz"),
+    ("gzip.tar", gzip.compress(_plain_tar()), "not named .tar.gz or .tgz"),
+    ("tail.tar.gz", gzip.compress(_plain_tar()) + b"junk after the gzip stream", "damaged gzip data"),
+    ("crc.tar.gz", gzip.compress(_plain_tar())[:-8] + bytes(8), "damaged gzip data"),
+    ("cut.tar.gz", gzip.compress(_plain_tar())[:40], "cut short"),
+])
+def test_an_archive_whose_compression_is_not_what_its_name_says_is_refused(tmp_path, name, data, match):
+    (tmp_path / name).write_bytes(data)
+    _refused_within(Store(tmp_path / "store"), tmp_path / name, match)
+
+
+def test_a_fifo_given_as_an_archive_is_refused_without_waiting(tmp_path):
+    fifo = tmp_path / "pipe.tar.gz"
+    os.mkfifo(fifo)
+    proc = esr("import", str(fifo), store=tmp_path / "store", check=False, timeout=60)
+    assert proc.returncode == 2 and "pipe.tar.gz: not a regular file" in proc.stderr
+    assert not (tmp_path / "store").exists()
+
+
+# ---------------------------------------------------------------- staging folders of killed imports
+def test_what_a_killed_import_left_is_removed_by_the_next_command(smoke_run, tmp_path):
+    store, path, _ = smoke_run
+    archive = tmp_path / "run.tar.gz"
+    esr("export", path.name[:8], "--out", str(archive), store=store)
+    other = tmp_path / "other"
+    shard = other / "runs" / path.name[:2]
+    for command in ("ls", "verify"):
+        killed = esr("import", str(archive), store=other, check=False, ESR_FAULT="after_unpack")
+        assert killed.returncode == -signal.SIGKILL
+        (left,) = [p for p in shard.iterdir() if p.name.startswith(STAGING_PREFIX)]
+        assert STAGING_RE.fullmatch(left.name) and any(left.rglob("manifest.json"))
+        after = esr(command, store=other, check=False)
+        assert f"removed the staging folder a killed `esr import` left: {left}" in " ".join(after.stderr.split())
+        assert not left.exists() and not (shard / path.name).exists()
+    assert Path(esr("import", str(archive), store=other).stdout.strip()) == shard / path.name
+
+
+def test_only_a_dead_import_s_staging_folder_is_removed_and_a_run_it_moved_aside_is_put_back(tmp_path):
+    store = Store(tmp_path / "store")
+    shard = tmp_path / "store" / "runs" / KEY[:2]
+    gone = subprocess.Popen(["true"])
+    gone.wait()  # a process that has ended: its pid names no process now
+    here = _host()
+    dead, aside = shard / f"{STAGING_PREFIX}{gone.pid}-abc_1234@{here}", f"{KEY}.partial"
+    (dead / aside).mkdir(parents=True)
+    (dead / aside / "pending.json").write_text("{}")
+    kept = [shard / f"{STAGING_PREFIX}{os.getpid()}-abcd1234@{here}",  # an import running now
+            shard / f"{STAGING_PREFIX}{gone.pid}-abcd1234@other-machine",  # a pid of another machine
+            shard / f"{STAGING_PREFIX}abcd1234",  # no owner in its name
+            shard / "a-folder-of-someone-else"]
+    for d in kept:
+        d.mkdir()
+    assert store.remove_abandoned_imports() == [dead]
+    assert not dead.exists() and all(d.is_dir() for d in kept)
+    assert (shard / aside / "pending.json").read_text() == "{}"  # the local run, back where it was
+
+
+# ---------------------------------------------------------------- what a key does and does not prove
+def _reexported(tmp_path, src: Path, edit) -> Path:
+    """The finished run `src` re-archived after `edit(copy)`, its manifest's digests recomputed
+    (what a forger would do)."""
+    base = Path(tempfile.mkdtemp(dir=tmp_path))
+    copy = base / "runs" / src.name[:2] / src.name
+    shutil.copytree(src, copy)
+    edit(copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["files"] = {rel: digest_file(copy / rel) for rel in manifest["files"]}
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    archive = base / "forged.tar.gz"
+    with tarfile.open(archive, "w:gz") as tar:
+        tar.add(copy, arcname=f"runs/{src.name[:2]}/{src.name}")
+    return archive
+
+
+def test_a_spec_swapped_under_a_key_is_refused_but_digests_do_not_stop_a_forger(smoke_run, tmp_path):
+    """The key is the digest of the spec it names: a spec.yaml that is another spec is refused
+    even with its digest recomputed. Metrics rewritten with their digest recomputed still import
+    (docs/reliability.md, threat model): digests catch damage, not a forger."""
+    _, path, _ = smoke_run
+    swapped = _reexported(tmp_path, path, lambda d: (d / "spec.yaml").write_text(
+        (d / "spec.yaml").read_text().replace("  lr: 0.001", "  lr: 0.002")))
+    proc = esr("import", str(swapped), store=tmp_path / "a", check=False)
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1
+    assert "spec.yaml is not the spec its key was computed from" in proc.stderr and not (tmp_path / "a").exists()
+
+    forged = Path(esr("import", str(_reexported(tmp_path, path, _rewrite_metrics)), store=tmp_path / "b").stdout.strip())
+    assert "99.0" in (forged / "metrics.jsonl").read_text()
+
+
+def _rewrite_metrics(run: Path) -> None:
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    (run / "metrics.jsonl").write_text("".join(json.dumps({**r, "return": [99.0] * len(r["return"])}) + "\n" for r in rows))
+
+
+def test_a_signed_archive_imports_and_a_forged_or_unsigned_one_is_refused(smoke_run, tmp_path):
+    """What digests cannot do, a signature does: `esr import --require-signature` takes only an
+    archive whose ARCHIVE.sig matches it under the key in $ESR_ARCHIVE_KEY's file."""
+    store, path, _ = smoke_run
+    key, other_key = tmp_path / "archive.key", tmp_path / "other.key"
+    key.write_bytes(os.urandom(32))
+    other_key.write_bytes(os.urandom(32))
+    archive = tmp_path / "run.tar.gz"
+    unset = esr("export", path.name[:8], "--out", str(archive), "--sign", store=store, check=False)
+    assert unset.returncode == 2 and "$ESR_ARCHIVE_KEY is not set" in unset.stderr and not archive.exists()
+    (tmp_path / "short.key").write_bytes(b"x" * 8)
+    short = esr("export", path.name[:8], "--out", str(archive), "--sign", store=store, check=False,
+                ESR_ARCHIVE_KEY=str(tmp_path / "short.key"))
+    assert short.returncode == 2 and "8 bytes; an archive key has at least 32" in short.stderr
+    signed = esr("export", path.name[:8], "--out", str(archive), "--sign", store=store, ESR_ARCHIVE_KEY=str(key))
+    assert "signed in run.tar.gz.sig" in signed.stderr and signing.signature_path(archive).is_file()
+    imported = esr("import", "--require-signature", str(archive), store=tmp_path / "good", ESR_ARCHIVE_KEY=str(key))
+    assert Path(imported.stdout.strip()).name == path.name
+
+    forged = _reexported(tmp_path, path, _rewrite_metrics)
+    refusals = [(lambda: None, "has no signature"),
+                (lambda: shutil.copy(signing.signature_path(archive), signing.signature_path(forged)), "does not match its signature"),
+                (lambda: signing.sign(forged, other_key.read_bytes()), "does not match its signature")]
+    for make_signature, problem in refusals:
+        make_signature()
+        proc = esr("import", "--require-signature", str(forged), store=tmp_path / "bad", check=False, ESR_ARCHIVE_KEY=str(key))
+        assert proc.returncode == 2 and problem in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+        assert not (tmp_path / "bad").exists()
+
+
+# ---------------------------------------------------------------- fuzz, from a real export
+ARCHIVE_FUZZ_CASES = 300
+HOSTILE_PARTS = ["..", ".", "", "x", "n" * 300, "\x1b[2J", "\u202e", "checkpoints", "manifest.json", "runs", "ab", "0"]
+NAME_TEXT = st.text(st.characters(blacklist_characters="\0"), max_size=8)  # a NUL cannot be written into a tar
+JSON_VALUES = st.recursive(st.none() | st.booleans() | st.integers(-2, 2 ** 40) | st.text(max_size=12),
+                           lambda c: st.lists(c, max_size=3) | st.dictionaries(st.text(max_size=6), c, max_size=3),
+                           max_leaves=6)
+
+
+class Export:
+    """A real export's members as (TarInfo, data or None) pairs, and its key."""
+
+    def __init__(self, archive: Path, key: str):
+        with tarfile.open(archive) as tar:
+            self.members = [(m, tar.extractfile(m).read() if m.isfile() else None) for m in tar.getmembers()]
+        self.key = key
+
+    def __repr__(self) -> str:  # what hypothesis prints of a failing case
+        return f"Export({self.key[:12]})"
+
+
+@pytest.fixture(scope="module")
+def exported(smoke_run, tmp_path_factory) -> Export:
+    store, path, _ = smoke_run
+    archive = tmp_path_factory.mktemp("fuzz") / "run.tar.gz"
+    esr("export", path.name[:8], "--out", str(archive), store=store)
+    return Export(archive, path.name)
+
+
+def _mutate(data, members: list) -> None:
+    """One change of the kinds an attacker or a damaged copy makes, in place."""
+    op = data.draw(st.sampled_from(["rename", "duplicate", "inflate", "nest", "retype", "drop", "manifest", "manifest, digests redone"]))
+    event(op)
+    i = data.draw(st.integers(0, len(members) - 1))
+    info, body = members[i]
+    info = copy.copy(info)
+    parts = info.name.split("/")
+    if op == "rename":
+        parts[data.draw(st.integers(0, len(parts) - 1))] = data.draw(st.sampled_from(HOSTILE_PARTS) | NAME_TEXT)
+        info.name = "/".join(parts)
+    elif op == "nest":
+        parts.insert(data.draw(st.integers(0, len(parts))), data.draw(st.sampled_from(HOSTILE_PARTS)))
+        info.name = "/".join(parts)
+    elif op == "duplicate":
+        members.insert(data.draw(st.integers(0, len(members))), (copy.copy(info), body))
+    elif op == "inflate" and body is not None:
+        body = body * data.draw(st.integers(2, 64)) + data.draw(st.binary(max_size=64))
+    elif op == "retype":
+        info.type = data.draw(st.sampled_from([tarfile.SYMTYPE, tarfile.LNKTYPE, tarfile.FIFOTYPE, tarfile.CHRTYPE,
+                                               tarfile.DIRTYPE, tarfile.REGTYPE]))
+        info.linkname = data.draw(st.sampled_from(["/etc/passwd", "../../../x", "metrics.jsonl"]))
+        body = body if info.type == tarfile.REGTYPE else None
+    elif op == "drop":
+        del members[i]
+        return
+    elif op.startswith("manifest"):
+        i = next((j for j, (m, b) in enumerate(members) if m.name.endswith("/manifest.json") and b), None)
+        try:
+            manifest = json.loads(members[i][1]) if i is not None else None
+        except ValueError:
+            manifest = None
+        if not isinstance(manifest, dict):
+            return  # an earlier change took it away
+        info, body = copy.copy(members[i][0]), members[i][1]
+        where = data.draw(st.sampled_from([("kind",), ("key",), ("files",), ("files", "metrics.jsonl"), ("key_components",),
+                                           ("key_components", "budget"), ("key_components", "spec", "train", "epochs"),
+                                           ("name",), ("summary",)]))
+        node = manifest
+        for step in where[:-1]:
+            if not isinstance(node.get(step), dict):
+                node[step] = {}
+            node = node[step]
+        node[where[-1]] = data.draw(JSON_VALUES)
+        if op.endswith("redone"):  # as a forger would: the files' digests made to match again
+            by_rel = {m.name.split("/", 3)[3]: b for m, b in members if m.isfile() and m.name.count("/") >= 3}
+            manifest["files"] = {rel: digest_bytes(b) for rel, b in by_rel.items() if rel != "manifest.json"}
+        body = json.dumps(manifest).encode()
+    members[i] = (info, body)
+
+
+def _write(path: Path, members: list) -> None:
+    with tarfile.open(path, "w:gz", compresslevel=1) as tar:
+        for info, body in members:
+            if body is None:
+                tar.addfile(info)
+            else:
+                info.size = len(body)
+                tar.addfile(info, io.BytesIO(body))
+
+
+@settings(max_examples=ARCHIVE_FUZZ_CASES, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(data=st.data())
+def test_fuzzed_archives_are_imported_whole_and_intact_or_refused_in_one_line_leaving_nothing(exported, data):
+    """Cases made from a real export: members renamed, duplicated, inflated, nested, retyped or
+    dropped, manifest fields replaced (with and without the digests made to match again). Each
+    is the artifact exactly as exported, or one line and a store as it was."""
+    members, key = list(exported.members), exported.key
+    for _ in range(data.draw(st.integers(1, 3))):
+        _mutate(data, members)
+    with tempfile.TemporaryDirectory() as tmp:
+        archive, store = Path(tmp) / "case.tar.gz", Store(Path(tmp) / "store")
+        _write(archive, members)
+        try:
+            moved = import_archive(store, archive)
+        except StoreError as e:
+            event("refused")
+            assert len(str(e).splitlines()) == 1
+            assert not store.root.exists()
+            return
+        event("imported")
+        assert moved.key == key and moved.status == "complete" and verify_artifact(store, moved.path) == []
+        assert not [p for p in moved.path.parent.iterdir() if p.name.startswith(STAGING_PREFIX)]

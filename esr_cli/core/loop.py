@@ -6,6 +6,11 @@ host appends the chunk's metrics to `metrics.jsonl`, saves an orbax checkpoint o
 optimiser states, replay buffer, RNG keys), and updates the progress bar. A run started again
 in the same directory restores the newest complete checkpoint and continues exactly where it
 stopped; metrics lines past that checkpoint are dropped first.
+
+The first chunk is one epoch (the warm-up, which times an epoch); later ones are shorter than
+`chunk_epochs` where that many would run past CHECKPOINT_EVERY_S. Chunking changes no number:
+an epoch is a pure function of the state, its RNG key included. Compiling, running and saving
+run in a worker thread, so Ctrl-C and SIGTERM are answered at once (core/stop_requests.py).
 """
 
 from __future__ import annotations
@@ -13,8 +18,8 @@ from __future__ import annotations
 import json
 import math
 import shutil
-import signal
 import time
+from functools import partial
 from pathlib import Path
 from typing import Callable
 
@@ -29,21 +34,30 @@ from esr_cli.checkpoint_files import (
     CHECKPOINT_DIGESTS, CHECKPOINT_DIR, epochs_problem, read_digests, record_digests, step_intact, verified_steps,
 )
 from esr_cli.store import StoreError, atomic_write_text, without_checkpoint
+from esr_cli.core.stop_requests import StopRequests
 from esr_cli.core.stops import CorruptCheckpoint, Diverged, Interrupted, TimeLimitReached  # noqa: F401 (raised here)
 from esr_cli.core.train import TrainState, Trainer, compiled_chunk, compiled_init
 
 METRICS_FILE = "metrics.jsonl"
 
 
-# Signals that stop a run at its next chunk boundary instead of at once: Ctrl-C, and the
-# SIGTERM of `kill`, `timeout` or a scheduler, so no finished chunk is lost.
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+# A checkpoint at least this often, whatever `chunk_epochs` says (unless one epoch takes
+# longer): a paper chunk of 50 epochs takes over half an hour on a 2-core CPU, and a kill or a
+# power cut loses the chunk in flight.
+CHECKPOINT_EVERY_S = 600.0
 
 
-def next_chunk_fits(now: float, stop_at: float | None, last_chunk_seconds: float) -> bool:
-    """Whether a chunk as long as the last one would end by `stop_at` (time.monotonic() values;
-    None: no limit). The last chunk's duration is the estimate: chunks of one run are alike."""
-    return stop_at is None or now + last_chunk_seconds <= stop_at
+def chunk_length(chunk_epochs: int, epoch_seconds: float | None, left: int) -> int:
+    """Epochs in the next chunk: one until an epoch is timed (epoch_seconds None), then
+    `chunk_epochs`, fewer where those would take longer than CHECKPOINT_EVERY_S; at most `left`."""
+    n = 1 if epoch_seconds is None else max(1, min(chunk_epochs, int(CHECKPOINT_EVERY_S / max(epoch_seconds, 1e-9))))
+    return min(n, left)
+
+
+def next_chunk_fits(now: float, stop_at: float | None, next_chunk_seconds: float) -> bool:
+    """Whether the next chunk, estimated to take `next_chunk_seconds`, would end by `stop_at`
+    (time.monotonic() values; None: no limit)."""
+    return stop_at is None or now + next_chunk_seconds <= stop_at
 
 
 def checkpoint_manager(run_dir: Path) -> ocp.CheckpointManager:
@@ -187,65 +201,110 @@ def train(
     on_chunk: Callable[[int, int, dict, float], None] | None = None,
     on_start: Callable[[int, int], None] | None = None,
     stop_at: float | None = None,
+    on_phase: Callable[[str], None] | None = None,
+    on_stop: Callable[[int, int], None] | None = None,
 ) -> dict:
     """Train (or resume) in `run_dir` until `spec.train.epochs`; -> summary of the last epoch.
 
-    on_start(start_epoch, total_epochs); on_chunk(epoch, total, last_row, env_steps_per_s).
+    on_start(start_epoch, total_epochs); on_phase(phase) as each step begins: "compiling" (a
+    program), "warm-up" (the first chunk, which times an epoch), "training";
+    on_chunk(epoch, total, last_row, seconds_per_epoch) after each saved chunk;
+    on_stop(signum, kept_epoch) once, as soon as SIGINT or SIGTERM asks the run to stop
+    (Interrupted follows, keeping the checkpoint of kept_epoch).
     stop_at: a time.monotonic() value; after each saved chunk the run stops (TimeLimitReached)
     when the next chunk would end past it. At least one chunk always runs.
     """
     spec = trainer.spec
     run_dir = Path(run_dir)
     seeds = list(spec.train.seeds)
-    total, chunk = spec.train.epochs, spec.train.chunk_epochs
+    total = spec.train.epochs
     steps_per_epoch = spec.train.num_envs * trainer.env.episode_steps
     state, epoch = restore_latest(trainer, run_dir, seeds)
     _truncate_metrics(run_dir, epoch)
     if on_start:
         on_start(epoch, total)
     mngr = checkpoint_manager(run_dir)
-
-    interrupted = {"flag": False}
-
-    def on_stop_signal(signum, frame):
-        interrupted["flag"] = True
-
-    previous = {sig: signal.signal(sig, on_stop_signal) for sig in STOP_SIGNALS}
-    compiled: dict[int, Callable] = {}
     chunks_done = 0
     try:
-        while epoch < total:
-            n = min(chunk, total - epoch)
-            if n not in compiled:
-                compiled[n] = compiled_chunk(trainer, n)
-            faults.reached("compile", chunks_done + 1)
-            t0 = time.perf_counter()
-            state, metrics = compiled[n](state)
-            metrics = {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
-            elapsed = time.perf_counter() - t0
-            _check_finite(trainer, state, metrics, seeds, epoch)
-            rows = _metric_rows(metrics, epoch, steps_per_epoch)
-            with open(run_dir / METRICS_FILE, "a") as f:
-                f.write("".join(json.dumps(r) + "\n" for r in rows))
-            epoch += n
-            chunks_done += 1
-            faults.reached("after_metrics", chunks_done)
-            mngr.save(epoch, args=ocp.args.StandardSave(state))
-            mngr.wait_until_finished()
-            record_digests(run_dir, mngr.all_steps(), epoch)
-            faults.reached("after_checkpoint", chunks_done)
-            if on_chunk:
-                on_chunk(epoch, total, rows[-1], n * steps_per_epoch * len(seeds) / max(elapsed, 1e-9))
-            if interrupted["flag"]:
-                raise Interrupted(epoch)
-            if epoch < total and not next_chunk_fits(time.monotonic(), stop_at, time.perf_counter() - t0):
-                raise TimeLimitReached(epoch, total)
+        with StopRequests(on_stop).installed() as stop:
+            chunks = _Chunks(trainer, stop, on_phase)
+            while epoch < total:
+                n = chunks.length(total - epoch)
+                faults.reached("compile", chunks_done + 1)
+                state, metrics = chunks.run(n, state, epoch)
+                t0 = time.perf_counter()
+                _check_finite(trainer, state, metrics, seeds, epoch)
+                rows = _metric_rows(metrics, epoch, steps_per_epoch)
+                with open(run_dir / METRICS_FILE, "a") as f:
+                    f.write("".join(json.dumps(r) + "\n" for r in rows))
+                epoch += n
+                chunks_done += 1
+                faults.reached("after_metrics", chunks_done)
+                stop.wait(partial(_save, mngr, run_dir, epoch, state), epoch, abandon=False)
+                faults.reached("after_checkpoint", chunks_done)
+                if on_chunk:
+                    on_chunk(epoch, total, rows[-1], chunks.epoch_seconds)
+                stop.check(epoch)
+                after = time.perf_counter() - t0  # saving and reporting, again after the next chunk
+                if epoch < total and not next_chunk_fits(time.monotonic(), stop_at, chunks.seconds(total - epoch) + after):
+                    raise TimeLimitReached(epoch, total)
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
         mngr.close()
     keep_newest_checkpoint(run_dir)
     return summarize(read_rows(run_dir))
+
+
+class _Chunks:
+    """The chunks of one call of `train`: their compiled programs, by length, and how long an
+    epoch and a compile took. Each long step runs in `stop.wait`, so a stop ends it at once."""
+
+    def __init__(self, trainer: Trainer, stop: StopRequests, on_phase: Callable[[str], None] | None):
+        self.trainer, self.stop = trainer, stop
+        self.phase = on_phase or (lambda name: None)
+        self.programs: dict[int, Callable] = {}  # jitted, compiled for this run's states
+        self.epoch_seconds: float | None = None  # the last chunk's, per epoch
+        self.compile_seconds = 0.0  # the last program's
+
+    def length(self, left: int) -> int:
+        return chunk_length(self.trainer.spec.train.chunk_epochs, self.epoch_seconds, left)
+
+    def run(self, n: int, state: TrainState, epoch: int) -> tuple[TrainState, dict]:
+        """n more epochs from `state` (at `epoch`, the checkpoint a stop keeps); -> (state, metrics)."""
+        if n not in self.programs:
+            self.phase("compiling")
+            t0 = time.perf_counter()
+            program = compiled_chunk(self.trainer, n)
+            self.stop.wait(partial(_compile, program, state), epoch)
+            self.programs[n] = program
+            self.compile_seconds = time.perf_counter() - t0
+        self.phase("warm-up" if self.epoch_seconds is None else "training")
+        t0 = time.perf_counter()
+        out = self.stop.wait(partial(_run_chunk, self.programs[n], state), epoch)
+        self.epoch_seconds = max(time.perf_counter() - t0, 1e-9) / n
+        return out
+
+    def seconds(self, left: int) -> float:
+        """How long the next chunk would run, its compile included if its program is new."""
+        n = self.length(left)
+        return n * self.epoch_seconds + (0.0 if n in self.programs else self.compile_seconds)
+
+
+def _compile(program, state: TrainState) -> None:
+    """Compile the jitted `program` for states like `state` ahead of its first call, which then
+    finds it compiled: the run is timed apart from the compile."""
+    program.lower(state).compile()
+
+
+def _run_chunk(program, state: TrainState) -> tuple[TrainState, dict]:
+    """One chunk run to its end; its metrics on the host, as numpy arrays."""
+    state, metrics = program(state)
+    return state, {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
+
+
+def _save(mngr: ocp.CheckpointManager, run_dir: Path, epoch: int, state: TrainState) -> None:
+    mngr.save(epoch, args=ocp.args.StandardSave(state))
+    mngr.wait_until_finished()
+    record_digests(run_dir, mngr.all_steps(), epoch)
 
 
 def keep_newest_checkpoint(run_dir: Path) -> None:

@@ -4,13 +4,25 @@ JAX and orbax (seconds of start-up, paid by every command that only refuses its 
 
 from __future__ import annotations
 
+import signal
+
 
 class Interrupted(Exception):
-    """Ctrl-C (SIGINT) or SIGTERM arrived; the run stopped at a chunk boundary after saving."""
+    """Ctrl-C (SIGINT) or SIGTERM arrived; the run stopped, keeping its checkpoint of `epoch`
+    (the chunk in flight, if any, is dropped). The command exits with `exit_code`."""
 
-    def __init__(self, epoch: int):
-        self.epoch = epoch
+    def __init__(self, epoch: int, signum: int = signal.SIGINT):
+        self.epoch, self.signum = epoch, signum
         super().__init__(f"interrupted after epoch {epoch}")
+
+    @property
+    def exit_code(self) -> int:
+        return exit_code(self.signum)
+
+
+def exit_code(signum: int) -> int:
+    """A shell's code for a process a signal ended: 130 for SIGINT, 143 for SIGTERM."""
+    return 128 + int(signum)
 
 
 class TimeLimitReached(Exception):

@@ -1,0 +1,152 @@
+"""A run that answers: Ctrl-C and SIGTERM acknowledged and acted on within seconds at any point
+of training, a second signal exits at once, and a run says up front how long it will take.
+See docs/reliability.md."""
+
+import io
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+from rich.console import Console
+
+from conftest import ROOT, esr, esr_env
+
+# A smoke run whose second chunk (400 epochs, after the 1-epoch warm-up) takes 10-20 s here.
+# 402 epochs: stopped after the first, it resumes with a warm-up epoch and a 400-epoch chunk,
+# programs the uninterrupted run (1, 400, 1) compiled already.
+LONG_SETS = ("--set", "train.epochs=402", "--set", "train.chunk_epochs=400")
+LONG = ("train", "experiments/grid_2.yaml", "--budget", "smoke", *LONG_SETS)
+
+
+def final_arrays(run_dir):
+    from esr_cli import spec as specs
+    from esr_cli.core import loop
+    from esr_cli.core.train import make_trainer
+
+    trainer = make_trainer(specs.load("experiments/grid_2.yaml", "smoke", list(LONG_SETS[1::2])))
+    return [np.asarray(x) for x in jax.tree.leaves(loop.final_state(trainer, run_dir))]
+
+
+def stop_mid_chunk(store: Path, sig) -> tuple[int, float, str]:
+    """Start LONG, send `sig` a second into its long chunk; -> (exit code, seconds from the
+    signal to the exit, stderr)."""
+    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli", *LONG], cwd=ROOT, env=esr_env(store),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)
+    reader.start()
+    try:
+        deadline = time.monotonic() + 300
+        while sum("compiled in" in line for line in lines) < 2:  # the 400-epoch program: its chunk runs now
+            assert proc.poll() is None and time.monotonic() < deadline, "".join(lines)
+            time.sleep(0.05)
+        time.sleep(1)
+        sent = time.monotonic()
+        proc.send_signal(sig)
+        proc.wait(timeout=60)
+        took = time.monotonic() - sent
+    finally:
+        proc.kill()
+    reader.join(timeout=10)
+    return proc.returncode, took, "".join(lines)
+
+
+def partial_run(store: Path) -> Path:
+    (part,) = Path(store).glob("runs/*/*.partial")
+    return part
+
+
+def test_ctrl_c_mid_chunk_stops_within_seconds_and_the_run_resumes_bit_identical(tmp_path):
+    store = tmp_path / "store"
+    code, took, err = stop_mid_chunk(store, signal.SIGINT)
+    assert code == 130 and took < 5, (took, err)
+    assert "stopping (Ctrl-C): the run stops now, keeping its checkpoint of epoch 1" in err
+    assert "Ctrl-C again exits at once" in err and "Traceback" not in err
+    assert "interrupted after epoch 1; the checkpoint is saved: run the same command again to resume" in err
+    assert len((partial_run(store) / "metrics.jsonl").read_text().splitlines()) == 1  # the chunk in flight: dropped
+
+    resumed = Path(esr(*LONG, store=store).stdout.strip())
+    whole = Path(esr(*LONG, store=tmp_path / "whole").stdout.strip())
+    assert (resumed / "metrics.jsonl").read_bytes() == (whole / "metrics.jsonl").read_bytes()
+    for a, b in zip(final_arrays(resumed), final_arrays(whole)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_sigterm_mid_chunk_stops_within_seconds_with_143(tmp_path):
+    code, took, err = stop_mid_chunk(tmp_path / "store", signal.SIGTERM)
+    assert code == 143 and took < 5, (took, err)
+    assert "stopping (SIGTERM)" in err and "a second signal exits at once" in err
+    assert "terminated (SIGTERM) after epoch 1; the checkpoint is saved" in err and "Traceback" not in err
+    assert len((partial_run(tmp_path / "store") / "metrics.jsonl").read_text().splitlines()) == 1
+
+
+WAITS_FOR_A_SAVE = """
+import time
+from esr_cli.core.stop_requests import StopRequests
+
+stop = StopRequests(lambda signum, kept: print("acknowledged", signum, kept, flush=True))
+with stop.installed():
+    print("ready", flush=True)
+    stop.wait(lambda: time.sleep(60), kept=7, abandon=False)  # as a checkpoint being written is
+"""
+
+
+def test_a_second_ctrl_c_exits_at_once_even_while_a_checkpoint_is_written():
+    proc = subprocess.Popen([sys.executable, "-c", WAITS_FOR_A_SAVE], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline() == "ready\n"
+        proc.send_signal(signal.SIGINT)
+        assert proc.stdout.readline() == f"acknowledged {int(signal.SIGINT)} 7\n"
+        time.sleep(0.5)
+        assert proc.poll() is None  # the first waits for the checkpoint
+        sent = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=5) == 130 and time.monotonic() - sent < 1
+    finally:
+        proc.kill()
+    assert "exiting at once" in proc.stderr.read()
+
+
+def test_chunks_are_timed_by_a_one_epoch_warm_up_then_bounded_by_the_checkpoint_interval():
+    from esr_cli.core.loop import CHECKPOINT_EVERY_S, chunk_length
+
+    assert chunk_length(50, None, 10_000) == 1  # not timed yet: the warm-up
+    assert chunk_length(50, 1.0, 10_000) == 50
+    assert chunk_length(50, CHECKPOINT_EVERY_S / 13, 10_000) == 13  # 50 would run past the interval
+    assert chunk_length(50, 2 * CHECKPOINT_EVERY_S, 10_000) == 1  # never fewer than one epoch
+    assert chunk_length(50, 1.0, 7) == 7  # never past the end
+
+
+def test_the_estimate_names_the_epoch_time_the_run_the_quick_budget_and_a_run_over_a_day():
+    from esr_cli import spec as specs
+    from esr_cli.core.train import make_trainer
+    from esr_cli.run_progress import TrainingReport, progress_bar, quick_estimate
+
+    spec, quick = (specs.load("experiments/grid_2.yaml", b) for b in ("paper", "quick"))
+    console = Console(file=io.StringIO(), width=400)
+    report = TrainingReport(spec, make_trainer(spec), console, progress_bar(console), "k" * 64, quick)
+    report.on_start(0, 10_000)
+    report.on_chunk(1, 10_000, {"return": [1.0] * 20}, 45.0)
+    text = console.file.getvalue()
+    assert "grid_2 [paper]: 45 s an epoch (20 seeds); 10,000 epochs: about 5.2 days here; " \
+           "--budget quick: about 5.6 min" in text  # 45 s / 20 seeds x 1 seed x 150 epochs
+    assert "note: this run needs more than a day on this machine (5.2 days); it goes on" in text
+    assert "epoch 1/10,000  ret 1.00" in text and "ETA 5.2 days" in text  # a log file's line per chunk
+
+    coop = specs.load("experiments/cramped_room.yaml", "paper")
+    assert quick_estimate(coop, specs.load("experiments/cramped_room.yaml", "quick"), 1.0)[0] is None
+
+
+def test_a_run_logged_to_a_file_says_when_it_compiled_and_how_long_it_takes(smoke_run):
+    _, _, proc = smoke_run  # stderr was a pipe
+    err = proc.stderr
+    assert "grid_2 [smoke]: compiling..." in err and "grid_2 [smoke]: compiled in " in err
+    assert "an epoch (1 seed); 2 epochs: about " in err
+    assert err.index("compiled in") < err.index("an epoch") < err.index("epoch 2/2")
+
