@@ -80,19 +80,25 @@ def finite(values: Sequence[float]) -> np.ndarray:
     return values[np.isfinite(values)]
 
 
+def _two_sample(statistic, x, y, confidence: float, resamples: int, seed: int) -> tuple[float, float | None, float | None]:
+    """(statistic(X, Y), low, high) over the seeds with a finite score, each side resampled on its
+    own; (nan, None, None) when a side has none, no interval when both have one seed."""
+    x, y = finite(x), finite(y)
+    if not len(x) or not len(y):
+        return float("nan"), None, None
+    point = float(statistic(x, y))
+    if max(len(x), len(y)) < 2:
+        return point, None, None
+    return (point, *_bootstrap_ci(statistic, [x, y], confidence, resamples, seed))
+
+
 def probability_of_improvement(x: Sequence[float], y: Sequence[float], confidence: float = CONFIDENCE,
                                resamples: int = RESAMPLES, seed: int = 0) -> tuple[float, float | None, float | None]:
     """(P(X > Y), low, high): the probability that a run of X scores above a run of Y (ties
     count half), with a bootstrap interval that resamples each method's seeds separately
     (None, None when both have a single seed; a method with one seed is held fixed). Seeds
     without a finite score are left out; (nan, None, None) when a side has none."""
-    x, y = finite(x), finite(y)
-    if not len(x) or not len(y):
-        return float("nan"), None, None
-    point = float(_improvement(x, y))
-    if max(len(x), len(y)) < 2:
-        return point, None, None
-    return (point, *_bootstrap_ci(_improvement, [x, y], confidence, resamples, seed))
+    return _two_sample(_improvement, x, y, confidence, resamples, seed)
 
 
 def _mean_difference(x, y, axis=-1):
@@ -104,13 +110,7 @@ def mean_difference_ci(x: Sequence[float], y: Sequence[float], confidence: float
     """(mean(X) - mean(Y), low, high): a bootstrap interval resampling each side's seeds on its
     own (a one-seed side held fixed; None, None when both have one seed). At 90% it is the
     interval of the two one-sided tests of equivalence at the 5% level."""
-    x, y = finite(x), finite(y)
-    if not len(x) or not len(y):
-        return float("nan"), None, None
-    point = float(_mean_difference(x, y))
-    if max(len(x), len(y)) < 2:
-        return point, None, None
-    return (point, *_bootstrap_ci(_mean_difference, [x, y], confidence, resamples, seed))
+    return _two_sample(_mean_difference, x, y, confidence, resamples, seed)
 
 
 def describe(per_seed: Sequence[float]) -> dict:
