@@ -15,7 +15,7 @@ import json
 from dataclasses import dataclass, field, replace
 from functools import cache
 from pathlib import Path
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -277,8 +277,8 @@ class Finding:
     verdict: str
     measured: str
     variants: list[tuple[str, Optional[Evidence], str]] = field(default_factory=list)
-    # esr's stronger baselines: (label, evidence, measured, what the row would say against it)
-    baselines: list[tuple[str, Optional[Evidence], str, str]] = field(default_factory=list)
+    # esr's stronger baselines, each judged in place of the published one
+    baselines: list["BaselineRow"] = field(default_factory=list)
     # The other stored runs of the first spec (fewer epochs, another seed set or device), with
     # their own comparison: a one-seed verdict is read beside the several-seed runs that exist.
     others: list[tuple[Evidence, str]] = field(default_factory=list)
@@ -389,24 +389,36 @@ def judge(claim: Claim, index: dict[str, list[Evidence]]) -> Finding:
     if not all(e.comparable() for e in needed):
         return Finding(claim, a, b, NOT_YET, measured, variants, baselines, more)
     verdict = tiered_verdict(holds, [_scored(e) for e in needed])
-    differs = [label for label, _, _, other in baselines if other != NOT_YET and _leaning(other) != _leaning(verdict)]
+    differs = [row.label for row in baselines if row.judged and row.holds != holds]
     if differs:
         measured += f"; the verdict depends on the baseline: against {', '.join(differs)} it is different (below)"
     return Finding(claim, a, b, verdict, measured, variants, baselines, more)
 
 
-def _baseline_rows(claim: Claim, a: Optional[Evidence], index) -> list[tuple[str, Optional[Evidence], str, str]]:
-    """The claim judged against each of esr's stronger baselines instead of the published one."""
+class BaselineRow(NamedTuple):
+    """A claim judged against one of esr's stronger baselines instead of the published one."""
+
+    label: str
+    evidence: Optional[Evidence]
+    measured: str
+    verdict: str
+    holds: bool | None = None  # which way the comparison leans (when judged)
+    judged: bool = False  # both runs at a comparable length
+
+
+def _baseline_rows(claim: Claim, a: Optional[Evidence], index) -> list[BaselineRow]:
     rows = []
     for ref in claim.baseline_variants:
         ev = pooled(index, claim_spec(ref))
         label = f"esr's {run_label(claim_spec(ref))}"
         if ev is None or a is None:
-            rows.append((label, ev, "not run" if ev is None else format_summary(ev.finals()), NOT_YET))
+            rows.append(BaselineRow(label, ev, "not run" if ev is None else format_summary(ev.finals()), NOT_YET))
             continue
         holds, measured = _compare(claim.kind, a, ev)
-        comparable = a.comparable() and ev.comparable()
-        rows.append((label, ev, measured, tiered_verdict(holds, [_scored(a), _scored(ev)]) if comparable else NOT_YET))
+        if not (a.comparable() and ev.comparable()):
+            rows.append(BaselineRow(label, ev, measured, NOT_YET))
+            continue
+        rows.append(BaselineRow(label, ev, measured, tiered_verdict(holds, [_scored(a), _scored(ev)]), holds, True))
     return rows
 
 
@@ -422,14 +434,6 @@ def tiered_verdict(holds: bool | None, seeds: list[int]) -> str:
     if min(seeds) >= MIN_SEEDS:
         return (INCONCLUSIVE if holds is None else REPRODUCED if holds else NOT_REPRODUCED) + note
     return f"{INDICATIVE}: {LEANINGS[holds]}{note}"
-
-
-def _leaning(verdict: str) -> str:
-    """holds / does not hold / open, whatever the tier."""
-    for tier, leaning in ((REPRODUCED, "holds"), (NOT_REPRODUCED, "does not hold"), (INCONCLUSIVE, "open")):
-        if verdict.startswith(tier):
-            return leaning
-    return verdict.removeprefix(f"{INDICATIVE}: ").split(" (")[0]
 
 
 def _seed_note(seeds: list[int]) -> str:
@@ -518,7 +522,7 @@ def learning_curves(findings: list[Finding], out_png: Path, title: str) -> Optio
     for figure in dict.fromkeys(f.claim.figure for f in findings):
         runs: dict[str, Evidence] = {}
         for f in (x for x in findings if x.claim.figure == figure):
-            for ev in [f.a, f.b] + [v[1] for v in f.variants] + [r[1] for r in f.baselines]:
+            for ev in [f.a, f.b] + [v[1] for v in f.variants] + [r.evidence for r in f.baselines]:
                 if ev is not None and ev.epochs_done >= MIN_CURVE_EPOCHS:
                     runs[ev.key] = ev
         panels: dict[str, list] = {}
@@ -651,12 +655,12 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
             for label, ev, measured in f.variants:
                 if ev is not None:
                     lines.append(f"| ↳ esr's variant `{label}` | | {measured} | {_run_cell(ev)} | |")
-            for label, ev, measured, verdict in f.baselines:
-                if ev is not None:
-                    lines.append(f"| ↳ against {label} | | {measured} | {_run_cell(ev)} | {verdict} |")
+            for row in f.baselines:
+                if row.evidence is not None:
+                    lines.append(f"| ↳ against {row.label} | | {row.measured} | {_run_cell(row.evidence)} | {row.verdict} |")
         lines.append("")
     behind = {part.key: part for f in findings
-              for ev in [f.a, f.b] + [v[1] for v in f.variants] + [o[0] for o in f.others] + [r[1] for r in f.baselines]
+              for ev in [f.a, f.b] + [v[1] for v in f.variants] + [o[0] for o in f.others] + [r.evidence for r in f.baselines]
               if ev is not None for part in (ev.parts or (ev,))}
     if behind:
         lines += ["## The runs behind this report", "",
@@ -717,6 +721,6 @@ def findings_json(findings: list[Finding]) -> list[dict]:
 
     return [{"figure": f.claim.figure, "statement": f.claim.text, "paper": f.claim.paper, "verdict": f.verdict,
              "measured": f.measured, "a": ev(f.a), "b": ev(f.b),
-             "baselines": [{"baseline": label, "verdict": verdict, "measured": measured, "run": ev(e)}
-                           for label, e, measured, verdict in f.baselines]} for f in findings]
+             "baselines": [{"baseline": r.label, "verdict": r.verdict, "measured": r.measured, "run": ev(r.evidence)}
+                           for r in f.baselines]} for f in findings]
 

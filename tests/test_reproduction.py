@@ -324,8 +324,8 @@ def test_goal_inference_claims_use_du_et_al_and_show_the_exact_posterior_as_esrs
     finding = rep.judge(claim, index)
     assert finding.verdict == "reproduced (3 seeds each)"
     assert "against Goal Inference (published) 15.50" in finding.measured
-    [(label, ev, measured, verdict)] = finding.baselines
-    assert label == "esr's Goal Inference (exact posterior)" and verdict == "not reproduced (3 seeds each)"
+    [row] = finding.baselines
+    assert row.label == "esr's Goal Inference (exact posterior)" and row.verdict == "not reproduced (3 seeds each)"
     # the verdict depends on which baseline is used, and the row says so
     assert "the verdict depends on the baseline: against esr's Goal Inference (exact posterior)" in finding.measured
     only_published = _index(index[rep._without_train(rep.claim_spec(claim.a))][0],
