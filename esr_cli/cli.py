@@ -8,6 +8,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import signal
 import sys
 from pathlib import Path
 from typing import List, Optional
@@ -19,7 +20,7 @@ from rich.text import Text
 from esr_cli import spec as specs, targets
 from esr_cli.artifacts import ensure
 from esr_cli.printing import plain_console, printable, tagged
-from esr_cli.stop_signals import Terminated, stop_signals_raise
+from esr_cli.stop_signals import StopSignals, Terminated, stop_signals_raise
 from esr_cli.store import KINDS, RUN_KIND, Store, StoreError, nearest_existing, probe_writable
 
 app = typer.Typer(
@@ -932,11 +933,11 @@ def global_options_first(argv: list[str]) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     argv = global_options_first(sys.argv[1:] if argv is None else list(argv))
     debug = "--debug" in argv
-    with stop_signals_raise():  # any command ends with its cleanup and one line (esr_cli/stop_signals.py)
-        return _run(argv, debug)
+    with stop_signals_raise() as stops:  # any command ends with its cleanup and one line (esr_cli/stop_signals.py)
+        return _run(argv, debug, stops)
 
 
-def _run(argv: list[str], debug: bool) -> int:
+def _run(argv: list[str], debug: bool, stops: StopSignals) -> int:
     from esr_cli.core.stops import CorruptCheckpoint, Diverged, Interrupted, TimeLimitReached
     from esr_cli.resources import ResourceError
 
@@ -946,14 +947,14 @@ def _run(argv: list[str], debug: bool) -> int:
             raise KeyboardInterrupt
         return code if isinstance(code, int) else 0
     except KeyboardInterrupt:  # Ctrl-C, handed back as above or outside the CLI library (while importing, say)
-        err.print("interrupted")
-        return 130
+        return _stopped(signal.SIGINT)
     except Terminated:  # a BaseException, so not among the failures below
-        err.print(tagged("error:", "red", " terminated (SIGTERM)"), highlight=False)
-        return 143
+        return _stopped(signal.SIGTERM)
     except SystemExit as e:  # typer/click's own exits (e.g. --help)
         return int(e.code or 0)
     except Exception as e:  # noqa: BLE001 - every failure becomes one line unless --debug
+        if stops.received is not None and not isinstance(e, Interrupted):  # the stop, wrapped by a library
+            return _stopped(stops.received)
         if debug:
             raise
         if type(e).__name__ == "Abort":  # the CLI library's Ctrl-C at a prompt
@@ -989,6 +990,15 @@ def _run(argv: list[str], debug: bool) -> int:
         if msg:
             err.print(tagged("error:", "red", f" {msg}"), highlight=False)
         return code
+
+
+def _stopped(signum: int) -> int:
+    """The one line and exit code of a command stopped by Ctrl-C or SIGTERM outside training."""
+    if signum == signal.SIGINT:
+        err.print("interrupted")
+        return 130
+    err.print(tagged("error:", "red", " terminated (SIGTERM)"), highlight=False)
+    return 143
 
 
 STOPPED_BY_SIGNAL = (130, 143)

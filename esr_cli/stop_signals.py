@@ -6,6 +6,11 @@ Python runs a signal handler between two bytecodes of whatever the main thread i
 that is a garbage-collector callback (jax registers one), a weakref callback or a finalizer,
 the exception is "ignored" (handed to sys.unraisablehook) and the program carries on: the
 signal would be lost. Meanwhile esr's hook sends the same signal again a moment later.
+
+A library can also wrap the exception in one of its own: pybind11 turns an exception raised
+while a C++ module initialises into `ImportError: initialization failed`. So the handler
+remembers what it received (`StopSignals.received`), and the command reports the signal
+whatever exception reaches it.
 """
 
 from __future__ import annotations
@@ -28,15 +33,28 @@ class Terminated(BaseException):
 RAISES = {signal.SIGINT: KeyboardInterrupt, signal.SIGTERM: Terminated}
 
 
+class StopSignals:
+    """What `stop_signals_raise` yields: `received`, the first stop signal delivered, or None."""
+
+    def __init__(self):
+        self.received: int | None = None
+
+    def __call__(self, signum, frame):  # the handler
+        if self.received is None:
+            self.received = signum
+        raise RAISES[signum]()
+
+
 @contextlib.contextmanager
 def stop_signals_raise():
     """Within: SIGINT raises KeyboardInterrupt and SIGTERM Terminated, in the main thread, and
     neither is lost where Python would ignore it. In another thread signals cannot be
-    handled, and are left alone."""
+    handled, and are left alone (and `received` stays None)."""
+    stops = StopSignals()
     try:
-        previous = {sig: signal.signal(sig, _raise) for sig in RAISES}
+        previous = {sig: signal.signal(sig, stops) for sig in RAISES}
     except ValueError:
-        yield
+        yield stops
         return
     previous_hook = sys.unraisablehook
 
@@ -51,12 +69,8 @@ def stop_signals_raise():
 
     sys.unraisablehook = redeliver
     try:
-        yield
+        yield stops
     finally:
         sys.unraisablehook = previous_hook
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-
-
-def _raise(signum, frame):
-    raise RAISES[signum]()

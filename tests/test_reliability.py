@@ -390,3 +390,23 @@ def test_an_evaluation_stopped_by_a_signal_says_so_and_leaves_nothing_half_made(
         proc.kill()
     assert proc.returncode == code and err.strip().endswith(line), err
     assert not list((mine / "evals").rglob("*.partial"))
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)], ids=["ctrl-c", "sigterm"])
+def test_a_stop_signal_a_library_wraps_in_its_own_error_still_ends_the_command_as_stopped(sig, code, monkeypatch, capsys):
+    """pybind11 turns an exception raised while a C++ module initialises into
+    `ImportError: initialization failed`: the command still reports the signal and its code."""
+    import os
+
+    from esr_cli import cli
+
+    def importing(args, standalone_mode):
+        try:
+            os.kill(os.getpid(), sig)
+            time.sleep(10)
+        except BaseException as e:  # noqa: BLE001 - what pybind11 does around a module's init
+            raise ImportError("initialization failed") from e
+
+    monkeypatch.setattr(cli, "app", importing)
+    assert cli.main(["eval", "abc"]) == code
+    assert "ImportError" not in capsys.readouterr().err
