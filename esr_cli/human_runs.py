@@ -1,15 +1,16 @@
-"""Human-model artifacts: the converted human data and the BC human, one per layout.
+"""Human-model artifacts: the converted human data, the BC human and the PPO human.
 
 Two kinds in the store, each a recipe (esr_cli/artifacts.py) made the first time something
 needs it, like training runs:
 
   humandata  the 2019 trials of one layout as (observation, action) pairs from both players'
              views (data.npz), with a replay check of the conversion in the manifest
-  humans     the cloned policy (params.msgpack + policy.json) with its accuracies and BC+BC
-             self-play return in the manifest; requires the humandata artifact
+  humans     a stored human policy (params.msgpack + policy.json):
+             - bc: cloned from a humandata artifact, with its accuracies and BC+BC self-play
+               return in the manifest;
+             - ppo: the convolutional actor-critic trained by PPO (esr_cli/ppo_humans.py).
 
-A training run with a BC human lists the human's key among its key's dependencies, and its
-recipe requires the human's.
+The PPO human is esr_cli/ppo_humans.py's; esr_cli/stored_humans.py finds either kind.
 """
 
 from __future__ import annotations
@@ -79,29 +80,6 @@ def human_key(human_spec, layout: str) -> tuple[str, dict]:
         "dependencies": {DATA_KIND: data[0]},
     }
     return content_key(components), components
-
-
-def dependencies(spec) -> dict:
-    """Artifact keys a training run of `spec` is built from ({} when it needs none): its BC
-    human's, or the list of its per-seed humans' (in seed order)."""
-    if spec.human.kind != "bc":
-        return {}
-    keys = [human_key(h, spec.env.layout)[0] for h in spec.human.clones(spec.train.seeds)]
-    return {HUMAN_KIND: keys if spec.human.per_seed else keys[0]}
-
-
-def human_recipes(spec, console: Console) -> tuple[Recipe, ...]:
-    """Every BC human a run of `spec` trains with (one, or one per seed); () for other humans."""
-    if spec.human.kind != "bc":
-        return ()
-    return tuple(human_recipe(h, spec.env.layout, console) for h in spec.human.clones(spec.train.seeds))
-
-
-def humans_params(spec, store: Store | None):
-    """The parameters `make_trainer` takes for `spec`'s BC human: one tree, or a list of one per
-    seed (human.per_seed)."""
-    params = [human_params(h, spec.env.layout, store) for h in spec.human.clones(spec.train.seeds)]
-    return params if spec.human.per_seed else params[0]
 
 
 # ---------------------------------------------------------------- building
@@ -215,14 +193,3 @@ def human_recipe(human_spec, layout: str, console: Console) -> Recipe:
 
 def load_params(path: Path):
     return serialization.msgpack_restore((Path(path) / PARAMS_FILE).read_bytes())
-
-
-def human_params(human_spec, layout: str, store: Store | None):
-    """The committed BC human's parameters (it must have been made: see human_recipe)."""
-    key, _ = human_key(human_spec, layout)
-    if store is None:
-        raise StoreError("a BC human is a stored artifact: this command needs the store to load it")
-    path = store.lookup(HUMAN_KIND, key)
-    if path is None:
-        raise StoreError(f"BC human {key[:12]} ({human_spec.layout or layout}) is not built in {store.root}: `esr train` builds it")
-    return load_params(path)

@@ -16,7 +16,7 @@ import jax
 import numpy as np
 from rich.console import Console
 
-from esr_cli import human_runs, provenance, spec as specs
+from esr_cli import provenance, spec as specs, stored_humans
 from esr_cli.artifacts import Recipe
 from esr_cli.checkpoint_files import run_length
 from esr_cli.core import evaluate as ev, loop
@@ -47,7 +47,7 @@ def enable_compile_cache() -> None:
 
 def run_key(spec) -> tuple[str, dict]:
     # A stored human (BC) is a dependency: its key is part of the run's key.
-    components = provenance.key_components("run", spec.training_part(), spec.budget, human_runs.dependencies(spec))
+    components = provenance.key_components("run", spec.training_part(), spec.budget, stored_humans.dependencies(spec))
     return content_key(components), components
 
 
@@ -145,7 +145,7 @@ def run_recipe(spec, console: Console, stop_at: float | None = None, quick=None)
         console.print(f"run {key[:12]} is in progress ({holder}); waiting for it to finish")
 
     return Recipe(RUN_KIND, spec.name, components, build, budget=spec.budget, seeds=tuple(spec.train.seeds),
-                  requires=human_runs.human_recipes(spec, console), check=check,
+                  requires=stored_humans.human_recipes(spec, console), check=check,
                   record={"method": spec.method.kind, "env": spec.env.kind}, summary_file=False, on_wait=waiting)
 
 
@@ -195,7 +195,7 @@ def eval_spec(spec, partner: str = "training", seat: int | None = None):
     other = partner_spec(spec, partner)
     if other is spec:
         return spec, new_seat, None
-    keys = human_runs.dependencies(other)[HUMAN_KIND]
+    keys = stored_humans.dependencies(other)[HUMAN_KIND]
     return other, new_seat, keys if isinstance(keys, str) else content_key({"per_seed_humans": keys})
 
 
@@ -247,12 +247,12 @@ def eval_recipe(run_path: Path, store: Store, episodes: int | None, console: Con
         return {"return": {"mean": summary["results"][mode]["return_mean"]}, **summary}
 
     return Recipe(EVAL_KIND, spec.name, components, build, budget=spec.budget, seeds=tuple(spec.train.seeds),
-                  requires=human_runs.human_recipes(spec, console))
+                  requires=stored_humans.human_recipes(spec, console))
 
 
 def build_trainer(spec, store: Store):
     """The spec's Trainer with its stored inputs (a BC human's parameters) loaded from `store`."""
-    return make_trainer(spec, human_runs.humans_params(spec, store) if spec.human.kind == "bc" else None)
+    return make_trainer(spec, stored_humans.humans_params(spec, store) if stored_humans.is_stored(spec.human) else None)
 
 
 def load_run(store: Store, ref: str):

@@ -269,7 +269,72 @@ class BCHumanSpec(_Model):
         return [self.model_copy(update={"seed": self.seed + s, "per_seed": False}) for s in seeds]
 
 
-HumanSpec = Annotated[Union[NoisyGreedyHumanSpec, BCHumanSpec], Field(discriminator="kind")]
+PPO_HUMAN_MODES = ("selfplay", "shaped", "bc_kl")
+
+
+class PPOHumanSpec(_Model):
+    """The paper's Overcooked human network (a convolutional actor-critic) trained by PPO in
+    self-play; a stored, resumable artifact of kind humans (docs/overcooked.md). Every field
+    but `chunk_updates` and `min_selfplay_return` makes the artifact's key."""
+
+    kind: Literal["ppo"]
+    layout: Optional[Literal[OVERCOOKED_LAYOUTS]] = Field(None, description="the layout it learns in; default: env.layout")
+    mode: Literal[PPO_HUMAN_MODES] = Field(
+        "shaped", description="selfplay: the sparse soup reward only; shaped: plus the shaped reward, annealed to 0 over "
+        "the first half; bc_kl: the sparse reward plus kl_coef * KL(pi_clone || pi) towards the BC human `clone`",
+    )
+    total_steps: Int = Field(5_000_000, ge=1, le=10**10, description="environment steps of training")
+    num_envs: Int = Field(16, ge=1, le=4096)
+    rollout_steps: Int = Field(128, ge=1, le=100_000)
+    lr: Float = Field(2.5e-4, gt=0.0, description="Adam's learning rate, annealed linearly to 0")
+    ent_coef: Float = Field(0.01, ge=0.0)
+    kl_coef: Float = Field(1.0, ge=0.0, description="mode bc_kl: the KL term's weight")
+    clone: Optional[BCHumanSpec] = Field(None, description="mode bc_kl: the BC human it is pulled towards "
+                                         "(default: kind bc with its defaults)")
+    seed: Int = Field(0, ge=0, le=MAX_SEED)
+    per_seed: Bool = Field(False, description="train one human per training seed (seed = human.seed + the training "
+                           "seed), as the paper had one human per seed")
+    eval_episodes: Int = Field(64, ge=2, le=100_000, description="episodes with each partner (random, stay, itself) "
+                               "for the returns the artifact records")
+    chunk_updates: Int = Field(25, ge=1, le=1_000_000, description="updates between checkpoints (not part of the key)")
+    min_selfplay_return: Float = Field(1.0, ge=0.0, description="a trained human whose self-play return is below this "
+                                       "is refused (0 accepts any; not part of the key)")
+
+    @model_validator(mode="after")
+    def _clone_only_for_bc_kl(self):
+        if self.clone is not None and self.mode != "bc_kl":
+            raise ValueError(f"human.clone is the policy of mode bc_kl; mode is {self.mode!r}")
+        if self.clone is not None and (self.clone.adapt or self.clone.per_seed or self.clone.preset):
+            raise ValueError("human.clone is one fixed BC human written out field by field: adapt, per_seed and "
+                             "preset do not apply to it")
+        return self
+
+    def bc_clone(self) -> BCHumanSpec | None:
+        """The BC human of mode bc_kl (None in the other modes)."""
+        if self.mode != "bc_kl":
+            return None
+        return self.clone or BCHumanSpec(kind="bc", layout=self.layout)
+
+    def training_part(self, layout: str) -> dict:
+        """The fields that decide the trained policy (the artifact's key, beside the clone's key)."""
+        d = self.model_dump(mode="json")
+        keep = ("mode", "total_steps", "num_envs", "rollout_steps", "lr", "ent_coef", "seed", "eval_episodes")
+        part = {"layout": self.layout or layout, **{k: d[k] for k in keep}}
+        if self.mode == "bc_kl":
+            part["kl_coef"] = d["kl_coef"]
+        return part
+
+    def clones(self, seeds: tuple[int, ...]) -> list["PPOHumanSpec"]:
+        """The trained humans a run with these training seeds uses: one, or one per seed."""
+        if not self.per_seed:
+            return [self]
+        return [self.model_copy(update={"seed": self.seed + s, "per_seed": False}) for s in seeds]
+
+
+# The human kinds that are stored artifacts made from Overcooked (cloned or trained).
+STORED_HUMAN_KINDS = ("bc", "ppo")
+
+HumanSpec = Annotated[Union[NoisyGreedyHumanSpec, BCHumanSpec, PPOHumanSpec], Field(discriminator="kind")]
 
 
 # ---------------------------------------------------------------- methods
@@ -479,18 +544,22 @@ class Spec(_Model):
 
     @model_validator(mode="after")
     def _cross_checks(self):
-        if self.human.kind == "bc" and self.env.kind != "overcooked":
-            raise ValueError("human.kind=bc is cloned from Overcooked play: it needs env.kind: overcooked")
+        stored = self.human.kind in STORED_HUMAN_KINDS
+        if stored and self.env.kind != "overcooked":
+            raise ValueError(f"human.kind={self.human.kind} is made from Overcooked play: it needs env.kind: overcooked")
         if self.human.kind == "noisy_greedy" and self.env.kind != "gridworld":
             raise ValueError("human.kind=noisy_greedy walks to a gridworld goal: it needs env.kind: gridworld")
-        if self.human.kind == "bc" and self.human.per_seed and self.human.seed + max(self.train.seeds) > MAX_SEED:
-            raise ValueError(f"human.per_seed clones with seed human.seed + training seed, which passes {MAX_SEED:,} "
-                             f"for human.seed={self.human.seed} and seed {max(self.train.seeds)}")
+        if stored and self.human.per_seed and self.human.seed + max(self.train.seeds) > MAX_SEED:
+            raise ValueError(f"human.per_seed makes each human with seed human.seed + training seed, which passes "
+                             f"{MAX_SEED:,} for human.seed={self.human.seed} and seed {max(self.train.seeds)}")
         if self.human.kind == "bc" and self.human.per_seed and self.human.adapt:
             raise ValueError("human.per_seed with human.adapt is not supported: an adapting human's pull back "
                              "to its clone assumes one clone")
-        if self.human.kind == "bc" and self.human.layout not in (None, self.env.layout):
+        if stored and self.human.layout not in (None, self.env.layout):
             raise ValueError(f"human.layout={self.human.layout!r} differs from env.layout={self.env.layout!r}")
+        clone = self.human.bc_clone() if self.human.kind == "ppo" else None
+        if clone is not None and clone.layout not in (None, self.env.layout):
+            raise ValueError(f"human.clone.layout={clone.layout!r} differs from env.layout={self.env.layout!r}")
         if self.method.kind == "oracle" and self.env.kind != "gridworld":
             raise ValueError("method.kind=oracle is gridworld-only: in Overcooked the goal is the shared reward (docs/baselines.md)")
         if self.method.kind == "oracle" and not getattr(self.env, "goal_visible", False):
@@ -564,7 +633,7 @@ def _set_path(tree: dict, dotted: str, value: Any, source: str) -> None:
 
 KIND_MODELS = {
     "env": {"gridworld": GridworldEnvSpec, "overcooked": OvercookedEnvSpec},
-    "human": {"noisy_greedy": NoisyGreedyHumanSpec, "bc": BCHumanSpec},
+    "human": {"noisy_greedy": NoisyGreedyHumanSpec, "bc": BCHumanSpec, "ppo": PPOHumanSpec},
     "method": {_kind(m): m for m in METHOD_SPECS},
 }
 

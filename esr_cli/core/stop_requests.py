@@ -34,8 +34,9 @@ class StopRequests:
     next `check` or `wait` raises Interrupted. A second one leaves the process at once, with
     that signal's exit code."""
 
-    def __init__(self, on_stop: Callable[[int, int], None] | None = None):
+    def __init__(self, on_stop: Callable[[int, int], None] | None = None, unit: str = "epoch"):
         self.signum: int | None = None
+        self.unit = unit  # what `kept` counts, for the Interrupted raised
         self._on_stop = on_stop
         self._acknowledged = False
 
@@ -66,7 +67,7 @@ class StopRequests:
         """Raise Interrupted (acknowledged first) if a stop was asked."""
         if self.signum is not None:
             self.acknowledge(kept)
-            raise Interrupted(kept, self.signum)
+            raise Interrupted(kept, self.signum, self.unit)
 
     def wait(self, work: Callable[[], T], kept: int, abandon: bool = True) -> T:
         """work() in a daemon thread while this one looks for a stop every POLL_S. abandon: a

@@ -9,11 +9,12 @@ import signal
 
 class Interrupted(Exception):
     """Ctrl-C (SIGINT) or SIGTERM arrived; the run stopped, keeping its checkpoint of `epoch`
-    (the chunk in flight, if any, is dropped). The command exits with `exit_code`."""
+    (the chunk in flight, if any, is dropped). The command exits with `exit_code`. `unit`:
+    what `epoch` counts (a trained human counts PPO updates)."""
 
-    def __init__(self, epoch: int, signum: int = signal.SIGINT):
-        self.epoch, self.signum = epoch, signum
-        super().__init__(f"interrupted after epoch {epoch}")
+    def __init__(self, epoch: int, signum: int = signal.SIGINT, unit: str = "epoch"):
+        self.epoch, self.signum, self.unit = epoch, signum, unit
+        super().__init__(f"interrupted after {unit} {epoch}")
 
     @property
     def exit_code(self) -> int:
