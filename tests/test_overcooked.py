@@ -10,6 +10,7 @@ from esr_cli import spec as specs
 from esr_cli.envs.overcooked import INTERACT, LAYOUTS, NUM_ACTIONS, STAY, Overcooked
 from esr_cli.humans import bc
 from esr_cli.humans import overcooked_data as od
+from esr_cli.humans.policy_human import PolicyHuman
 
 
 @pytest.fixture(scope="module")
@@ -194,7 +195,7 @@ def test_urgency_channel_is_ignored():
 def _human(env, **kw):
     net = bc.policy_net((16,))
     params = net.init(jax.random.PRNGKey(0), jnp.zeros((1,) + env.obs_shape))
-    return bc.BCHuman(env=env, params=params, hidden=(16,), adapt=True, **kw)
+    return PolicyHuman(env=env, params=params, logits_fn=bc.logits_fn((16,)), adapt=True, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -310,7 +311,7 @@ def test_per_seed_humans_are_one_clone_per_training_seed(cramped):
     for i in range(2):
         for got, want in zip(jax.tree.leaves(jax.tree.map(lambda x: x[i], states.params)), jax.tree.leaves(params[i])):
             np.testing.assert_array_equal(got, want)
-    with pytest.raises(ValueError, match="2 clones for 3 seeds"):
+    with pytest.raises(ValueError, match="2 humans for 3 seeds"):
         make_human(spec.human, cramped, params, (3, 7, 9))
     with pytest.raises(specs.SpecError, match="per_seed with human.adapt is not supported"):
         specs.load("experiments/cramped_room.yaml", "smoke", ["human.per_seed=true", "human.adapt=true"])

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from esr_cli import human_runs, runs, spec as specs
+from esr_cli import human_runs, runs, spec as specs, stored_humans
 from esr_cli.artifacts import ensure
 from esr_cli.humans import overcooked_data as od
 from esr_cli.networks import MLP, conv_net, orthogonal
@@ -77,7 +77,7 @@ def test_human_and_data_artifacts(random_smoke, store, console):
     assert ensure(human_runs.human_recipe(spec.human, "coord_ring", console), store) == (path, True)
     assert ensure(human_runs.data_recipe("coord_ring", console), store) == (data_path, True)
     # The stored parameters load back into the policy the manifest describes.
-    params = human_runs.human_params(spec.human, "coord_ring", store)
+    params = stored_humans.human_params(spec.human, "coord_ring", store)
     logits = MLP(hidden=(64, 64), out=6, out_scale=0.01).apply(params, jnp.zeros((1, 5, 5, 26)))
     assert logits.shape == (1, 6)
 
@@ -98,9 +98,9 @@ def test_run_depends_on_the_human_by_key_and_repeats_as_a_cache_hit(random_smoke
 def test_a_missing_human_is_a_clear_error(small_data, tmp_path):
     spec = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN)
     with pytest.raises(StoreError, match="not built"):
-        human_runs.human_params(spec.human, "coord_ring", Store(tmp_path))
+        stored_humans.human_params(spec.human, "coord_ring", Store(tmp_path))
     with pytest.raises(StoreError, match="needs the store"):
-        human_runs.human_params(spec.human, "coord_ring", None)
+        stored_humans.human_params(spec.human, "coord_ring", None)
 
 
 def test_co_adapting_human_learns_inside_the_runner(random_smoke, store):
@@ -111,7 +111,7 @@ def test_co_adapting_human_learns_inside_the_runner(random_smoke, store):
     trainer = build_trainer(spec, store)
     assert trainer.human_learns and "human_kl_to_bc" in trainer.metric_names
     state = loop.final_state(trainer, path)  # the human's state is checkpointed with the rest
-    clone = human_runs.human_params(spec.human, "coord_ring", store)
+    clone = stored_humans.human_params(spec.human, "coord_ring", store)
     moved = max(float(np.abs(np.asarray(a)[0] - b).max()) for a, b in zip(jax.tree.leaves(state.human.params), jax.tree.leaves(clone)))
     assert moved > 0
     rows = loop.read_rows(path)
@@ -230,7 +230,7 @@ def test_a_run_with_per_seed_humans(per_seed_run, store):
     trainer = build_trainer(spec, store)
     state = loop.final_state(trainer, path)
     for i, clone in enumerate(spec.human.clones(spec.train.seeds)):
-        want = human_runs.human_params(clone, "coord_ring", store)
+        want = stored_humans.human_params(clone, "coord_ring", store)
         for got, w in zip(jax.tree.leaves(jax.tree.map(lambda x: x[i], state.human.params)), jax.tree.leaves(want)):
             np.testing.assert_array_equal(got, w)
 

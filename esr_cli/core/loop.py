@@ -2,7 +2,8 @@
 
 The Brax pattern: a short Python loop over jitted chunks of `chunk_epochs` epochs (all seeds
 in one program: vmapped on an accelerator, one after another on the CPU). Between chunks the
-host appends the chunk's metrics to `metrics.jsonl`, saves an orbax checkpoint of the *whole* training state (parameters,
+host appends the chunk's metrics to `metrics.jsonl` (and to TensorBoard's event files,
+core/event_log.py), saves an orbax checkpoint of the *whole* training state (parameters,
 optimiser states, replay buffer, RNG keys), and updates the progress bar. A run started again
 in the same directory restores the newest complete checkpoint and continues exactly where it
 stopped; metrics lines past that checkpoint are dropped first.
@@ -29,6 +30,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from esr_cli import faults
+from esr_cli.core.event_log import EventLog
 from esr_cli.finals import read_rows
 from esr_cli.checkpoint_files import (
     CHECKPOINT_DIGESTS, CHECKPOINT_DIR, epochs_problem, read_digests, record_digests, step_intact, verified_steps,
@@ -224,6 +226,7 @@ def train(
     if on_start:
         on_start(epoch, total)
     mngr = checkpoint_manager(run_dir)
+    events = EventLog(run_dir, seeds, read_rows(run_dir))
     chunks_done = 0
     try:
         with StopRequests(on_stop).installed() as stop:
@@ -237,6 +240,7 @@ def train(
                 rows = _metric_rows(metrics, epoch, steps_per_epoch)
                 with open(run_dir / METRICS_FILE, "a") as f:
                     f.write("".join(json.dumps(r) + "\n" for r in rows))
+                events.append(rows)
                 epoch += n
                 chunks_done += 1
                 faults.reached("after_metrics", chunks_done)
@@ -250,6 +254,7 @@ def train(
                     raise TimeLimitReached(epoch, total)
     finally:
         mngr.close()
+        events.close()
     keep_newest_checkpoint(run_dir)
     return summarize(read_rows(run_dir))
 
