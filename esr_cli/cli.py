@@ -19,9 +19,21 @@ from rich.text import Text
 
 from esr_cli import spec as specs, targets
 from esr_cli.artifacts import ensure
-from esr_cli.printing import plain_console, printable, tagged
+from esr_cli.printing import plain_console, print_table, printable, tagged
 from esr_cli.stop_signals import StopSignals, Terminated, stop_signals_raise
 from esr_cli.store import KINDS, RUN_KIND, Store, StoreError, nearest_existing, probe_writable
+
+def _flag_type_hidden(display_type_rich):
+    """Typer's help names a flag's type ("--json <bool>") as if it took a value; a flag takes
+    none, so its row shows the flag alone."""
+
+    def display(self, ctx):
+        return None if getattr(self, "is_flag", False) else display_type_rich(self, ctx)
+
+    return display
+
+
+typer.core.TyperOption.display_type_rich = _flag_type_hidden(typer.core.TyperOption.display_type_rich)
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -713,58 +725,48 @@ def paper_(
 
 
 # ---------------------------------------------------------------- ls / show / verify
-def _field(info, *path):
-    """info[path[0]][path[1]]...; None where a level is missing or not an object (an imported
-    manifest is only checked for the fields the store itself reads)."""
-    for name in path:
-        info = info.get(name) if isinstance(info, dict) else None
-    return info
-
-
 @app.command("ls")
-def ls():
-    """List the artifacts in the store."""
-    from esr_cli.finals import run_progress
+def ls(
+    kind: Optional[str] = typer.Option(None, "--kind", help=f"only this kind: {', '.join(KINDS)}"),
+    name: Optional[str] = typer.Option(None, "--spec", help="only artifacts of this spec name (e.g. grid_2)"),
+    method: Optional[str] = typer.Option(None, "--method", help="only runs of this method (esr, random, ave, ...)"),
+    budget: Optional[str] = typer.Option(None, "--budget", "-b", help="only this budget: paper | quick | smoke"),
+    as_json: bool = typer.Option(False, "--json", help="one JSON array of rows (fields: docs/store.md)"),
+):
+    """List the artifacts in the store (every column in full, on a terminal or piped)."""
+    from esr_cli import listing
 
-    table = Table(caption="final return: a run's mean over each seed's last 10% of epochs (so far, if unfinished), "
-                          "averaged over seeds, as in figures and reports; an evaluation's mean episode return")
-    for col in ("kind", "name", "key", "budget", "seeds", "status", "epochs", "final return"):
-        table.add_column(col, no_wrap=col in ("key", "epochs"))
-    n, damaged = 0, []
-    for e in STATE.store.entries():
-        m = e.manifest or {}
-        status = "damaged" if e.status == "complete" and e.manifest is None else e.status  # unreadable manifest
-        if e.status == "partial" and isinstance(m.get("stopped"), dict):
-            status = "stopped"  # saved at a chunk boundary on purpose; the same command continues it
-        if status == "damaged":
-            damaged.append(e.problem)
-        seeds = m.get("seeds")
-        epochs = ""
-        if e.kind == RUN_KIND:
-            # A run's manifest summary is its last 10 epochs; "final" everywhere else is the last 10%.
-            done, ret = run_progress(e.path)
-            target = _field(m, "key_components", "spec", "train", "epochs")
-            epochs = f"{done:,}" if e.status == "complete" or not isinstance(target, int) else f"{done:,} of {target:,}"
-        else:
-            ret = _field(m, "summary", "return", "mean")
-        table.add_row(
-            e.kind,
-            str(m.get("name", "?")),
-            e.key[:12],
-            str(m.get("budget", "?")),
-            str(len(seeds)) if seeds and isinstance(seeds, list) else "?",
-            status,
-            epochs,
-            f"{ret:.2f}" if isinstance(ret, (int, float)) else "",
-        )
-        n += 1
-    if n == 0:
-        err.print(f"store {STATE.store.root} is empty" if STATE.store.root.is_dir() else
+    if kind is not None and kind not in KINDS:
+        raise Exit(2, f"--kind: unknown kind {kind!r}; kinds: {', '.join(KINDS)}")
+    if budget is not None:
+        _check_budget(budget)
+    found = list(listing.rows(STATE.store, kind, name, method, budget))
+    if as_json:
+        out.print_json(json.dumps([r for r, _ in found]))
+        return
+    if not found:
+        filtered = any(v is not None for v in (kind, name, method, budget))
+        err.print("no artifact matches those filters" if filtered and STATE.store.root.is_dir() else
+                  f"store {STATE.store.root} is empty" if STATE.store.root.is_dir() else
                   f"no store at {STATE.store.root} (nothing has been made there yet)")
         return
-    out.print(table)
-    for problem in damaged:  # one line each; the others are listed above all the same
-        err.print(f"damaged manifest: {problem}")
+    table = Table(caption=listing.FINAL_RETURN + "; another artifact's return is the one its summary names")
+    for col in ("kind", "name", "key", "budget", "seeds", "status", "epochs", "final return", "created", "method",
+                "overrides"):
+        table.add_column(col, no_wrap=True)
+    for r, entry in found:
+        epochs = "" if r["epochs"] is None else (f"{r['epochs']:,}" if r["status"] == "complete" or r["epochs_total"] is None
+                                                 else f"{r['epochs']:,} of {r['epochs_total']:,}")
+        overrides = "" if entry.kind != RUN_KIND else ("(no spec file resolves to it)" if r["overrides"] is None
+                                                      else " ".join(r["overrides"]) or "-")
+        table.add_row(entry.kind, printable(r["name"] or "?"), r["key"][:12], printable(r["budget"] or "?"),
+                      str(r["seeds"] or "?"), r["status"], epochs,
+                      "" if r["final_return"] is None else f"{r['final_return']:.2f}", (r["created"] or "")[:16].replace("T", " "),
+                      printable(r["method"] or ""), printable(overrides))
+    print_table(out, table)  # piped, every cell in full
+    for _, entry in found:  # one line each; the others are listed above all the same
+        if listing.status_of(entry) == "damaged":
+            err.print(f"damaged manifest: {entry.problem}")
 
 
 # ---------------------------------------------------------------- play
@@ -879,12 +881,79 @@ def plays(
 
 
 @app.command()
-def show(ref: str = typer.Argument(..., help="artifact key, key prefix or path", show_default=False)):
-    """Print an artifact's manifest, including every component of its key."""
+def show(
+    ref: str = typer.Argument(..., help="artifact key, key prefix or path", show_default=False),
+    as_json: bool = typer.Option(False, "--json", help="the whole manifest, every component of the key included"),
+):
+    """Print what an artifact is: a readable summary, or its manifest with --json."""
     path = STATE.store.resolve(ref)
     manifest = STATE.store.read_manifest(path)
-    out.print(Text(printable(str(path)), style="bold"), highlight=False)
-    out.print_json(json.dumps(manifest))
+    if as_json:
+        out.print(Text(printable(str(path)), style="bold"), highlight=False)
+        out.print_json(json.dumps(manifest))
+        return
+    from esr_cli import listing
+
+    from esr_cli.store import Entry
+
+    entry = Entry(path.parent.parent.name, path.name, path, "complete", manifest)
+    for label, value in _show_lines(listing.row(entry), manifest):
+        out.print(f"{label + ':':<14} {printable(str(value))}", highlight=False, markup=False)
+
+
+def _flat_scalars(tree, prefix: str = "", depth: int = 3) -> list[tuple[str, object]]:
+    """The numbers and words of a summary as dotted names (lists of many values left out)."""
+    if not isinstance(tree, dict) or depth == 0:
+        return []
+    out = []
+    for k, v in tree.items():
+        name = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out += _flat_scalars(v, name + ".", depth - 1)
+        elif isinstance(v, float):
+            out.append((name, f"{v:.4g}"))
+        elif isinstance(v, (int, str, bool)) or (isinstance(v, list) and len(v) <= 8 and not any(isinstance(x, (dict, list)) for x in v)):
+            out.append((name, v))
+    return out
+
+
+def _show_lines(r: dict, manifest: dict) -> list[tuple[str, object]]:
+    from esr_cli.listing import field
+
+    lines = [("path", r["path"]), ("kind", r["kind"]), ("name", r["name"]), ("key", r["key"])]
+    for label, value in (("budget", r["budget"]), ("seeds", r["seeds"]), ("status", r["status"]),
+                         ("method", r["method"]), ("env", r["env"]), ("created", r["created"]),
+                         ("commit", manifest.get("commit")), ("device", manifest.get("device")),
+                         ("wall time", f"{manifest['wall_time_s']:,.0f} s" if isinstance(manifest.get("wall_time_s"), (int, float)) else None)):
+        if value is not None:
+            lines.append((label, value))
+    if r["epochs"] is not None:
+        lines.append(("epochs", f"{r['epochs']:,}" + (f" of {r['epochs_total']:,}" if r["epochs_total"] and r["epochs"] != r["epochs_total"] else "")))
+    if r["kind"] == RUN_KIND:
+        from esr_cli.finals import run_finals
+
+        try:
+            finals = run_finals(Path(r["path"]))["return"]
+        except (OSError, KeyError, TypeError, ValueError):
+            finals = None
+        n = finals["seeds"] - finals.get("missing", 0) if finals else 0
+        if n:
+            text = f"{finals['mean']:.2f}" + (f" ± {finals['se']:.2f} (SE)" if n > 1 else "") + \
+                (f", IQM {finals['iqm']:.2f}" if "iqm" in finals else "")
+            lines.append(("final return", f"{text} over {n} seed{'s' if n != 1 else ''} (each seed's mean over its last 10% of epochs)"))
+        lines.append(("overrides", "(no spec file in experiments/ resolves to it)" if r["overrides"] is None
+                      else " ".join(f"--set {o}" for o in r["overrides"]) or "none: the spec file as it is"))
+    else:
+        if r["final_return"] is not None:
+            lines.append(("return", f"{r['final_return']:.2f} ({r['return_of']})"))
+        lines += [(f"  {name}", value) for name, value in _flat_scalars(manifest.get("summary"))]
+    deps = field(manifest, "key_components", "dependencies")
+    if isinstance(deps, dict) and deps:
+        lines.append(("depends on", ", ".join(f"{k} {v if isinstance(v, str) else ', '.join(map(str, v))}" for k, v in deps.items())))
+    files = manifest.get("files")
+    if isinstance(files, dict):
+        lines.append(("files", f"{len(files)} (esr verify checks them); --json: the whole manifest"))
+    return lines
 
 
 @app.command()

@@ -85,12 +85,53 @@ def save_figure(fig, out_png: Path, provenance: dict, pdf: bool = False) -> Path
     return out_png
 
 
-def rollout_gif(frames: list[np.ndarray], out_gif: Path, fps: int = 6) -> Path:
-    import imageio.v2 as imageio
+GIF_MIN_SIDE = 360  # px: a frame is scaled up (nearest neighbour, whole multiples) to at least this
+GIF_LAST_FRAME_MS = 1500  # the end of the episode stays on screen
+
+
+def frame_caption(step: int, steps: int, actions: tuple[str, str] | None, reward: float | None, total: float) -> str:
+    """The text under frame `step` (0: the start; t: after the t-th step, whose actions and
+    reward it names)."""
+    if actions is None:
+        return f"step 0/{steps}: the start   return 0\n"
+    return f"step {step}/{steps}   reward {reward:g}   return {total:g}\nrobot: {actions[0]}   human: {actions[1]}"
+
+
+def annotated_frames(frames: list[np.ndarray], captions: list[str]) -> list[np.ndarray]:
+    """Each frame scaled up to at least GIF_MIN_SIDE px and its caption (two lines) in a strip below."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    h, w = frames[0].shape[:2]
+    scale = max(1, -(-GIF_MIN_SIDE // min(h, w)))
+    try:
+        font = ImageFont.load_default(size=14)
+    except TypeError:  # a Pillow without FreeType's default font
+        font = ImageFont.load_default()
+    strip = 44
+    out = []
+    for frame, caption in zip(frames, captions):
+        img = Image.fromarray(np.asarray(frame, np.uint8)).resize((w * scale, h * scale), Image.NEAREST)
+        canvas = Image.new("RGB", (w * scale, h * scale + strip), (255, 255, 255))
+        canvas.paste(img, (0, 0))
+        ImageDraw.Draw(canvas).multiline_text((6, h * scale + 4), caption, fill=(0, 0, 0), font=font, spacing=4)
+        out.append(np.asarray(canvas))
+    return out
+
+
+def rollout_gif(frames: list[np.ndarray], out_gif: Path, fps: int = 6, captions: list[str] | None = None) -> Path:
+    """One GIF frame per state (steps + 1), each shown 1000 / fps ms (the last longer), with
+    its caption under it when given."""
+    from PIL import Image
 
     out_gif = Path(out_gif)
     out_gif.parent.mkdir(parents=True, exist_ok=True)
-    imageio.mimsave(out_gif, frames, duration=1.0 / fps, loop=0)
+    if captions is not None:
+        frames = annotated_frames(frames, captions)
+    images = [Image.fromarray(np.asarray(f, np.uint8)) for f in frames]
+    durations = [round(1000 / fps)] * (len(images) - 1) + [GIF_LAST_FRAME_MS]
+    # optimize=False and every frame kept: Pillow would otherwise merge identical frames.
+    images[0].save(out_gif, save_all=True, append_images=images[1:], duration=durations, loop=0, optimize=False,
+                   disposal=1)
     return out_gif
 
 

@@ -37,6 +37,20 @@ def plain_console(stderr: bool = False) -> Console:
     return _EscapingConsole(stderr=stderr, markup=False, soft_wrap=True)
 
 
+def print_table(console: Console, table) -> None:
+    """`table` on `console`; off a terminal (piped, redirected) as wide as its cells need, so
+    that no cell is cut to the 80 columns a pipe reports."""
+    if console.is_terminal:
+        console.print(table)
+        return
+    width = console.width
+    console.width = max(width, console.measure(table, options=console.options.update(width=100_000)).maximum)
+    try:
+        console.print(table)
+    finally:
+        console.width = width
+
+
 def tagged(tag: str, style: str, *rest: str) -> Text:
     """`tag` in `style`, then `rest` as written but for control characters (`printable`):
     tagged("ok", "green", " ", str(path))."""

@@ -35,7 +35,8 @@ def _fmt_stats(row: dict, steps_per_s: float) -> str:
         vals = [v for v in row.get(name, []) if v is not None]
         return float(np.mean(vals)) if vals else float("nan")
 
-    parts = [f"ret {mean('return'):.2f}", f"succ {mean('success'):.2f}"]
+    # The last epoch's, as the label says: the final return (last 10%) is the listings' and reports'.
+    parts = [f"last-epoch return {mean('return'):.2f}", f"succ {mean('success'):.2f}"]
     if "mi_estimate" in row:
         parts.append(f"MI {mean('mi_estimate'):+.3f}")
     parts.append(f"{steps_per_s:,.0f} steps/s")

@@ -157,8 +157,24 @@ def committed_run(spec, command: str, store: Store) -> Path:
     if not hit:
         if store.partial_path(RUN_KIND, key).is_dir():
             raise StoreError(f"{spec.name} ({spec.budget}) is not finished in {store.root}: run `{command}` to continue it")
-        raise StoreError(f"{spec.name} ({spec.budget}) is not trained in {store.root}: run `{command}` first")
+        raise StoreError(f"{spec.name} ({spec.budget}) is not trained in {store.root}: run `{command}` first"
+                         + other_budgets_hint(spec, store))
     return hit
+
+
+def other_budgets_hint(spec, store: Store) -> str:
+    """'; the store has NAME at --budget quick (complete), ...' for the runs of this spec's
+    name at other budgets, or '' where there are none."""
+    found: dict[str, set[str]] = {}
+    for entry in store.entries():
+        m = entry.manifest or {}
+        if entry.kind != RUN_KIND or m.get("name") != spec.name or m.get("budget") in (None, spec.budget):
+            continue
+        found.setdefault(str(m["budget"]), set()).add("finished" if entry.status == "complete" else "unfinished")
+    if not found:
+        return ""
+    listed = ", ".join(f"--budget {b} ({' and '.join(sorted(states))})" for b, states in sorted(found.items()))
+    return f"; the store has {spec.name} at {listed}: add that option to use one"
 
 
 def find_run(target: str, budget: str, sets, store: Store) -> Path:
@@ -236,8 +252,13 @@ def eval_recipe(run_path: Path, store: Store, episodes: int | None, console: Con
         # One picture of the robot at work: the first seed's first episode, first policy mode.
         mode = ev.policy_modes(trainer)[0]
         traj = ev.episode_states(results[mode]["states"], 0, 0)
-        frames = [np.asarray(trainer.env.render(index(traj, t))) for t in range(trainer.env.episode_steps + 1)]
-        plots.rollout_gif(frames, eval_dir / "rollout.gif")
+        robot, human, reward = ev.episode_steps(results[mode]["steps"], 0, 0)
+        steps = trainer.env.episode_steps
+        frames = [np.asarray(trainer.env.render(index(traj, t))) for t in range(steps + 1)]
+        totals = np.concatenate([[0.0], np.cumsum(reward)])
+        captions = [plots.frame_caption(t, steps, trainer.env.action_names(robot[t - 1], human[t - 1]) if t else None,
+                                        float(reward[t - 1]) if t else None, float(totals[t])) for t in range(steps + 1)]
+        plots.rollout_gif(frames, eval_dir / "rollout.gif", captions=captions)
         prov = {"artifacts": {RUN_KIND: run_manifest["key"], EVAL_KIND: key}, "budget": spec.budget, "seeds": list(spec.train.seeds)}
         plots.learning_curve(
             read_rows(run_path), eval_dir / "learning_curve.png", f"{spec.name} [{spec.method.kind}]", prov,

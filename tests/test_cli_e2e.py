@@ -24,7 +24,7 @@ def test_train_commits_a_complete_artifact(smoke_run):
     assert (path / "spec.yaml").exists() and list((path / "checkpoints").iterdir())
     assert not list(path.parent.glob("*.partial"))
     # stderr is not a terminal here: a plain line per chunk (1 epoch at smoke) for a log file
-    assert "grid_2 [smoke] epoch 1/2  ret" in proc.stderr and "grid_2 [smoke] epoch 2/2  ret" in proc.stderr
+    assert "grid_2 [smoke] epoch 1/2  last-epoch return" in proc.stderr and "grid_2 [smoke] epoch 2/2  last-epoch return" in proc.stderr
 
 
 def test_repeat_is_a_cache_hit_that_trains_nothing(smoke_run):
@@ -41,9 +41,29 @@ def test_ls_show_verify(smoke_run):
     store, path, _ = smoke_run
     ls = esr("ls", store=store, COLUMNS="300").stdout  # rich wraps narrow columns off a terminal
     assert "grid_2" in ls and path.name[:12] in ls and "complete" in ls
-    show = esr("show", path.name[:8], store=store).stdout
+    show = esr("show", path.name[:8], "--json", store=store).stdout
     assert '"key_components"' in show and '"toolchain"' in show and '"code"' in show
+    readable = esr("show", path.name[:8], store=store).stdout
+    assert "final return:" in readable and "last 10% of epochs" in readable and "overrides:" in readable
+    assert f"key:           {path.name}" in readable and "{" not in readable
     assert esr("verify", path.name, store=store).returncode == 0
+
+
+def test_ls_json_filters_and_piped_cells_in_full(smoke_run):
+    store, path, _ = smoke_run
+    rows = json.loads(esr("ls", "--json", store=store).stdout)
+    run = next(r for r in rows if r["key"] == path.name)
+    assert set(run) == {"kind", "name", "key", "path", "budget", "seeds", "status", "epochs", "epochs_total",
+                        "final_return", "return_of", "created", "method", "env", "overrides"}
+    assert (run["kind"], run["name"], run["budget"], run["status"], run["method"]) == ("runs", "grid_2", "smoke", "complete", "esr")
+    assert run["overrides"] == [] and run["created"].startswith("20") and run["epochs"] == run["epochs_total"]
+    assert json.loads(esr("ls", "--json", "--budget", "paper", store=store).stdout) == []
+    assert json.loads(esr("ls", "--json", "--method", "random", "--kind", "runs", store=store).stdout) == []
+    assert [r["key"] for r in json.loads(esr("ls", "--json", "--spec", "grid_2", "--kind", "runs", store=store).stdout)] \
+        == [r["key"] for r in rows if r["kind"] == "runs" and r["name"] == "grid_2"]
+    piped = esr("ls", store=store, COLUMNS="80").stdout  # a pipe: no terminal, 80 columns reported
+    assert "…" not in piped and "..." not in piped and "complete" in piped and "budget" in piped
+    assert esr("ls", "--kind", "bogus", store=store, check=False).returncode == 2
 
 
 def test_unknown_key_is_a_one_line_error(smoke_run):
@@ -62,6 +82,18 @@ def test_eval_writes_summary_gif_and_curve(smoke_run):
     for r in summary["results"].values():
         assert 0 <= r["success_mean"] <= 1 and 0 <= r["return_mean"] <= 50
     assert (path / "rollout.gif").stat().st_size > 500 and (path / "learning_curve.png").exists()
+    from PIL import Image
+
+    gif = Image.open(path / "rollout.gif")
+    durations = []
+    for i in range(10_000):
+        try:
+            gif.seek(i)
+        except EOFError:
+            break
+        durations.append(gif.info["duration"])
+    assert len(durations) == 50 + 1 and min(durations) > 0  # one frame per state of the 50-step episode
+    assert min(gif.size) >= 360
     assert "(1 seed)" in proc.stderr and "± 0.00" not in proc.stderr  # one seed claims no spread
     again = esr("eval", run_path.name, store=store)
     assert "cache hit" in again.stderr and again.stdout.strip() == str(path)
@@ -71,6 +103,13 @@ def test_eval_of_an_untrained_spec_says_how_to_train(smoke_run):
     store, _, _ = smoke_run
     proc = esr("eval", "experiments/grid_2.yaml", "--budget", "smoke", "--set", "learner.gamma=0.5", store=store, check=False)
     assert proc.returncode == 2 and "esr train experiments/grid_2.yaml" in proc.stderr
+
+
+def test_a_spec_trained_only_at_another_budget_says_which_and_the_option(smoke_run):
+    store, _, _ = smoke_run
+    proc = esr("eval", "experiments/grid_2.yaml", store=store, check=False)
+    assert proc.returncode == 2 and "grid_2 (paper) is not trained" in proc.stderr
+    assert "the store has grid_2 at --budget smoke (finished)" in proc.stderr
 
 
 def test_random_robot_runs_on_the_same_runner(smoke_store):
@@ -121,3 +160,10 @@ def test_runs_can_share_a_gpu_unless_the_user_says_otherwise(tmp_path, monkeypat
     monkeypatch.setenv("XLA_PYTHON_CLIENT_PREALLOCATE", "true")
     assert main(["--store", str(tmp_path), "ls"]) == 0
     assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "true"
+
+
+def test_help_shows_flags_as_flags_and_values_with_their_type(tmp_path):
+    text = esr("play", "--help", store=tmp_path, COLUMNS="200").stdout
+    web = next(line for line in text.splitlines() if "--web " in line)
+    port = next(line for line in text.splitlines() if "--port" in line)
+    assert "<bool>" not in text and "<int>" in port and "<" not in web

@@ -546,7 +546,7 @@ def test_a_store_path_that_looks_like_markup_is_printed_as_written(tmp_path, cap
     there = tmp_path / "t[/]"
     assert main(["--store", str(there), "import", str(archive)]) == 0
     assert capsys.readouterr().out.strip() == str(there / "runs" / key[:2] / key)
-    assert main(["--store", str(there), "show", key[:8]]) == 0
+    assert main(["--store", str(there), "show", key[:8], "--json"]) == 0
     assert capsys.readouterr().out.splitlines()[0] == str(there / "runs" / key[:2] / key)
 
 

@@ -39,3 +39,21 @@ def test_suite_panels_group_runs_by_environment_and_name_lines_by_method(tmp_pat
     # Two ESR runs in one panel are told apart by their labels.
     assert [label for label, _, _ in panels[1][1]] == ["grid_5", "grid_5 learner.gamma=0.0"]
     assert [label for label, _, _ in panels[2][1]] == ["ESR (ours)"]
+
+
+def test_frame_captions_name_the_step_its_actions_reward_and_return():
+    from esr_cli.plots import frame_caption
+
+    assert frame_caption(0, 50, None, None, 0.0).startswith("step 0/50: the start")
+    text = frame_caption(3, 50, ("push (4,1) up", "right"), 1.0, 2.0)
+    assert text == "step 3/50   reward 1   return 2\nrobot: push (4,1) up   human: right"
+
+
+def test_gridworld_and_overcooked_name_their_actions():
+    from esr_cli.envs.gridworld import Gridworld
+    from esr_cli.envs.overcooked import Overcooked
+
+    grid = Gridworld(size=5, num_blocks=2, start="corner", episode_steps=50)
+    assert grid.action_names(4 * 5 + 3, 0) == ("push (0,4) up", "left")
+    assert grid.action_names(7 * 5 + 4, 4) == ("no push", "stay")
+    assert Overcooked("cramped_room", 400).action_names(5, 4) == ("interact", "stay")

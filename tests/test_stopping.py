@@ -137,7 +137,7 @@ def test_the_estimate_names_the_epoch_time_the_run_the_quick_budget_and_a_run_ov
     assert "grid_2 [paper]: 45 s an epoch (20 seeds); 10,000 epochs: about 5.2 days here; " \
            "--budget quick: about 5.6 min" in text  # 45 s / 20 seeds x 1 seed x 150 epochs
     assert "note: this run needs more than a day on this machine (5.2 days); it goes on" in text
-    assert "epoch 1/10,000  ret 1.00" in text and "ETA 5.2 days" in text  # a log file's line per chunk
+    assert "epoch 1/10,000  last-epoch return 1.00" in text and "ETA 5.2 days" in text  # a log file's line per chunk
 
     coop = specs.load("experiments/cramped_room.yaml", "paper")
     assert quick_estimate(coop, specs.load("experiments/cramped_room.yaml", "quick"), 1.0)[0] is None

@@ -37,7 +37,8 @@ def episodes_per_program(episode_steps: int, n_seeds: int) -> int:
 def evaluate(trainer: Trainer, state: TrainState, episodes: int, seeds,
              progress: Callable[[int, int], None] | None = None) -> dict:
     """-> {mode: {"return": float[seeds, episodes], "success": bool[seeds, episodes],
-    "states": the first chunk's env-state trajectories}}. Episodes run in chunks of at most
+    "states": the first chunk's env-state trajectories, "steps": its (robot actions, human
+    actions, rewards), each [seeds, episodes, T]}}. Episodes run in chunks of at most
     `episodes_per_program` per seed; chunk c > 0 draws from the seed's key folded with c.
     `progress(done, total)` is called after each chunk, in episodes per seed over all modes."""
     out = {}
@@ -49,24 +50,30 @@ def evaluate(trainer: Trainer, state: TrainState, episodes: int, seeds,
 
         def run(lstate, hstate, key, n, mode=mode):
             roll = trainer.rollout(lstate, key, n, mode, hstate=hstate)
-            return roll.episodes.reward.sum(axis=1), roll.states
+            steps = (roll.episodes.robot_action, roll.episodes.human_action, roll.episodes.reward)
+            return roll.episodes.reward.sum(axis=1), (roll.states, steps)
 
         program = jax.jit(jax.vmap(run, in_axes=(0, 0, 0, None)), static_argnums=3)  # one compile per chunk size
         parts, states, done = [], None, m * episodes
         for c, n in enumerate(sizes):
             chunk_keys = keys if c == 0 else jax.vmap(lambda k, c=c: jax.random.fold_in(k, c))(keys)
-            returns, chunk_states = program(state.learner, state.human, chunk_keys, n)
+            returns, (chunk_states, chunk_steps) = program(state.learner, state.human, chunk_keys, n)
             parts.append(np.asarray(returns))
-            if c == 0:
-                states = chunk_states  # for the GIF; later chunks' trajectories are dropped
+            if c == 0:  # for the GIF; later chunks' trajectories are dropped
+                states, steps = chunk_states, chunk_steps
             done += n
             if progress is not None:
                 progress(done, len(modes) * episodes)
         returns = np.concatenate(parts, axis=1)
-        out[mode] = {"return": returns, "success": returns > 0, "states": states}
+        out[mode] = {"return": returns, "success": returns > 0, "states": states, "steps": steps}
     return out
 
 
 def episode_states(states, seed_index: int, episode: int):
     """The env-state trajectory [T+1] of one evaluation episode."""
     return jax.tree.map(lambda x: np.asarray(x[seed_index, :, episode]), states)
+
+
+def episode_steps(steps, seed_index: int, episode: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(robot actions [T], human actions [T], rewards [T]) of one evaluation episode."""
+    return tuple(np.asarray(x[seed_index, episode]) for x in steps)
