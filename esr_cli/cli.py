@@ -547,18 +547,30 @@ PAPER_FIGURES = ("gridworld", "overcooked", "no-robot-action", "greedy", "mi", "
 
 @app.command()
 def plot(
-    figure: str = typer.Argument(..., help="estimator | geometry | " + " | ".join(PAPER_FIGURES), show_default=False),
-    ref: Optional[str] = typer.Argument(None, help="estimator: an exact artifact made with --robot"),
+    figure: str = typer.Argument(..., help="curve | estimator | geometry | " + " | ".join(PAPER_FIGURES), show_default=False),
+    ref: Optional[str] = typer.Argument(None, help="curve: a training run, finished or not; estimator: an exact artifact made with --robot"),
     budget: Optional[str] = typer.Option(None, "--budget", "-b", help="paper figures: paper | quick | smoke (default paper)"),
     gamma: Optional[float] = typer.Option(None, "--gamma", help="geometry: the future-state horizon (default 0.2)"),
     state: Optional[int] = typer.Option(None, "--state", help="geometry: which of the 3 states (default 0)"),
+    out_file: Optional[Path] = typer.Option(None, "--out", help="curve: the PNG to write (default: NAME-KEY8-curve.png here)"),
 ):
-    """Draw a figure from artifacts (never trains; a missing run is named with its command)."""
-    if figure not in ("estimator", "geometry", *PAPER_FIGURES):
-        raise Exit(2, f"unknown figure {figure!r}; known: estimator, geometry, {', '.join(PAPER_FIGURES)}")
+    """Draw a figure from artifacts (never trains; a missing run is named with its command).
+    `esr plot curve RUN` draws a run's learning curves as far as it has got, unfinished or not."""
+    if figure not in ("curve", "estimator", "geometry", *PAPER_FIGURES):
+        raise Exit(2, f"unknown figure {figure!r}; known: curve, estimator, geometry, {', '.join(PAPER_FIGURES)}")
     # Each figure reads some of the options; one it would ignore is a mistake worth naming.
-    if ref is not None and figure != "estimator":
-        raise Exit(2, f"esr plot {figure} takes no artifact (got {ref!r}); only `esr plot estimator` reads one")
+    if ref is not None and figure not in ("estimator", "curve"):
+        raise Exit(2, f"esr plot {figure} takes no artifact (got {ref!r}); only `esr plot curve` and `esr plot estimator` read one")
+    if out_file is not None and figure != "curve":
+        raise Exit(2, f"--out applies to `esr plot curve` only, not to {figure}")
+    if figure == "curve":
+        if ref is None:
+            raise Exit(2, "esr plot curve needs a training run: its key, a key prefix or its directory (`esr ls`)")
+        for value, option in ((budget, "--budget"), (gamma, "--gamma"), (state, "--state")):
+            if value is not None:
+                raise Exit(2, f"{option} does not apply to `esr plot curve`")
+        _plot_curve(ref, out_file)
+        return
     if budget is not None and figure not in PAPER_FIGURES:
         raise Exit(2, f"--budget applies to the paper figures ({', '.join(PAPER_FIGURES)}), not to {figure}")
     for value, option in ((gamma, "--gamma"), (state, "--state")):
@@ -597,6 +609,37 @@ def plot(
         png = built.path / f"{figs.FIGURES[figure][0]}.png"
     err.print(tagged("cache hit" if built.cached else "drawn", "green", f": {png}"))
     out.print(str(png), highlight=False)
+
+
+def _plot_curve(ref: str, out_file: Optional[Path]) -> None:
+    """A run's learning curves from its metrics so far; an unfinished run says so in the title."""
+    path, record, finished = targets.run_record(STATE.store, ref)
+    from esr_cli import plots
+    from esr_cli.finals import read_rows
+
+    rows = read_rows(path)
+    if not rows:
+        raise Exit(2, f"{path} has no epoch logged yet: nothing to draw")
+    total = _record_field(record, "key_components", "spec", "train", "epochs")
+    done = rows[-1]["epoch"]
+    state = "" if finished else f" (unfinished: epoch {done:,}" + (f" of {total:,})" if total else ")")
+    name, key = str(record.get("name", "run")), str(record.get("key", path.name.split(".")[0]))
+    out_png = out_file or Path(f"{name}-{key[:8]}-curve.png")
+    _refuse_inside_store(out_png, "--out")
+    _check_output_file(out_png, "--out")
+    warmup = _record_field(record, "key_components", "spec", "learner", "warmup_epochs") or 0
+    method = _record_field(record, "key_components", "spec", "method", "kind")
+    title = printable(f"{name} [{method}]{state}" if method else f"{name}{state}")
+    plots.learning_curve(rows, out_png, title, {"artifacts": {RUN_KIND: key}, "finished": finished, "epochs": done},
+                         warmup_epochs=warmup)
+    err.print(tagged("drawn", "green", f": {out_png}" + ("" if finished else f", at epoch {done:,}")))
+    out.print(str(out_png), highlight=False)
+
+
+def _record_field(record, *path):
+    from esr_cli.listing import field
+
+    return field(record, *path)
 
 
 @app.command()

@@ -167,3 +167,16 @@ def test_help_shows_flags_as_flags_and_values_with_their_type(tmp_path):
     web = next(line for line in text.splitlines() if "--web " in line)
     port = next(line for line in text.splitlines() if "--port" in line)
     assert "<bool>" not in text and "<int>" in port and "<" not in web
+
+
+def test_plot_curve_draws_an_unfinished_run_and_says_so(tmp_path):
+    store = tmp_path / "store"
+    stopped = esr("train", "experiments/grid_2.yaml", "-b", "smoke", "--stop-after", "0s", store=store, check=False)
+    assert stopped.returncode == 75, stopped.stderr
+    partial = next(store.glob("runs/*/*.partial"))
+    out = tmp_path / "curve.png"
+    proc = esr("plot", "curve", str(partial), "--out", str(out), store=store)
+    assert proc.stdout.strip() == str(out) and out.stat().st_size > 1000
+    assert "at epoch 1" in proc.stderr
+    bad = esr("plot", "curve", str(partial), "--budget", "quick", store=store, check=False)
+    assert bad.returncode == 2 and "--budget does not apply" in bad.stderr
