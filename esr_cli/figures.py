@@ -31,15 +31,20 @@ from esr_cli.store import RUN_KIND, Store  # noqa: E402
 PAPER_SUITE = Path(__file__).resolve().parents[1] / "experiments" / "suites" / "paper.yaml"
 GRID_NS = (2, 5, 7, 10)
 GRID_METHODS = ("esr", "ave", "goal_inference", "iq_learn", "random", "oracle")
+# One label and one colour per method, in every figure. A user's own runs are labelled by what
+# their specs say; the paper's figures use the paper's names (PAPER_LABELS).
 METHOD_LABELS = {
-    "esr": "ESR (ours)",
+    "esr": "ESR",
     "ave": "AvE",
     "goal_inference": "Goal Inference",
-    "iq_learn": "Reward Inference",
+    "iq_learn": "Reward Inference (iq_learn)",
     "random": "Random",
     "oracle": "Oracle (sees goal)",
 }
+PAPER_LABELS = {**METHOD_LABELS, "esr": "ESR (ours)", "iq_learn": "Reward Inference"}
 METHOD_COLORS = {"esr": "C0", "ave": "C1", "goal_inference": "C2", "iq_learn": "C3", "random": "0.45", "oracle": "C4"}
+# ESR's ablations, drawn beside ESR: colours no method uses.
+ABLATION_COLORS = {"no_robot_action": "C5", "greedy": "C6"}
 OVERCOOKED_LAYOUTS = ("cramped_room", "coord_ring", "asymm_advantages")
 OVERCOOKED_METHODS = ("esr", "iq_learn", "ave", "random")
 # The paper's published Overcooked table, mean +- SE (Random: mean only; docs/paper-facts.md).
@@ -216,13 +221,13 @@ def suite_panels(runs: list[tuple[object, Path]]) -> list[tuple[str, list[tuple[
     return panels
 
 
-GRID_LINES = [(m, "grid_{n}" if m == "esr" else "grid_{n}_" + m, (), METHOD_LABELS[m], METHOD_COLORS[m]) for m in GRID_METHODS]
+GRID_LINES = [(m, "grid_{n}" if m == "esr" else "grid_{n}_" + m, (), PAPER_LABELS[m], METHOD_COLORS[m]) for m in GRID_METHODS]
 
 
 def _ablation_lines(which: str, label: str):
     return [
         ("esr", "grid_{n}", (), "ESR", METHOD_COLORS["esr"]),
-        (which, "grid_{n}", ABLATION_SETS[which], label, "C3"),
+        (which, "grid_{n}", ABLATION_SETS[which], label, ABLATION_COLORS[which]),
         ("random", "grid_{n}_random", (), "Random", METHOD_COLORS["random"]),
     ]
 
@@ -284,7 +289,7 @@ def overcooked_table(inputs: PaperInputs, out_dir: Path) -> FigureResult:
         m, se = v
         return f"{m:.2f}" if se is None else f"{m:.2f} ± {se:.2f}"
 
-    header = ["layout"] + [METHOD_LABELS[m] for m in OVERCOOKED_METHODS]
+    header = ["layout"] + [PAPER_LABELS[m] for m in OVERCOOKED_METHODS]
     body = []
     for layout in OVERCOOKED_LAYOUTS:
         body.append([layout] + [cell(ours[layout][m]) for m in OVERCOOKED_METHODS])

@@ -35,10 +35,10 @@ def test_suite_panels_group_runs_by_environment_and_name_lines_by_method(tmp_pat
         runs.append((SimpleNamespace(spec=spec, label=" ".join((spec.name, *sets))), run_dir))
     panels = figures.suite_panels(runs)
     assert [title for title, _ in panels] == ["gridworld N = 2", "gridworld N = 5", "cramped_room"]
-    assert [label for label, _, _ in panels[0][1]] == ["ESR (ours)", "Random"]
+    assert [label for label, _, _ in panels[0][1]] == ["ESR", "Random"]
     # Two ESR runs in one panel are told apart by their labels.
     assert [label for label, _, _ in panels[1][1]] == ["grid_5", "grid_5 learner.gamma=0.0"]
-    assert [label for label, _, _ in panels[2][1]] == ["ESR (ours)"]
+    assert [label for label, _, _ in panels[2][1]] == ["ESR"]
 
 
 def test_frame_captions_name_the_step_its_actions_reward_and_return():
