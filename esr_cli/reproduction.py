@@ -309,7 +309,7 @@ def _paper_repr_lr(name: str) -> Optional[float]:
 def run_label(spec: specs.Spec) -> str:
     """The method of a run as a reader knows it, with what sets it apart from the paper's
     settings in brackets: 'ESR (warm-up 20, representation rate 0.001)', 'AvE (published)'."""
-    from esr_cli.figures import METHOD_LABELS
+    from esr_cli.figures import PAPER_LABELS
 
     method, notes = spec.method, []
     if isinstance(method, specs.AvEMethodSpec) and method.variant == "original":
@@ -328,7 +328,7 @@ def run_label(spec: specs.Spec) -> str:
         notes.append("critic gamma 0")
     if spec.learner.warmup_epochs:
         notes.append(f"warm-up {spec.learner.warmup_epochs}")
-    name = METHOD_LABELS.get(method.kind, method.kind).removesuffix(" (ours)")
+    name = PAPER_LABELS.get(method.kind, method.kind).removesuffix(" (ours)")
     return name + (f" ({', '.join(notes)})" if notes else "")
 
 
