@@ -903,13 +903,13 @@ def plays(
         raise Exit(1, f"no played episodes in {STATE.store.root}" + (" for that selection" if participant or session else ""))
     table = Table()
     for col in ("key", "participant", "session", "episode", "robot", "env", "completed", "steps", "return"):
-        table.add_column(col)
+        table.add_column(col, no_wrap=col == "key")  # the whole key, as human.data takes it
     for key, header, summary in found:
         env = header["env"]
         table.add_row(key, str(header["participant"]), str(header["session"]), str(header["episode"]),
                       str(header["robot"][:12]), str(env.get("layout", env["kind"])), "yes" if summary["completed"] else "no", str(summary["steps"]),
                       f"{summary['score']:g}")
-    out.print(table)
+    print_table(out, table)
     if export is not None:
         from esr_cli.play import export as px
 

@@ -46,10 +46,6 @@ class Environment(Protocol):
 
     def render(self, state: Any, cell_px: int = ...) -> Any: ...
 
-    def action_names(self, robot_action: int, human_action: int) -> tuple[str, str]:
-        """Words for one step's actions, as a picture of an episode labels them."""
-        ...
-
 
 @runtime_checkable
 class Human(Protocol):

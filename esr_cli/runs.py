@@ -228,6 +228,7 @@ def eval_recipe(run_path: Path, store: Store, episodes: int | None, console: Con
 
     def build(eval_dir: Path, store: Store) -> dict:
         from esr_cli import plots  # matplotlib: only where an evaluation is made
+        from esr_cli.envs.action_labels import action_labels
 
         enable_compile_cache()
         trainer = build_trainer(spec, store)
@@ -256,7 +257,7 @@ def eval_recipe(run_path: Path, store: Store, episodes: int | None, console: Con
         steps = trainer.env.episode_steps
         frames = [np.asarray(trainer.env.render(index(traj, t))) for t in range(steps + 1)]
         totals = np.concatenate([[0.0], np.cumsum(reward)])
-        captions = [plots.frame_caption(t, steps, trainer.env.action_names(robot[t - 1], human[t - 1]) if t else None,
+        captions = [plots.frame_caption(t, steps, action_labels(spec.env.kind, trainer.env, robot[t - 1], human[t - 1]) if t else None,
                                         float(reward[t - 1]) if t else None, float(totals[t])) for t in range(steps + 1)]
         plots.rollout_gif(frames, eval_dir / "rollout.gif", captions=captions)
         prov = {"artifacts": {RUN_KIND: run_manifest["key"], EVAL_KIND: key}, "budget": spec.budget, "seeds": list(spec.train.seeds)}

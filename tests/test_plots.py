@@ -50,10 +50,12 @@ def test_frame_captions_name_the_step_its_actions_reward_and_return():
 
 
 def test_gridworld_and_overcooked_name_their_actions():
-    from esr_cli.envs.gridworld import Gridworld
-    from esr_cli.envs.overcooked import Overcooked
+    from esr_cli.envs.action_labels import action_labels
+    from esr_cli.envs.gridworld import DIRECTIONS, Gridworld
 
     grid = Gridworld(size=5, num_blocks=2, start="corner", episode_steps=50)
-    assert grid.action_names(4 * 5 + 3, 0) == ("push (0,4) up", "left")
-    assert grid.action_names(7 * 5 + 4, 4) == ("no push", "stay")
-    assert Overcooked("cramped_room", 400).action_names(5, 4) == ("interact", "stay")
+    assert action_labels("gridworld", grid, 4 * 5 + 3, 0) == ("push (0,4) up", "left")
+    assert action_labels("gridworld", grid, 7 * 5 + 4, 4) == ("no push", "stay")
+    assert [tuple(d) for d in DIRECTIONS.tolist()] == [(0, -1), (1, 0), (0, 1), (-1, 0), (0, 0)]  # left, down, right, up, stay
+    assert action_labels("overcooked", None, 5, 4) == ("interact", "stay")
+    assert action_labels("other", None, 2, 3) == ("action 2", "action 3")

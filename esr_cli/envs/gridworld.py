@@ -22,7 +22,6 @@ import jax.numpy as jnp
 DIRECTIONS = jnp.array([[0, -1], [1, 0], [0, 1], [-1, 0], [0, 0]], dtype=jnp.int32)
 NUM_HUMAN_ACTIONS = 5
 LEFT, DOWN, RIGHT, UP, STAY = range(5)
-DIRECTION_NAMES = ("left", "down", "right", "up", "stay")
 
 
 class GridState(NamedTuple):
@@ -96,12 +95,6 @@ class Gridworld(NamedTuple):
         reward = self.at_goal(after_human).astype(jnp.float32)
         after_robot = self.move_block(after_human, robot_action)
         return after_robot._replace(t=state.t + 1), reward
-
-    def action_names(self, robot_action: int, human_action: int) -> tuple[str, str]:
-        """('push (row, col) up', 'left'): the robot's block push and the human's step."""
-        cell, direction = divmod(int(robot_action), NUM_HUMAN_ACTIONS)
-        robot = "no push" if direction == STAY else f"push ({cell // self.size},{cell % self.size}) {DIRECTION_NAMES[direction]}"
-        return robot, DIRECTION_NAMES[int(human_action)]
 
     # ---------------------------------------------------------------- reset
     def _corner_layout(self, corner: jax.Array, gap: int):

@@ -254,9 +254,6 @@ class Overcooked(NamedTuple):
         return jax.vmap(walk)(human_actions)
 
     # ---------------------------------------------------------------- pictures
-    def action_names(self, robot_action: int, human_action: int) -> tuple[str, str]:
-        return ACTION_NAMES[int(robot_action)], ACTION_NAMES[int(human_action)]
-
     def render(self, state, cell_px: int = 32) -> np.ndarray:
         """uint8[H*cell_px, W*cell_px, 3] by JaxMARL's tile renderer (numpy, not jittable).
 
