@@ -23,12 +23,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from esr_cli import suite as suites  # noqa: E402
+from esr_cli.provenance import experiments_dir  # noqa: E402
 from esr_cli.finals import final_per_seed, read_rows, series  # noqa: E402
 from esr_cli.stats import describe, format_summary  # noqa: E402
 from esr_cli.plots import smooth  # noqa: E402
 from esr_cli.store import RUN_KIND, Store  # noqa: E402
 
-PAPER_SUITE = Path(__file__).resolve().parents[1] / "experiments" / "suites" / "paper.yaml"
+PAPER_SUITE = experiments_dir() / "suites" / "paper.yaml"
 GRID_NS = (2, 5, 7, 10)
 GRID_METHODS = ("esr", "ave", "goal_inference", "iq_learn", "random", "oracle")
 # One label and one colour per method, in every figure. A user's own runs are labelled by what

@@ -27,7 +27,7 @@ from esr_cli.printing import train_line
 from esr_cli.stats import describe, format_summary, mean_difference_ci, probability_of_improvement, scored_seeds
 from esr_cli.store import RUN_KIND, Store, atomic_write_bytes, atomic_write_text
 
-EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+EXPERIMENTS = provenance.experiments_dir()
 PAPER_EPOCHS = 10_000
 # A run is at a length comparable with the paper's once it has this many epochs behind it: the
 # gridworld at 30% of the paper's 10,000 epochs (beyond which ESR's return in the paper's

@@ -104,3 +104,13 @@ def test_ablate_reuses_trained_runs_and_writes_a_comparison(smoke_run):
     assert (out / "ablation.pdf").exists() and "| base |" in (out / "table.md").read_text()
     again = esr("ablate", "experiments/grid_2.yaml", "--greedy", "--budget", "smoke", store=store)
     assert again.stdout.strip().splitlines()[-1] == str(out)
+
+
+def test_the_paper_specs_are_read_from_the_current_directory_when_it_has_them(tmp_path, monkeypatch):
+    from esr_cli.provenance import PACKAGE_DIR, experiments_dir
+
+    monkeypatch.chdir(tmp_path)
+    assert experiments_dir() == PACKAGE_DIR.parent / "experiments"  # none here: the checkout's
+    (tmp_path / "experiments" / "suites").mkdir(parents=True)
+    (tmp_path / "experiments" / "suites" / "paper.yaml").write_text("name: paper\n")
+    assert experiments_dir() == tmp_path / "experiments"
