@@ -96,7 +96,8 @@ def _refuse_spec_options(target: str, budget: str, sets: Optional[List[str]]) ->
 
 
 def _load_spec(path: Path, budget: str, sets: Optional[List[str]]):
-    return specs.load(path, budget, list(sets or []))
+    """The spec, with any played-episode key prefix in it completed from the store."""
+    return targets.complete_play_keys(specs.load(path, budget, list(sets or [])), STATE.store)
 
 
 _DURATION_UNITS = {"": 1.0, "s": 1.0, "m": 60.0, "h": 3600.0}
@@ -280,6 +281,7 @@ def eval_(
 ):
     """Evaluate a trained robot with its human; writes an evaluation artifact, a GIF and a curve."""
     targets.check_partner_name(human)
+    human = targets.complete_play_partner(STATE.store, human)
     most = specs.MAX_EVAL_EPISODES
     if episodes is not None and not 1 <= episodes <= most:
         raise Exit(2, f"--episodes: between 1 and {most:,} (got {episodes:,})")

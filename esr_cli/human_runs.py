@@ -57,6 +57,10 @@ def data_key(layout: str) -> tuple[str, dict]:
 
 
 def play_data_key(episodes: tuple[str, ...], layout: str) -> tuple[str, dict]:
+    short = [k for k in episodes if len(k) != 32]
+    if short:  # the same episodes must make the same key, however they were named
+        raise StoreError(f"human.data: {short[0]!r} is a key prefix; a command given the spec on its command line "
+                         "completes prefixes from the store, elsewhere write the whole key (`esr plays` lists them)")
     components = {
         "kind": "humandata",
         "source": "play",

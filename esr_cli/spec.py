@@ -239,9 +239,12 @@ class BCHumanSpec(_Model):
         if not v or len(v) > MAX_PLAY_EPISODES:
             raise ValueError(f"between 1 and {MAX_PLAY_EPISODES} played episodes")
         v = type(v)(k.lower() for k in v)  # a key is hex: ABC... and abc... name the same episode
-        bad = [k for k in v if not (len(k) == 32 and all(c in "0123456789abcdef" for c in k))]
+        # A unique prefix (4 hex digits or more) is completed from the store by the command that
+        # reads the spec (targets.complete_play_keys); only whole keys make a human's key.
+        bad = [k for k in v if not (4 <= len(k) <= 32 and all(c in "0123456789abcdef" for c in k))]
         if bad:
-            raise ValueError(f"{bad[0][:40]!r} is not a play artifact's key (32 hex digits, as `esr plays` lists them)")
+            raise ValueError(f"{bad[0][:40]!r} is not a play artifact's key (32 hex digits as `esr plays` lists them, "
+                             "or a unique prefix of at least 4)")
         if len(set(v)) != len(v):
             raise ValueError("an episode is listed twice")
         return v

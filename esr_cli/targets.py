@@ -14,7 +14,7 @@ from pydantic import ValidationError
 
 from esr_cli import spec as specs, yamlio
 from esr_cli.analysis.state_count import TooManyStates, check_size
-from esr_cli.store import EXACT_KIND, RUN_KIND, Store, StoreError
+from esr_cli.store import EXACT_KIND, PLAY_KIND, RUN_KIND, Store, StoreError
 
 EVAL_PARTNERS = ("training", "proxy")
 PLAY_PARTNER = "play:"  # --human play:KEY,KEY,...: a BC human cloned from played episodes
@@ -154,3 +154,41 @@ def geometry_options(gamma: float, state: int) -> None:
         raise StoreError(f"--gamma must be in [0, 1), got {gamma}")
     if state not in (0, 1, 2):
         raise StoreError(f"--state must be 0, 1 or 2, got {state}")
+
+
+def complete_play_key(store: Store, ref: str) -> str:
+    """The whole key of the one played episode (`play` artifact) whose key starts with `ref`."""
+    if not (4 <= len(ref) <= 32 and all(c in "0123456789abcdef" for c in ref)):
+        raise StoreError(f"{ref[:40]!r} is not a play artifact's key (32 hex digits as `esr plays` lists them, "
+                         "or a unique prefix of at least 4)")
+    if len(ref) == 32:
+        return ref
+    hits = [e.key for e in store.entries() if e.kind == PLAY_KIND and e.status == "complete" and e.key.startswith(ref)]
+    if len(hits) != 1:
+        raise StoreError(f"{ref!r} is the start of {'no' if not hits else len(hits)} played episodes' keys in {store.root}"
+                         " (`esr plays` lists them): give a longer prefix or the whole key")
+    return hits[0]
+
+
+def complete_play_keys(spec, store: Store):
+    """The spec with any key prefix in `human.data` (or a PPO human's `clone.data`) completed
+    from the store's played episodes."""
+    human = spec.human
+    for owner, field in ((human, "data"), (getattr(human, "clone", None), "data")):
+        keys = getattr(owner, field, None) if owner is not None else None
+        if keys and any(len(k) != 32 for k in keys):
+            full = tuple(complete_play_key(store, k) for k in keys)
+            if owner is human:
+                human = human.model_copy(update={"data": full})
+            else:
+                human = human.model_copy(update={"clone": owner.model_copy(update={"data": full})})
+    return spec if human is spec.human else spec.model_copy(update={"human": human})
+
+
+def complete_play_partner(store: Store, partner: str) -> str:
+    """`play:PREFIX,...` with each prefix completed; any other partner as given."""
+    if not partner.startswith(PLAY_PARTNER):
+        return partner
+    refs = [k.strip().lower() for k in partner[len(PLAY_PARTNER):].split(",") if k.strip()]
+    return PLAY_PARTNER + ",".join(complete_play_key(store, k) for k in refs)
+

@@ -306,7 +306,16 @@ def test_a_human_cloned_from_played_episodes_partners_a_robot(per_seed_run, stor
     own, own_summary, _ = _evaluate(path, store, 2, console)
     other, summary, _ = _evaluate(path, store, 2, console, "play:" + ",".join(keys))
     assert other != own and summary["human_key"] != own_summary["human_key"]
-    with pytest.raises(StoreError, match="not a play artifact's key"):
+    with pytest.raises(StoreError, match="is a key prefix"):  # only a command completes a prefix, from its store
         _evaluate(path, store, 2, console, "play:beef")
+    # Any unique prefix names an episode, as `esr plays` prints the keys: completed from the store.
+    from esr_cli import targets
+
+    prefixes = [k[:8] for k in keys]
+    short = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN + [f"human.data={json.dumps(prefixes)}"])
+    assert targets.complete_play_keys(short, store).human.data == tuple(keys)
+    assert targets.complete_play_partner(store, "play:" + ",".join(prefixes)) == "play:" + ",".join(keys)
+    with pytest.raises(StoreError, match="start of no played episodes"):
+        targets.complete_play_key(store, "ffff" if not any(k.startswith("ffff") for k in keys) else "0000")
     with pytest.raises(StoreError, match="is not in"):
         _evaluate(path, store, 2, console, "play:" + "0" * 32)
