@@ -8,6 +8,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import shlex
 import signal
 import sys
 from pathlib import Path
@@ -987,7 +988,7 @@ def _show_lines(r: dict, manifest: dict) -> list[tuple[str, object]]:
                 (f", IQM {finals['iqm']:.2f}" if "iqm" in finals else "")
             lines.append(("final return", f"{text} over {n} seed{'s' if n != 1 else ''} (each seed's mean over its last 10% of epochs)"))
         lines.append(("overrides", "(no spec file in experiments/ resolves to it)" if r["overrides"] is None
-                      else " ".join(f"--set {o}" for o in r["overrides"]) or "none: the spec file as it is"))
+                      else " ".join(f"--set {shlex.quote(o)}" for o in r["overrides"]) or "none: the spec file as it is"))
     else:
         if r["final_return"] is not None:
             lines.append(("return", f"{r['final_return']:.2f} ({r['return_of']})"))

@@ -482,10 +482,14 @@ def train_overrides(spec: specs.Spec, budget: str, experiments: Path = EXPERIMEN
         return None
     try:
         target = spec.training_part()
-        base, want = _leaves(specs.load(file, budget).training_part()), _leaves(target)
-        if base.keys() != want.keys():  # another kind of method, human or network
-            return None
-        sets = [_override_text(k, want[k]) for k in want if want[k] != base[k]]
+        base_part = specs.load(file, budget).training_part()
+        sets = []
+        for section, value in target.items():
+            base, want = _leaves(base_part.get(section, {}), f"{section}."), _leaves(value, f"{section}.")
+            if base.keys() != want.keys():  # another kind of method, human or network: the section whole
+                sets.append(f"{section}={json.dumps(value)}")
+            else:
+                sets += [_override_text(k, want[k]) for k in want if want[k] != base[k]]
         if specs.load(file, budget, sets).training_part() != target:
             return None
     except (specs.SpecError, yamlio.YamlInputError):

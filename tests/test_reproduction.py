@@ -361,3 +361,13 @@ def test_the_report_figure_colours_by_method_and_dashes_esrs_variants():
     assert 1.0 <= low[0] <= centre[0] <= high[0] <= 10.0
     one, lo1, hi1 = iqm_band(np.array([[3.0], [4.0]]))
     assert one.tolist() == lo1.tolist() == hi1.tolist() == [3.0, 4.0]
+
+
+def test_a_run_with_another_kind_of_human_is_made_again_by_a_whole_section_override():
+    from esr_cli import spec as specs
+    from esr_cli.reproduction import train_overrides
+
+    spec = specs.load("experiments/cramped_room.yaml", "smoke", ["human={kind: ppo, total_steps: 4096}", "train.seeds=2"])
+    file, sets = train_overrides(spec, "smoke")
+    assert file.name == "cramped_room.yaml" and any(s.startswith("human={") for s in sets) and "train.seeds=2" in sets
+    assert specs.load(file, "smoke", sets).training_part() == spec.training_part()
