@@ -422,15 +422,11 @@ def human_calibrate(
         return
     table = Table(title=f"the human with a uniform random, a staying and a self partner ({human_seeds} human(s), "
                         f"{episodes} episodes each; mean ± SE over humans)")
-    for col in ("spec", "layout", "human", "random", "stay", "self", "paper Random", "ratio", "in target"):
+    for col in (*hc.COLUMNS, "in target"):
         table.add_column(col)
     for r in rows:
-        cells = [f"{r.returns[p]['mean']:.2f} ± {r.returns[p]['se']:.2f}" for p in hc.PARTNERS]
-        paper = r.paper_random
         inside = hc.within_target(r)
-        table.add_row(printable(r.name), r.layout, r.human, *cells, "-" if paper is None else f"{paper:.2f}",
-                      "-" if paper is None else f"{r.returns['random']['mean'] / paper:.2f}",
-                      "-" if inside is None else ("yes" if inside else "no"))
+        table.add_row(*map(printable, hc.cells(r)), "-" if inside is None else ("yes" if inside else "no"))
     out.print(table)
     score = hc.score(rows)
     out.print(f"score (mean |ln(random / paper)| over the three paper layouts): {score:.3f}" if score is not None
@@ -619,30 +615,25 @@ def _plot_curve(ref: str, out_file: Optional[Path]) -> None:
     path, record, finished = targets.run_record(STATE.store, ref)
     from esr_cli import plots
     from esr_cli.finals import read_rows
+    from esr_cli.listing import field
 
     rows = read_rows(path)
     if not rows:
         raise Exit(2, f"{path} has no epoch logged yet: nothing to draw")
-    total = _record_field(record, "key_components", "spec", "train", "epochs")
+    total = field(record, "key_components", "spec", "train", "epochs")
     done = rows[-1]["epoch"]
     state = "" if finished else f" (unfinished: epoch {done:,}" + (f" of {total:,})" if total else ")")
     name, key = str(record.get("name", "run")), str(record.get("key", path.name.split(".")[0]))
     out_png = out_file or Path(f"{name}-{key[:8]}-curve.png")
     _refuse_inside_store(out_png, "--out")
     _check_output_file(out_png, "--out")
-    warmup = _record_field(record, "key_components", "spec", "learner", "warmup_epochs") or 0
-    method = _record_field(record, "key_components", "spec", "method", "kind")
+    warmup = field(record, "key_components", "spec", "learner", "warmup_epochs") or 0
+    method = field(record, "key_components", "spec", "method", "kind")
     title = printable(f"{name} [{method}]{state}" if method else f"{name}{state}")
     plots.learning_curve(rows, out_png, title, {"artifacts": {RUN_KIND: key}, "finished": finished, "epochs": done},
                          warmup_epochs=warmup)
     err.print(tagged("drawn", "green", f": {out_png}" + ("" if finished else f", at epoch {done:,}")))
     out.print(str(out_png), highlight=False)
-
-
-def _record_field(record, *path):
-    from esr_cli.listing import field
-
-    return field(record, *path)
 
 
 @app.command()

@@ -28,10 +28,10 @@ from esr_cli.artifacts import ensure
 from esr_cli.envs.overcooked import Overcooked
 from esr_cli.figures import PAPER_OVERCOOKED
 from esr_cli.humans import human_eval, policy_logits
+from esr_cli.ppo_humans import EPISODE_STEPS
 from esr_cli.store import Store
 
 PARTNERS = human_eval.PARTNERS  # random, stay, self
-EPISODE_STEPS = 400
 
 
 class Row(NamedTuple):
@@ -70,28 +70,20 @@ def calibrate_spec(spec, human_seeds: int, episodes: int, store: Store, console:
     env = Overcooked(layout, EPISODE_STEPS)
     logits = policy_logits(spec.human)
     base = spec.human.model_copy(update={"per_seed": False})
-    per_partner = {p: [] for p in PARTNERS}
-    episode_returns = {p: [] for p in PARTNERS}
-    keys = []
+    per_human, keys = [], []
     for i in range(human_seeds):
         human = base.model_copy(update={"seed": base.seed + i})
         recipe = stored_humans.stored_recipe(human, layout, console)
         ensure(recipe, store)
         keys.append(recipe.key)
         params = stored_humans.human_params(human, layout, store)
-        for partner in PARTNERS:
-            r = human_eval.episode_returns(env, logits, params, partner, episodes, jax.random.PRNGKey(i))
-            per_partner[partner].append(float(r.mean()))
-            episode_returns[partner].append(r)
+        per_human.append(human_eval.evaluate(env, logits, params, episodes, jax.random.PRNGKey(i)))
     returns = {}
-    for partner, means in per_partner.items():
-        means_a = np.asarray(means)
-        if len(means) > 1:
-            se = float(means_a.std(ddof=1) / math.sqrt(len(means)))
-        else:  # one human: the spread of its episodes
-            r = episode_returns[partner][0]
-            se = float(r.std(ddof=1) / math.sqrt(len(r))) if len(r) > 1 else 0.0
-        returns[partner] = {"mean": float(means_a.mean()), "se": se, "per_human": means}
+    for partner in PARTNERS:
+        means = [h[partner]["mean"] for h in per_human]
+        # SE over the humans; with one human, over its episodes (human_eval's)
+        se = float(np.std(means, ddof=1) / math.sqrt(len(means))) if len(means) > 1 else per_human[0][partner]["se"]
+        returns[partner] = {"mean": float(np.mean(means)), "se": se, "per_human": means}
     paper = PAPER_OVERCOOKED.get(layout, {}).get("random", (None,))[0]
     return Row(spec.name, layout, describe(spec.human), keys, returns, paper)
 
@@ -114,14 +106,20 @@ def within_target(row: Row) -> bool | None:
     return (1 / 1.5 <= ratio <= 1.5) if row.layout == "coord_ring" else (0.85 <= ratio <= 1.15)
 
 
+def cells(row: Row) -> list[str]:
+    """A row as a table shows it: spec, layout, human, each partner's mean ± SE, paper, ratio."""
+    returns = [f"{row.returns[p]['mean']:.2f} ± {row.returns[p]['se']:.2f}" for p in PARTNERS]
+    paper = "-" if row.paper_random is None else f"{row.paper_random:.2f}"
+    ratio = "-" if row.paper_random is None else f"{row.returns['random']['mean'] / row.paper_random:.2f}"
+    return [row.name, row.layout, row.human, *returns, paper, ratio]
+
+
+COLUMNS = ("spec", "layout", "human", *PARTNERS, "paper Random", "ratio")
+
+
 def markdown(rows: list[Row], human_seeds: int, episodes: int) -> str:
-    lines = [f"| spec | layout | human | random | stay | self | paper Random | ratio |",
-             "|---|---|---|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        cells = [f"{r.returns[p]['mean']:.2f} ± {r.returns[p]['se']:.2f}" for p in PARTNERS]
-        paper = "-" if r.paper_random is None else f"{r.paper_random:.2f}"
-        ratio = "-" if r.paper_random is None else f"{r.returns['random']['mean'] / r.paper_random:.2f}"
-        lines.append(f"| {r.name} | {r.layout} | {r.human} | {' | '.join(cells)} | {paper} | {ratio} |")
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|---|---|---|---:|---:|---:|---:|---:|"]
+    lines += ["| " + " | ".join(cells(r)) + " |" for r in rows]
     s = score(rows)
     tail = f"score (mean |ln(random / paper)|): {s:.3f}" if s is not None else "score: needs the three paper layouts"
     return "\n".join(lines) + f"\n\n{human_seeds} human(s) per layout, {episodes} episodes each; {tail}\n"

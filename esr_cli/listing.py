@@ -15,8 +15,6 @@ from typing import Iterator
 
 from esr_cli.store import RUN_KIND, Entry, Store
 
-FIELDS = ("kind", "name", "key", "path", "budget", "seeds", "status", "epochs", "epochs_total", "final_return",
-          "return_of", "created", "method", "env", "overrides")
 FINAL_RETURN = ("final return: a run's mean over each seed's last 10% of epochs (so far, if unfinished), averaged "
                 "over seeds, as in figures and reports")
 

@@ -16,8 +16,8 @@ itself, and the training curve is in metrics.jsonl.
 
 from __future__ import annotations
 
+import io
 import json
-import os
 import shutil
 import time
 from pathlib import Path
@@ -32,7 +32,7 @@ from esr_cli.artifacts import Recipe
 from esr_cli.core.stop_requests import StopRequests
 from esr_cli.envs.overcooked import Overcooked
 from esr_cli.humans import bc, conv_actor_critic as cac, human_eval, ppo
-from esr_cli.store import HUMAN_KIND, Store, StoreError, atomic_write_text, content_key
+from esr_cli.store import HUMAN_KIND, Store, StoreError, atomic_write_bytes, atomic_write_text, content_key
 
 PPO_SOURCES = ("envs/overcooked.py", "humans/ppo.py", "humans/conv_actor_critic.py", "humans/human_eval.py")
 CHECKPOINT_FILE = "ppo_state.npz"
@@ -68,12 +68,9 @@ def save_checkpoint(out: Path, runner: ppo.RunnerState, history: dict[str, list]
     """The PPO state and the metrics so far, in one file replaced atomically."""
     arrays = {f"state_{i}": np.asarray(leaf) for i, leaf in enumerate(jax.tree.leaves(runner))}
     arrays.update({f"metric_{name}": np.asarray(values, np.float64) for name, values in history.items()})
-    tmp = out / f".{CHECKPOINT_FILE}.tmp"
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, out / CHECKPOINT_FILE)
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    atomic_write_bytes(out / CHECKPOINT_FILE, buffer.getvalue())
 
 
 def load_checkpoint(out: Path, like: ppo.RunnerState) -> tuple[ppo.RunnerState, dict[str, list]] | None:

@@ -180,6 +180,16 @@ class NoisyGreedyHumanSpec(_Model):
 MAX_PLAY_EPISODES = 10_000
 
 
+def is_play_key_ref(text: str) -> bool:
+    """A played episode's key (32 hex digits, lower case) or a prefix of at least 4 of them."""
+    return 4 <= len(text) <= 32 and all(c in "0123456789abcdef" for c in text)
+
+
+def not_a_play_key(text: str) -> str:
+    return (f"{text[:40]!r} is not a play artifact's key (32 hex digits as `esr plays` lists them, "
+            "or a unique prefix of at least 4)")
+
+
 # Cloning settings whose human, paired with the Random robot, scores closest to the published
 # Random column (quick budget, 3 seeds; every candidate tried is in docs/overcooked.md). Only the
 # layouts the paper reports have one.
@@ -241,10 +251,9 @@ class BCHumanSpec(_Model):
         v = type(v)(k.lower() for k in v)  # a key is hex: ABC... and abc... name the same episode
         # A unique prefix (4 hex digits or more) is completed from the store by the command that
         # reads the spec (targets.complete_play_keys); only whole keys make a human's key.
-        bad = [k for k in v if not (4 <= len(k) <= 32 and all(c in "0123456789abcdef" for c in k))]
+        bad = [k for k in v if not is_play_key_ref(k)]
         if bad:
-            raise ValueError(f"{bad[0][:40]!r} is not a play artifact's key (32 hex digits as `esr plays` lists them, "
-                             "or a unique prefix of at least 4)")
+            raise ValueError(not_a_play_key(bad[0]))
         if len(set(v)) != len(v):
             raise ValueError("an episode is listed twice")
         return v

@@ -158,9 +158,8 @@ def geometry_options(gamma: float, state: int) -> None:
 
 def complete_play_key(store: Store, ref: str) -> str:
     """The whole key of the one played episode (`play` artifact) whose key starts with `ref`."""
-    if not (4 <= len(ref) <= 32 and all(c in "0123456789abcdef" for c in ref)):
-        raise StoreError(f"{ref[:40]!r} is not a play artifact's key (32 hex digits as `esr plays` lists them, "
-                         "or a unique prefix of at least 4)")
+    if not specs.is_play_key_ref(ref):
+        raise StoreError(specs.not_a_play_key(ref))
     if len(ref) == 32:
         return ref
     hits = [e.key for e in store.entries() if e.kind == PLAY_KIND and e.status == "complete" and e.key.startswith(ref)]
