@@ -24,7 +24,7 @@ from esr_cli.analysis import exact, geometry
 from esr_cli.artifacts import Recipe
 from esr_cli.envs import make_env
 from esr_cli.envs.gridworld import GridState
-from esr_cli.humans import make_human
+from esr_cli.humans.registry import make_human
 from esr_cli.runs import load_run, seed_slice
 from esr_cli.store import EXACT_KIND, FIGURE_KIND, Store, StoreError
 from esr_cli.targets import exact_artifact, exact_target, geometry_options

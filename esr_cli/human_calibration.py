@@ -27,7 +27,8 @@ from esr_cli import stored_humans
 from esr_cli.artifacts import ensure
 from esr_cli.envs.overcooked import Overcooked
 from esr_cli.figures import PAPER_OVERCOOKED
-from esr_cli.humans import human_eval, policy_logits
+from esr_cli.humans import human_eval
+from esr_cli.humans.registry import policy_logits
 from esr_cli.ppo_humans import EPISODE_STEPS
 from esr_cli.store import Store
 
@@ -57,7 +58,8 @@ class Row(NamedTuple):
 def describe(human_spec) -> str:
     d = human_spec.model_dump()
     if human_spec.kind == "bc":
-        return f"bc {'x'.join(map(str, d['hidden']))} stay_weight={d['stay_weight']:g} epochs={d['epochs']}"
+        network = "conv" if d["network"] == "conv" else "x".join(map(str, d["hidden"]))
+        return f"bc {network} stay_weight={d['stay_weight']:g} epochs={d['epochs']}"
     if human_spec.kind == "ppo":
         extra = f" kl_coef={d['kl_coef']:g}" if d["mode"] == "bc_kl" else ""
         return f"ppo {d['mode']} steps={d['total_steps']:.3g}{extra}"

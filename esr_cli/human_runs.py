@@ -26,11 +26,11 @@ from rich.console import Console
 from esr_cli import provenance
 from esr_cli.artifacts import Recipe
 from esr_cli.envs.overcooked import Overcooked
-from esr_cli.humans import bc, overcooked_data as od, play_data
+from esr_cli.humans import bc, human_eval, overcooked_data as od, play_data
 from esr_cli.store import DATA_KIND, HUMAN_KIND, PLAY_KIND, Store, StoreError, atomic_write_text, content_key
 
 DATA_SOURCES = ("envs/overcooked.py", "humans/overcooked_data.py")
-BC_SOURCES = DATA_SOURCES + ("humans/bc.py", "networks.py")
+BC_SOURCES = DATA_SOURCES + ("humans/bc.py", "humans/human_eval.py", "networks.py")
 PLAY_DATA_SOURCES = ("envs/overcooked.py", "humans/play_data.py")
 # Rows checked by replaying the recorded joint action when the data artifact is built.
 REPLAY_SAMPLE = 1000
@@ -168,28 +168,32 @@ def human_recipe(human_spec, layout: str, console: Console) -> Recipe:
         with console.status(f"cloning the human of {layout} from its {human_spec.split} split "
                             f"({int(train.sum())} pairs, {human_spec.epochs} epochs)"):
             params, losses = bc.train_bc(pairs["obs"][train], pairs["action"][train], human_spec, seed=human_spec.seed)
-        acc_train = bc.accuracies(params, human_spec.hidden, pairs["obs"][train], pairs["action"][train])
+        logits = bc.cloned_policy(human_spec).logits
+        acc_train = bc.accuracies(params, logits, pairs["obs"][train], pairs["action"][train])
         # no test split: a clone of a single played episode
-        acc_test = bc.accuracies(params, human_spec.hidden, pairs["obs"][test], pairs["action"][test]) if test.any() else None
+        acc_test = bc.accuracies(params, logits, pairs["obs"][test], pairs["action"][test]) if test.any() else None
+        env = Overcooked(layout, 400)
         with console.status(f"BC+BC self-play on {layout}: {human_spec.selfplay_episodes} episodes"):
-            returns = bc.selfplay_returns(Overcooked(layout, 400), params, human_spec.hidden, human_spec.selfplay_episodes)
-        se = float(returns.std(ddof=1) / np.sqrt(len(returns)))
+            partners = human_eval.partner_returns(env, logits, params, human_spec.selfplay_episodes, seed=0)
+        selfplay = partners["self"]
         (out / PARAMS_FILE).write_bytes(serialization.msgpack_serialize(serialization.to_state_dict(params)))
-        atomic_write_text(out / POLICY_FILE, json.dumps({"layout": layout, "hidden": list(human_spec.hidden), "actions": 6,
+        network = {"network": "conv"} if human_spec.network == "conv" else {"hidden": list(human_spec.hidden)}
+        atomic_write_text(out / POLICY_FILE, json.dumps({"layout": layout, **network, "actions": 6,
                                                           "input": "agent's own view, (H, W, 26), urgency channel zeroed"}))
         held = "no test split" if acc_test is None else \
             f"test accuracy {acc_test['accuracy']:.3f}, non-stay {acc_test['non_stay_accuracy']:.3f}"
-        console.print(f"BC human {key[:12]} ({layout}): {held}; BC+BC self-play {returns.mean():.1f} +- {se:.1f}")
+        console.print(f"BC human {key[:12]} ({layout}): {held}; BC+BC self-play {selfplay['mean']:.1f} "
+                      f"+- {selfplay['se']:.1f}, with a uniform random partner {partners['random']['mean']:.1f}")
         return {
             "layout": layout,
             "split": human_spec.split,
             "train": acc_train,  # on the split it was cloned from
             "test": acc_test,  # on the other one
-            "selfplay_return": {"mean": round(float(returns.mean()), 3), "se": round(se, 3), "episodes": len(returns),
-                                "episode_steps": 400},
+            "selfplay_return": {**selfplay, "episode_steps": 400},
+            "partner_returns": partners,  # with a uniform random partner, one that only stays, and itself
             "final_train_loss": round(losses[-1], 5),
             # what `esr ls` shows in its return column for this artifact
-            "return": {"mean": round(float(returns.mean()), 3), "of": "BC+BC self-play"},
+            "return": {"mean": selfplay["mean"], "of": "BC+BC self-play"},
         }
 
     return Recipe(HUMAN_KIND, f"bc_{layout}", components, build, requires=(data,), summary_file=False)

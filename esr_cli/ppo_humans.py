@@ -96,12 +96,6 @@ def params_problem(params) -> str | None:
     return None
 
 
-def partner_returns(env: Overcooked, params, episodes: int, seed: int) -> dict:
-    """{partner: {mean, se, episodes}} for the random, staying and self partners."""
-    table = human_eval.evaluate(env, cac.policy_logits, params, episodes, jax.random.PRNGKey(seed))
-    return {p: {"mean": round(v["mean"], 3), "se": round(v["se"], 3), "episodes": episodes} for p, v in table.items()}
-
-
 # ---------------------------------------------------------------- the recipe
 def ppo_human_recipe(human_spec, layout: str, console: Console) -> Recipe:
     """The PPO human of `human_spec` on `layout` (its own layout if it names one)."""
@@ -116,7 +110,7 @@ def ppo_human_recipe(human_spec, layout: str, console: Console) -> Recipe:
         clone_logits = None
         if clone is not None:
             clone_params = human_runs.load_params(store.lookup(HUMAN_KIND, clone.key))
-            apply = bc.logits_fn(tuple(clone_spec.hidden))
+            apply = bc.cloned_policy(clone_spec).logits
             clone_logits = lambda obs: apply(clone_params, obs)  # noqa: E731
         trainer = ppo.overcooked_ppo(env, config, clone_logits)
         fresh = trainer.init(jax.random.PRNGKey(human_spec.seed))
@@ -150,7 +144,7 @@ def ppo_human_recipe(human_spec, layout: str, console: Console) -> Recipe:
         returns = None
         if problem is None:
             with console.status(f"PPO human {key[:12]}: {human_spec.eval_episodes} episodes with each partner"):
-                returns = partner_returns(env, params, human_spec.eval_episodes, human_spec.seed)
+                returns = human_eval.partner_returns(env, cac.policy_logits, params, human_spec.eval_episodes, human_spec.seed)
             if returns["self"]["mean"] < human_spec.min_selfplay_return:
                 problem = (f"its self-play return is {returns['self']['mean']:.2f} over {human_spec.eval_episodes} episodes, "
                            f"below human.min_selfplay_return={human_spec.min_selfplay_return:g}")

@@ -210,6 +210,10 @@ class BCHumanSpec(_Model):
 
     kind: Literal["bc"]
     layout: Optional[Literal[OVERCOOKED_LAYOUTS]] = Field(None, description="the data's layout; default: env.layout")
+    network: Literal["mlp", "conv"] = Field(
+        "mlp", description="mlp: tanh layers of widths `hidden`; conv: the paper's convolutional actor-critic "
+        "(its policy tower; fixed shape, so `hidden` does not apply)",
+    )
     hidden: tuple[Width, ...] = Field((64, 64), description="MLP widths (tanh, orthogonal init)")
     stay_weight: Float = Field(0.1, gt=0.0, le=1.0, description="cross-entropy weight of 'stay' samples")
     epochs: Int = Field(60, ge=1, le=1_000_000)
@@ -241,6 +245,12 @@ class BCHumanSpec(_Model):
     def _layers(cls, v):
         return _widths(v, "layer", allow_empty=False)
 
+    @model_validator(mode="after")
+    def _hidden_is_the_mlps(self):
+        if self.network == "conv" and "hidden" in self.model_fields_set:
+            raise ValueError("human.hidden sizes the MLP: network conv is the paper's network, of one fixed shape")
+        return self
+
     @field_validator("data")
     @classmethod
     def _play_keys(cls, v):
@@ -265,6 +275,9 @@ class BCHumanSpec(_Model):
         part = {"layout": self.layout or layout, **{k: d[k] for k in keep}}
         if self.split != "train":  # only when set, so that the humans cloned before this field keep their keys
             part["split"] = self.split
+        if self.network != "mlp":  # likewise
+            part["network"] = self.network
+            del part["hidden"]
         if self.data is not None:  # likewise
             part["data"] = list(self.data)
         return part
@@ -549,6 +562,9 @@ class Spec(_Model):
         env = data.get("env") if isinstance(data.get("env"), dict) else {}
         layout = human.get("layout") or env.get("layout")
         settings = HUMAN_PRESETS[human["preset"]]
+        if human.get("network", "mlp") != "mlp":
+            raise ValueError(f"human.preset={human['preset']!r} names MLP settings: it does not apply to network "
+                             f"{human['network']!r}")
         if layout not in settings:
             raise ValueError(f"human.preset={human['preset']!r} is defined for {', '.join(settings)} (the layouts the "
                              f"paper reports a Random score for), not {layout!r}")

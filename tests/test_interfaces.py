@@ -30,15 +30,16 @@ def test_overcooked_environment_and_an_adapting_bc_human_meet_theirs():
     import jax.numpy as jnp
 
     from esr_cli.envs import make_env
-    from esr_cli.humans.bc import logits_fn, policy_net
+    from esr_cli.humans.bc import cloned_policy
     from esr_cli.humans.policy_human import PolicyHuman
 
     spec = specs.load(ROOT / "experiments/cramped_room.yaml", "smoke", ["human.adapt=true"])
     env = make_env(spec.env)
     assert isinstance(env, api.Environment)
     obs = env.observe(env.reset(jax.random.PRNGKey(0)))
-    params = policy_net(tuple(spec.human.hidden)).init(jax.random.PRNGKey(0), jnp.zeros((1, obs.size)))
-    human = PolicyHuman(env=env, params=params, logits_fn=logits_fn(tuple(spec.human.hidden)), adapt=True)
+    policy = cloned_policy(spec.human)
+    params = policy.init(jax.random.PRNGKey(0), jnp.zeros(obs.shape))
+    human = PolicyHuman(env=env, params=params, logits_fn=policy.logits, adapt=True)
     assert isinstance(human, api.LearningHuman) and human.learns is True and human.metric_names
 
 

@@ -181,9 +181,48 @@ def test_bc_learns_a_state_dependent_rule_and_reports_non_stay_accuracy():
     spec = specs.BCHumanSpec(kind="bc", epochs=10, lr=5e-3, batch_size=100)
     params, losses = bc.train_bc(obs, action, spec)
     assert losses[-1] < losses[0]
-    acc = bc.accuracies(params, spec.hidden, obs, action)
+    acc = bc.accuracies(params, bc.cloned_policy(spec).logits, obs, action)
     assert acc["non_stay_accuracy"] > 0.95 and acc["accuracy"] > 0.9
     assert abs(acc["stay_fraction"] - (1 - moving.mean())) < 1e-3
+
+
+def test_bc_with_the_papers_network_learns_the_rule_and_has_the_ppo_humans_parameters():
+    from esr_cli.humans import conv_actor_critic as cac
+
+    rng = np.random.default_rng(1)
+    n = 600
+    obs = np.zeros((n, 4, 5, 26), np.uint8)
+    action = np.full(n, STAY, np.int8)
+    moving = rng.random(n) < 0.4
+    which = rng.integers(0, 3, n)
+    obs[moving, 0, which[moving], 3] = 1
+    action[moving] = which[moving]
+    spec = specs.BCHumanSpec(kind="bc", network="conv", epochs=15, lr=3e-3, batch_size=50)
+    params, losses = bc.train_bc(obs, action, spec)
+    assert losses[-1] < 0.5 * losses[0]
+    acc = bc.accuracies(params, bc.cloned_policy(spec).logits, obs, action)
+    assert acc["non_stay_accuracy"] > 0.9 and acc["accuracy"] > 0.9
+    # The same tree as the PPO human's (value tower untouched by cloning), so either loads as the other.
+    like = cac.init_params(jax.random.PRNGKey(0), 4, 5)
+    assert jax.tree.structure(params) == jax.tree.structure(like)
+    assert [x.shape for x in jax.tree.leaves(params)] == [x.shape for x in jax.tree.leaves(like)]
+    fresh = bc.cloned_policy(spec).init(jax.random.split(jax.random.PRNGKey(0))[0], jnp.asarray(obs[0]))
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(fresh["params"]["value_tower"]),
+                                                      jax.tree.leaves(params["params"]["value_tower"])))
+    # The urgency channel is zeroed for this network too (the data's games are not 400 steps long).
+    urgent = jnp.asarray(obs[:4]).at[..., 25].set(1)
+    logits = bc.cloned_policy(spec).logits
+    assert np.array_equal(np.asarray(logits(params, urgent)), np.asarray(logits(params, jnp.asarray(obs[:4]))))
+
+
+def test_a_bc_human_names_its_network_in_its_key_and_refuses_mlp_settings_with_the_conv():
+    mlp, conv = specs.BCHumanSpec(kind="bc"), specs.BCHumanSpec(kind="bc", network="conv")
+    assert "network" not in mlp.cloning_part("cramped_room") and mlp.cloning_part("cramped_room")["hidden"] == [64, 64]
+    assert conv.cloning_part("cramped_room")["network"] == "conv" and "hidden" not in conv.cloning_part("cramped_room")
+    with pytest.raises(ValueError, match="hidden sizes the MLP"):
+        specs.BCHumanSpec(kind="bc", network="conv", hidden=(32,))
+    with pytest.raises(specs.SpecError, match="names MLP settings"):
+        specs.load("experiments/cramped_room.yaml", "smoke", ["human={kind: bc, network: conv, preset: paper_random}"])
 
 
 def test_urgency_channel_is_ignored():
@@ -193,9 +232,9 @@ def test_urgency_channel_is_ignored():
 
 # ---------------------------------------------------------------- co-adaptation
 def _human(env, **kw):
-    net = bc.policy_net((16,))
-    params = net.init(jax.random.PRNGKey(0), jnp.zeros((1,) + env.obs_shape))
-    return PolicyHuman(env=env, params=params, logits_fn=bc.logits_fn((16,)), adapt=True, **kw)
+    policy = bc.NETWORKS["mlp"]((16,))
+    params = policy.init(jax.random.PRNGKey(0), jnp.zeros(env.obs_shape))
+    return PolicyHuman(env=env, params=params, logits_fn=policy.logits, adapt=True, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -240,12 +279,12 @@ def test_adapting_human_follows_the_reward_and_the_kl_holds_it_back(cramped, pla
             return (optax.apply_updates(params, updates), opt_state), (kl, biggest)
 
         (params, _), (kls, grads) = jax.lax.scan(step, (human.params, opt.init(human.params)), None, length=20)
-        p = jax.nn.softmax(bc.logits_fn((16,))(params, obs))[..., INTERACT].mean()
+        p = jax.nn.softmax(bc.NETWORKS["mlp"]((16,)).logits(params, obs))[..., INTERACT].mean()
         return p, kls[-1], kls[0] + grads[0]  # kls[0], grads[0]: at the clone
 
     _, _, at_clone = learn(jnp.float32(1.0), jnp.zeros_like(interact))
     assert float(at_clone) < 1e-6
-    p_clone = float(jax.nn.softmax(bc.logits_fn((16,))(human.params, obs))[..., INTERACT].mean())
+    p_clone = float(jax.nn.softmax(bc.NETWORKS["mlp"]((16,)).logits(human.params, obs))[..., INTERACT].mean())
     (p_free, kl_free, _), (p_held, kl_held, _) = [tuple(map(float, learn(jnp.float32(w), interact))) for w in (0.0, 10.0)]
     assert p_free > p_clone + 0.1
     assert p_clone < p_held < p_free
@@ -297,14 +336,14 @@ def test_observation_decodes_back_to_the_state(seat):
 def test_per_seed_humans_are_one_clone_per_training_seed(cramped):
     """human.per_seed: the clones' specs (cloning seed = human.seed + training seed), and each
     seed's training state holding its own clone's parameters."""
-    from esr_cli.humans import make_human
+    from esr_cli.humans.registry import make_human
 
     spec = specs.load("experiments/cramped_room.yaml", "smoke", ["human.per_seed=true", "human.seed=10", "train.seeds=[3,7]"])
     clones = spec.human.clones(spec.train.seeds)
     assert [c.seed for c in clones] == [13, 17] and not any(c.per_seed for c in clones)
     assert spec.human.model_copy(update={"per_seed": False}).clones((3, 7)) == [spec.human.model_copy(update={"per_seed": False})]
-    net = bc.policy_net(tuple(spec.human.hidden))
-    params = [net.init(jax.random.PRNGKey(i), jnp.zeros((1,) + cramped.obs_shape)) for i in (13, 17)]
+    policy = bc.cloned_policy(spec.human)
+    params = [policy.init(jax.random.PRNGKey(i), jnp.zeros(cramped.obs_shape)) for i in (13, 17)]
     human = make_human(spec.human, cramped, params, spec.train.seeds)
     assert human.has_state and not human.learns
     states = jax.vmap(human.init)(jax.random.split(jax.random.PRNGKey(0), 2), jnp.array([3, 7]))

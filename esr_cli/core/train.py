@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from esr_cli import replay
 from esr_cli.core.learner import LearnerState, SoftQLearner, entropy
 from esr_cli.envs import make_env
-from esr_cli.humans import make_human
+from esr_cli.humans.registry import make_human
 from esr_cli.methods.registry import make_method
 
 BASE_METRICS = (
@@ -45,7 +45,7 @@ class TrainState(NamedTuple):
     learner: LearnerState
     method: Any
     buffer: replay.Buffer
-    human: Any = ()  # a learning human's state (humans/__init__.py); () for a fixed human
+    human: Any = ()  # a learning human's state (humans/registry.py); () for a fixed human
 
 
 class Rollout(NamedTuple):

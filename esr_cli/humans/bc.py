@@ -1,9 +1,12 @@
 """The Overcooked human: behavioural cloning on the 2019 human-human trials.
 
-Policy: an MLP (64-64 tanh, orthogonal init) on the flattened (H, W, 26) observation from the
-human's own view (agent_1 in play; both players' views in training), urgency channel zeroed:
-the human games last about 1,200 steps, so the data cannot say what 40 steps before the end of
-a 400-step episode looks like. The human samples its actions (an argmax policy freezes).
+Policy (`network`): an MLP (64-64 tanh, orthogonal init) on the flattened (H, W, 26)
+observation, or the paper's convolutional actor-critic (humans/conv_actor_critic.py; its policy
+tower is cloned, its value tower is kept untrained so that the parameters have the PPO human's
+shape). Either reads the human's own view (agent_1 in play; both players' views in training)
+with the urgency channel zeroed: the human games last about 1,200 steps, so the data cannot say
+what 40 steps before the end of a 400-step episode looks like. The human samples its actions
+(an argmax policy freezes).
 
 About 72% of the recorded actions are 'stay'. Stay samples get weight `stay_weight` (0.1 by
 default) in the cross-entropy: with weight 1 the clone mostly stays and BC+BC self-play
@@ -14,12 +17,15 @@ The clone in play, and its co-adaptation (`adapt: true`), are humans/policy_huma
 
 from __future__ import annotations
 
+from typing import Callable, NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 
-from esr_cli.envs.overcooked import NUM_ACTIONS, STAY, URGENCY_CHANNEL, Overcooked
+from esr_cli.envs.overcooked import NUM_ACTIONS, STAY, URGENCY_CHANNEL
+from esr_cli.humans import conv_actor_critic
 from esr_cli.networks import MLP
 
 
@@ -29,14 +35,31 @@ def prepare(obs: jax.Array) -> jax.Array:
     return x.at[..., URGENCY_CHANNEL].set(0.0)
 
 
-def policy_net(hidden) -> MLP:
+class ClonedPolicy(NamedTuple):
+    init: Callable  # (key, one observation [H, W, 26]) -> params
+    logits: Callable  # (params, obs [..., H, W, 26]) -> logits [..., 6]
+
+
+def _mlp(hidden) -> ClonedPolicy:
     # A small output scale starts the policy near uniform (as PPO-style policy heads do).
-    return MLP(hidden=tuple(hidden), out=NUM_ACTIONS, out_scale=0.01)
+    net = MLP(hidden=tuple(hidden), out=NUM_ACTIONS, out_scale=0.01)
+    return ClonedPolicy(lambda key, obs: net.init(key, prepare(obs)), lambda params, obs: net.apply(params, prepare(obs)))
 
 
-def logits_fn(hidden):
-    net = policy_net(hidden)
-    return lambda params, obs: net.apply(params, prepare(obs))
+def _conv(hidden) -> ClonedPolicy:
+    del hidden  # the paper's network has one shape (conv_actor_critic.py)
+    return ClonedPolicy(
+        lambda key, obs: conv_actor_critic.init_params(key, obs.shape[-3], obs.shape[-2]),
+        lambda params, obs: conv_actor_critic.policy_logits(params, prepare(obs)),
+    )
+
+
+NETWORKS = {"mlp": _mlp, "conv": _conv}
+
+
+def cloned_policy(human_spec) -> ClonedPolicy:
+    """The BC human's network (`human.network`, `human.hidden`)."""
+    return NETWORKS[human_spec.network](tuple(human_spec.hidden))
 
 
 # ---------------------------------------------------------------- cloning
@@ -49,10 +72,11 @@ def weighted_ce(logits, actions, stay_weight: float):
 
 def train_bc(obs: np.ndarray, actions: np.ndarray, spec, seed: int = 0):
     """Fit the cloned policy; -> (params, per-epoch mean training losses)."""
-    net, apply = policy_net(spec.hidden), logits_fn(spec.hidden)
+    policy = cloned_policy(spec)
+    apply = policy.logits
     key = jax.random.PRNGKey(seed)
     k_init, key = jax.random.split(key)
-    params = net.init(k_init, prepare(jnp.asarray(obs[:1])))
+    params = policy.init(k_init, jnp.asarray(obs[0]))
     opt = optax.adam(spec.lr)
     opt_state = opt.init(params)
     n, bs = len(actions), min(spec.batch_size, len(actions))
@@ -78,9 +102,9 @@ def train_bc(obs: np.ndarray, actions: np.ndarray, spec, seed: int = 0):
     return carry[0], losses
 
 
-def accuracies(params, hidden, obs: np.ndarray, actions: np.ndarray) -> dict:
+def accuracies(params, logits: Callable, obs: np.ndarray, actions: np.ndarray) -> dict:
     """Argmax accuracy on all samples and on the non-stay samples; mean log-likelihood."""
-    apply = jax.jit(logits_fn(hidden))
+    apply = jax.jit(logits)
     logits = np.concatenate([np.asarray(apply(params, jnp.asarray(obs[i : i + 8192]))) for i in range(0, len(obs), 8192)])
     pred = logits.argmax(-1)
     moving = actions != STAY
@@ -93,25 +117,3 @@ def accuracies(params, hidden, obs: np.ndarray, actions: np.ndarray) -> dict:
         "log_likelihood": round(float(np.mean(logp)), 4),
         "samples": int(len(actions)),
     }
-
-
-def selfplay_returns(env: Overcooked, params, hidden, episodes: int, seed: int = 0) -> np.ndarray:
-    """BC+BC: both agents sample from the cloned policy for whole episodes; -> returns[episodes]."""
-    apply = logits_fn(hidden)
-
-    def episode(key):
-        k_reset, k_steps = jax.random.split(key)
-        state = env.reset(k_reset)
-
-        def step(state, key):
-            k0, k1 = jax.random.split(key)
-            a0 = jax.random.categorical(k0, apply(params, env.observe(state)))
-            a1 = jax.random.categorical(k1, apply(params, env.observe_human(state)))
-            state, reward = env.step_joint(state, a0, a1)
-            return state, reward
-
-        _, rewards = jax.lax.scan(step, state, jax.random.split(k_steps, env.episode_steps))
-        return rewards.sum()
-
-    keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
-    return np.asarray(jax.jit(jax.vmap(episode))(keys))

@@ -84,3 +84,9 @@ def evaluate(env: Overcooked, logits_fn: Callable, params, n: int, key, partners
         se = float(r.std(ddof=1) / np.sqrt(len(r))) if len(r) > 1 else 0.0
         out[partner] = {"mean": float(r.mean()), "se": se, "returns": r.tolist()}
     return out
+
+
+def partner_returns(env: Overcooked, logits_fn: Callable, params, episodes: int, seed: int) -> dict:
+    """{partner: {mean, se, episodes}} (rounded, as artifacts record them) for every partner."""
+    table = evaluate(env, logits_fn, params, episodes, jax.random.PRNGKey(seed))
+    return {p: {"mean": round(v["mean"], 3), "se": round(v["se"], 3), "episodes": episodes} for p, v in table.items()}

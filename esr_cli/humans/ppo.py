@@ -355,7 +355,7 @@ def overcooked_agent(env: Overcooked, net: cac.ConvActorCritic | None = None) ->
 
 def overcooked_ppo(env: Overcooked, config: PPOConfig, clone_logits: Callable | None = None) -> PPO:
     """PPO for the human in `env`'s layout. clone_logits: obs [..., H, W, 26] -> logits
-    [..., 6], the cloned policy (`bc_kl`), e.g. `lambda o: bc.logits_fn(hidden)(bc_params, o)`."""
+    [..., 6], the cloned policy (`bc_kl`), e.g. `lambda o: bc.cloned_policy(spec).logits(bc_params, o)`."""
     ppo = PPO(env=overcooked_env(env), agent=overcooked_agent(env), config=config, clone_logits=clone_logits)
     ppo.check()
     return ppo
