@@ -824,6 +824,8 @@ def play(
     port: int = typer.Option(8765, "--port", help="--web: the port on 127.0.0.1"),
     seed: int = typer.Option(0, "--seed", help="the first episode's environment seed (episode i: seed + i)"),
     seed_index: int = typer.Option(0, "--seed-index", help="which seed of each trained run acts"),
+    countdown: float = typer.Option(3.0, "--countdown", help="seconds counted down after the person presses space to "
+                                    "start each episode (0: none)"),
 ):
     """Play the human's part with trained robots; every episode is logged as a `play` artifact."""
     from esr_cli.play import session as ps
@@ -834,6 +836,8 @@ def play(
         raise Exit(2, f"--fps: between 0.5 and 60 (got {fps})")
     if not 1024 <= port <= 65535:
         raise Exit(2, f"--port: between 1024 and 65535 (got {port})")
+    if not 0 <= countdown <= 30:
+        raise Exit(2, f"--countdown: between 0 and 30 seconds (got {countdown})")
     if not participant.strip() or len(participant) > 200:
         raise Exit(2, "--participant: a non-empty id of at most 200 characters")
     if not 0 <= seed <= specs.MAX_SEED - (episodes - 1):  # episode i plays seed + i, an int32 PRNG seed
@@ -861,21 +865,29 @@ def play(
         name = "terminal"
     spec, opponents = ps.load_opponents(target, refs, budget, set_, seed_index, STATE.store, participant)
     ps.recover_abandoned(STATE.store, err)
+    session = ps.new_session_id()
     with front:
-        played = ps.run_session(spec, opponents, participant, episodes, seed, fps, front, name, STATE.store, err)
+        played = ps.run_session(spec, opponents, participant, episodes, seed, fps, front, name, STATE.store, err,
+                                countdown, session)
         rows = ps.summary_rows(played)
         front.finish([f"session over: {len(played)} episode(s) played. Thank you!"])
-    table = Table(title=f"esr play: participant {participant}, {len(played)} of {episodes} episode(s)")
-    for col in ("robot", "key", "episodes (completed)", "return (mean)", "success", "steps (mean)"):
+    # The terminal is the participant's screen: which robot is which stays with `esr plays`.
+    shown = ("robot", "episodes (completed)", "return (mean)", "success", "steps (mean)")
+    table = Table(title=f"esr play: participant {participant}, session {session}, {len(played)} of {episodes} episode(s)")
+    for col in shown if not web else shown[:1] + ("key",) + shown[1:]:
         table.add_column(col)
     for r in rows:
-        table.add_row(r["robot_label"], r["robot"][:12], f"{r['episodes']} ({r['completed']})", f"{r['return_mean']:.2f}",
-                      f"{r['success_rate']:.2f}", f"{r['steps_mean']:.1f}")
+        cells = [f"{r['episodes']} ({r['completed']})", f"{r['return_mean']:.2f}", f"{r['success_rate']:.2f}",
+                 f"{r['steps_mean']:.1f}"]
+        table.add_row(r["robot_label"], *([r["robot"][:12]] if web else []), *cells)
     err.print(table)
+    if not web:
+        err.print(f"the robots' keys: esr plays --session {session}", highlight=False)
     for p in played:
         out.print(p["path"], highlight=False)
     if played and not played[-1]["completed"]:
-        raise Exit(130, "the session was ended early; its last episode is kept as incomplete")
+        err.print("the session was ended early; its last episode is kept as incomplete", highlight=False)
+        raise Exit(130)
 
 
 @app.command()

@@ -15,6 +15,7 @@ from esr_cli.artifacts import ensure
 from esr_cli.humans import overcooked_data as od
 from esr_cli.networks import MLP, conv_net, orthogonal
 from esr_cli.store import Store, StoreError
+from play_script import Scripted
 
 ROWS = 150  # rows per split: enough to exercise every step, small enough to be quick
 SMALL_HUMAN = ["human.epochs=2", "human.selfplay_episodes=2"]
@@ -254,27 +255,6 @@ def test_eval_with_the_proxy_human_and_in_the_flipped_seat(per_seed_run, store, 
     assert _evaluate(path, store, 2, console, "training", 0)[0] == own
 
 
-class _Keys:
-    """A scripted person for `esr play`'s game loop: a key, then a tick, and so on."""
-
-    draws_text = False
-
-    def __init__(self, keys):
-        self.keys = [k for key in keys for k in (key, None)]
-
-    def ready(self):
-        pass
-
-    def show(self, view):
-        pass
-
-    def key(self, timeout):
-        return self.keys.pop(0) if self.keys else "quit"
-
-    def finish(self, lines):
-        pass
-
-
 def test_a_human_cloned_from_played_episodes_partners_a_robot(per_seed_run, store, console):
     """The loop closed: episodes played on coord_ring become a BC human's data (its last
     quarter held out), and `esr eval --human play:...` pairs the robot with that clone."""
@@ -290,7 +270,8 @@ def test_a_human_cloned_from_played_episodes_partners_a_robot(per_seed_run, stor
     for episode in range(4):
         presses = [str(k) for k in rng.choice(["up", "down", "left", "right", "space"], 30)]
         opponent = ps.Opponent("random", "robot A", Robot("random", env))
-        recipe = ps.episode_recipe(play_spec, opponent, "p1", "s1", episode, episode, _Keys(presses), "test", 6.0, "t")
+        recipe = ps.episode_recipe(play_spec, opponent, "p1", "s1", episode, episode,
+                                   Scripted([k for key in presses for k in (key, None)]), "test", 6.0, "t", 0)
         keys.append(ensure(recipe, store).path.name)
     assert all(len(k) == 32 for k in keys)
     # A spec naming them clones from them: a data artifact of the person's pairs, then the human.

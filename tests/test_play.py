@@ -24,13 +24,16 @@ from conftest import ROOT, esr, esr_env
 from esr_cli import spec as specs
 from esr_cli.envs import make_env
 from esr_cli.play import session as ps
-from esr_cli.play.game import KEYMAP, QUIT, Game, Robot
+from esr_cli.play.game import CLOSED, KEYMAP, QUIT, Game, Robot
 from esr_cli.play.log import state_from_record
 from esr_cli.store import PLAY_KIND, Store
+from play_script import STALE, Scripted
 
 # An open 5 x 5 grid (no blocks) with the random robot: the way to the goal is known in advance.
-GRID = ["experiments/grid_2.yaml", "--set", "env.blocks=0", "--set", "env.start=random", "--robots", "random"]
-COOK = ["experiments/cramped_room_random.yaml", "--set", "env.episode_steps=12", "--robots", "random", "--fps", "8"]
+GRID = ["experiments/grid_2.yaml", "--set", "env.blocks=0", "--set", "env.start=random", "--robots", "random",
+        "--countdown", "0"]
+COOK = ["experiments/cramped_room_random.yaml", "--set", "env.episode_steps=12", "--robots", "random", "--fps", "8",
+        "--countdown", "0"]
 ARROW = {"up": b"\x1b[A", "down": b"\x1b[B", "right": b"\x1b[C", "left": b"\x1b[D", "space": b" "}
 
 
@@ -73,34 +76,13 @@ def test_latin_square_is_balanced():
     assert sorted(ps.robot_labels(3, "p7")) == ["robot A", "robot B", "robot C"]
 
 
-class Scripted:
-    """A front end that presses the given keys (None: let a tick pass)."""
-
-    draws_text = True
-
-    def ready(self):
-        pass
-
-    def finish(self, lines):
-        pass
-
-    def __init__(self, keys):
-        self.keys, self.views = list(keys), []
-
-    def show(self, view):
-        self.views.append(view)
-
-    def key(self, timeout):
-        return self.keys.pop(0) if self.keys else QUIT
-
-
 def test_front_ends_meet_the_interface():
     from esr_cli.play.game import FrontEnd
     from esr_cli.play.terminal import Terminal
     from esr_cli.play.web import Web
 
     for cls in (Terminal, Web, Scripted):
-        assert all(callable(getattr(cls, m, None)) for m in ("ready", "show", "key", "finish")), cls
+        assert all(callable(getattr(cls, m, None)) for m in ("ready", "show", "key", "shown_at", "finish")), cls
         assert isinstance(cls.draws_text, bool)
     assert isinstance(Scripted([]), FrontEnd)
 
@@ -113,11 +95,37 @@ def test_the_game_loop_logs_every_key_and_plays_out_a_finished_gridworld():
     game = Game("gridworld", Robot("random", env), 3)
     from esr_cli.play.game import play_episode
 
-    assert play_episode(game, front, 6.0, "t", steps.append)
+    assert play_episode(game, front, 6.0, "t", steps.append, countdown_s=0)
     assert [s.key for s in steps[: len(keys)]] == keys and all(s.key is None for s in steps[len(keys):])
     assert [s.human_action for s in steps[: len(keys)]] == [KEYMAP["gridworld"][k] for k in keys]
     assert len(steps) == env.episode_steps and game.score == env.episode_steps - len(keys) + 1
-    assert "unknown key 'x'" in front.views[1].message and front.views[-1].over
+    assert front.views[0].message == "press space to start" and "unknown key 'x'" in front.views[2].message
+    assert front.views[-1].over and all(s.reaction_s == 0.25 for s in steps[: len(keys)])
+    assert [v.seq for v in front.views] == list(range(1, len(front.views) + 1))
+
+
+def test_keys_pressed_before_their_frame_are_dropped_and_counted_and_q_asks_first():
+    from esr_cli.play.game import play_episode
+
+    spec = specs.load(ROOT / GRID[0], "paper", [GRID[2], GRID[4]])
+    env = make_env(spec.env)
+    keys = grid_keys(3)
+    # Before the gate's frame, during the countdown and on a stale frame: never applied.
+    script = [STALE + "space", "up", "space"] + [STALE + keys[0], STALE + keys[0]] + keys[:1] + [QUIT, "left"] + keys[1:]
+    front, steps = Scripted(script, start=False), []
+    game = Game("gridworld", Robot("random", env), 3)
+    assert play_episode(game, front, 6.0, "t", steps.append, countdown_s=0)
+    assert [s.key for s in steps if s.key] == keys  # 'left' only answered the question
+    assert steps[0].dropped_keys == 4 and sum(s.dropped_keys for s in steps) == 4  # stale space, up; two stale
+    assert "end the session?" in front.views[len(keys[:1]) + 2].message
+    front, steps = Scripted(keys[:1] + [QUIT, QUIT]), []
+    assert not play_episode(Game("gridworld", Robot("random", env), 3), front, 6.0, "t", steps.append, countdown_s=0)
+    assert len(steps) == 1
+    # A countdown shows each (part of a) second and drops what is typed meanwhile.
+    front, steps = Scripted(["up", None] + keys), []
+    assert play_episode(Game("gridworld", Robot("random", env), 3), front, 6.0, "t", steps.append, countdown_s=0.3)
+    assert [v.message for v in front.views[:2]] == ["press space to start", "starting in 1"]
+    assert steps[0].dropped_keys == 1 and [s.key for s in steps if s.key] == keys
 
 
 # ---------------------------------------------------------------- the terminal
@@ -145,6 +153,25 @@ class Pty:
     def send(self, data: bytes) -> None:
         os.write(self.fd, data)
 
+    def frames(self) -> int:
+        return self.screen.count(b"steps left")
+
+    def press(self, data: bytes, timeout=120) -> None:
+        """Send a key and wait for the frame it brings (a key typed before its frame is dropped)."""
+        before = self.frames()
+        self.send(data)
+        deadline = time.time() + timeout
+        while self.frames() == before:
+            assert time.time() < deadline, f"no new frame after {data!r}:\n{self.screen[-2000:]!r}"
+            self.read_until(b"steps left", timeout=timeout)
+            if select.select([self.fd], [], [], 0.1)[0]:
+                self.screen += os.read(self.fd, 65536)
+
+    def start(self) -> None:
+        """Pass the ready gate."""
+        self.read_until(b"press space to start", timeout=240)
+        self.press(b" ")
+
     def wait(self, timeout=120) -> int:
         deadline = time.time() + timeout
         while time.time() < deadline:
@@ -164,9 +191,10 @@ def test_terminal_gridworld_to_the_goal(tmp_path):
     term.read_until(b"steps left")
     term.read_until(b"@")
     assert b"your goal" in term.screen
-    for k in keys:
-        term.send(ARROW[k])
-        time.sleep(0.05)
+    term.start()
+    for k in keys[:-1]:
+        term.press(ARROW[k])
+    term.send(ARROW[keys[-1]])
     assert term.wait() == 0
     assert b"session over" in term.screen
     (path,) = played(tmp_path)
@@ -175,12 +203,15 @@ def test_terminal_gridworld_to_the_goal(tmp_path):
     assert [s["human_action"] for s in steps[: len(keys)]] == [KEYMAP["gridworld"][k] for k in keys]
     summary = json.loads((path / "summary.json").read_text())
     assert summary["completed"] and summary["success"] and summary["participant"] == "p1"
-    assert summary["score"] == 50 - len(keys) + 1 and all(s["reaction_s"] >= 0 for s in steps[: len(keys)])
+    assert summary["score"] == 50 - len(keys) + 1 and all(s["reaction_s"] > 0 for s in steps[: len(keys)])
+    # the participant's screen names the robots by their neutral labels only ("random" is this one's key)
+    after = term.screen.split(b"session over")[-1]
+    assert b"robot A" in after and b"random" not in after and b"esr plays --session" in after
 
 
 def test_terminal_overcooked_ticks_and_logs_the_keys(tmp_path):
     term = Pty(["play", *COOK, "--participant", "p2"], tmp_path)
-    term.read_until(b"steps left", timeout=240)
+    term.start()
     sent = ["up", "space", "left"]
     for k in sent:
         term.send(ARROW[k])
@@ -198,13 +229,15 @@ def test_terminal_overcooked_ticks_and_logs_the_keys(tmp_path):
 
 def test_terminal_quit_keeps_the_episode_as_incomplete(tmp_path):
     term = Pty(["play", *GRID, "--participant", "p3", "--episodes", "2"], tmp_path)
-    term.read_until(b"steps left")
-    term.send(b"z")
-    term.read_until(b"unknown key 'z'")
-    term.send(ARROW["up"] if grid_keys(0)[0] != "up" else ARROW["down"])
-    time.sleep(0.3)
+    term.start()
+    term.press(b"z")
+    assert b"unknown key 'z'" in term.screen
+    term.press(ARROW["up"] if grid_keys(0)[0] != "up" else ARROW["down"])
+    term.press(b"q")
+    assert b"end the session?" in term.screen
     term.send(b"q")
     assert term.wait() == 130
+    assert b"error" not in term.screen.split(b"session over")[-1] and b"ended early" in term.screen
     (path,) = played(tmp_path)
     summary = json.loads((path / "summary.json").read_text())
     assert not summary["completed"] and summary["steps"] == 1
@@ -237,7 +270,7 @@ def test_an_episode_left_by_a_killed_process_is_kept_as_incomplete(tmp_path, sto
     command, but the person's steps must not go with it: both are recovered by the next play."""
     keys = grid_keys(0)
     term = Pty(["play", *GRID, "--participant", "p4"], tmp_path)
-    term.read_until(b"steps left")
+    term.start()
     term.send(ARROW[keys[0]])
     deadline = time.time() + 60
     while not list((tmp_path / PLAY_KIND).rglob("steps.jsonl")) or \
@@ -250,6 +283,7 @@ def test_an_episode_left_by_a_killed_process_is_kept_as_incomplete(tmp_path, sto
     again = Pty(["play", *GRID, "--participant", "p4"], tmp_path)
     again.read_until(b"kept as incomplete")
     again.read_until(b"steps left")
+    again.press(b"q")
     again.send(b"q")
     assert again.wait() == 130
     recovered = [p for p in played(tmp_path) if json.loads((p / "manifest.json").read_text()).get("recovered")]
@@ -311,24 +345,54 @@ def press(driver, key):
     driver.find_element("tag name", "body").send_keys(names.get(key, key))
 
 
+def frame_on_screen(driver) -> int:
+    return int(driver.execute_script("return document.body.dataset.frame || '0'"))
+
+
+def press_and_wait(driver, key) -> None:
+    """Press a key and wait until the frame it brings is on screen."""
+    before = frame_on_screen(driver)
+    press(driver, key)
+    wait_for(driver, f"return Number(document.body.dataset.frame || 0) > {before}")
+
+
 def test_browser_gridworld_to_the_goal(browser, tmp_path):
+    from selenium.webdriver.common.keys import Keys
+
     keys, port = grid_keys(0), free_port()
     proc, url = serve([*GRID, "--participant", "w1"], tmp_path, port)
     browser.get(url)
-    wait_for(browser, "return document.body.dataset.stepsLeft === '50'")
+    wait_for(browser, "return document.body.dataset.frame === '1'")  # the ready gate
+    assert browser.execute_script("return document.getElementById('message').textContent") == "press space to start"
     assert browser.execute_script("return document.getElementById('frame').naturalWidth") > 0
-    for i, k in enumerate(keys):
-        press(browser, k)
-        wait_for(browser, f"return document.body.dataset.stepsLeft !== '{50 - i}'")
+    press(browser, "x")  # before the game's first frame: dropped and counted
+    press_and_wait(browser, "space")
+    assert browser.execute_script("return document.body.dataset.stepsLeft") == "50"
+    # Three stays at once, all pressed on one frame: the first acts, the others are dropped
+    # unless the next frame was already painted when they were pressed.
+    browser.find_element("tag name", "body").send_keys(Keys.SPACE * 3)
+    wait_for(browser, "return document.body.dataset.stepsLeft !== '50'")
+    time.sleep(1)
+    for k in keys:
+        press_and_wait(browser, k)
     wait_for(browser, "return document.body.dataset.finished === 'true'")
     out, errs = proc.communicate(timeout=60)
     assert proc.returncode == 0, errs
     (path,) = played(tmp_path)
     steps = logged_steps(path)
-    assert [s["key"] for s in steps if s["key"] is not None] == keys
+    pressed = [s["key"] for s in steps if s["key"] is not None]
+    stays = len(pressed) - len(keys)
+    assert 1 <= stays <= 3 and pressed == ["space"] * stays + keys
     summary = json.loads((path / "summary.json").read_text())
-    assert summary["completed"] and summary["score"] == 50 - len(keys) + 1
-    assert json.loads((path / "episode.json").read_text())["front_end"] == "web"
+    assert summary["completed"] and summary["score"] == 50 - len(pressed) + 1
+    assert summary["dropped_keys"] == 1 + (3 - stays) and steps[0]["dropped_keys"] == 1  # the gate's 'x' on the first
+    # The browser's own stamps: presses in order, each after its frame was painted.
+    stamped = [s for s in steps if s["key"] is not None]
+    assert all(s["reaction_s"] > 0 and s["key_pressed_at"] > s["frame_shown_at"] for s in stamped)
+    assert all(a["key_pressed_at"] < b["key_pressed_at"] for a, b in zip(stamped, stamped[1:]))
+    assert all(a["frame"] < b["frame"] for a, b in zip(stamped, stamped[1:]))
+    header = json.loads((path / "episode.json").read_text())
+    assert header["front_end"] == "web" and "performance.now()" in header["clocks"]["key_pressed_at"]
 
 
 def test_browser_overcooked_and_a_closed_tab(browser, tmp_path):
@@ -338,12 +402,14 @@ def test_browser_overcooked_and_a_closed_tab(browser, tmp_path):
     cook = [a.replace("episode_steps=12", "episode_steps=40") for a in COOK]
     proc, url = serve([*cook, "--participant", "w2", "--episodes", "2"], tmp_path, port)
     browser.get(url)
-    wait_for(browser, "return document.body.dataset.stepsLeft !== ''", timeout=240)
+    wait_for(browser, "return document.body.dataset.frame === '1'", timeout=240)
+    press_and_wait(browser, "space")
     for k in ("up", "space"):
         press(browser, k)
         time.sleep(0.3)
     wait_for(browser, "return document.body.dataset.over === 'true'", timeout=120)  # the first episode ends
-    wait_for(browser, "return document.body.dataset.over === 'false'", timeout=120)  # the second begins
+    wait_for(browser, "return document.getElementById('message').textContent === 'press space to start'", timeout=120)
+    press_and_wait(browser, "space")  # the second begins
     browser.get("about:blank")  # the tab leaves (the page may stay in the back-forward cache)
     proc.communicate(timeout=120)
     assert proc.returncode == 130
@@ -398,8 +464,11 @@ def test_only_the_printed_address_plays(tmp_path):
     # (and the session, as a closed tab would) with one line.
     keys = grid_keys(0)
     conn = websocket.create_connection(f"{ws}?token={token}", timeout=60, origin=origin)
-    assert "frame" in json.loads(conn.recv())
-    conn.send(json.dumps({"key": keys[0]}))
+    gate = json.loads(conn.recv())
+    assert "frame" in gate and gate["message"] == "press space to start"
+    conn.send(json.dumps({"key": "space", "frame": gate["seq"]}))
+    first = json.loads(conn.recv())
+    conn.send(json.dumps({"key": keys[0], "frame": first["seq"]}))
     assert json.loads(conn.recv())["steps_left"] == 49
     conn.send_binary(b"\x00\x01")
     _, errs = proc.communicate(timeout=60)
@@ -432,7 +501,7 @@ def test_bad_frames_end_the_connection_with_one_line_each():
             conn = websocket.create_connection(f"ws://127.0.0.1:{port}/ws?token={web.token}", timeout=10,
                                                origin=f"http://127.0.0.1:{port}")
             conn.send(data, opcode=opcode)
-            assert web.key(timeout=10) == QUIT  # the episode ends as with a closed tab
+            assert web.key(timeout=10).name == CLOSED  # the episode ends as with a closed tab
             conn.close()
             assert said.getvalue().splitlines()[-1] == f"esr play: the browser sent {what}; its connection is closed"
     assert len(said.getvalue().splitlines()) == len(sent) and "Traceback" not in said.getvalue()
@@ -475,7 +544,7 @@ def test_overcooked_episodes_export_to_the_human_data_schema_and_replay(tmp_path
     script = [k for _ in range(40) for k in (str(rng.choice(["up", "down", "left", "right", "space"])), None)]
     opponent = ps.Opponent("random", "robot A", Robot("random", env))
     store = Store(tmp_path)
-    built = ensure(ps.episode_recipe(spec, opponent, "p9", "s1", 0, 5, Scripted(script), "test", 8.0, "t"), store)
+    built = ensure(ps.episode_recipe(spec, opponent, "p9", "s1", 0, 5, Scripted(script), "test", 8.0, "t", 0), store)
     summary = built.summary()
     assert summary["completed"] and summary["steps"] == 40 and summary["keys"] == 40
     frame = export.trajectory_frame([built.path], env)

@@ -6,10 +6,19 @@ gridworld advances one step per key; Overcooked advances at a fixed rate, a tick
 key being `stay`. Once the gridworld's human is on the goal (or trapped) nothing can move any
 more, so the remaining steps are played out at once: the return counts every step on the goal,
 as in training.
+
+Timing (docs/play.md): every picture a front end shows is a numbered frame, and every key
+arrives as a `KeyPress` naming the frame that was on screen when it was pressed, with the front
+end's own stamps of the press and of that frame's display. A key acts only on the frame it was
+pressed on: a key pressed before that frame was shown (typed ahead, or in flight while the
+game moved on) is dropped and counted, never applied. Each episode opens with a ready gate (the
+first state, "press space to start") and a countdown; Overcooked's clock starts after it. `q`
+asks for confirmation (the game waits meanwhile); a closed tab or terminal ends at once.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Callable, Protocol, runtime_checkable
@@ -22,7 +31,9 @@ from esr_cli.envs import gridworld, overcooked
 from esr_cli.play.log import state_record
 
 KEYS = ("up", "down", "left", "right", "space")
-QUIT = "quit"
+QUIT = "quit"  # the person asks to end the session (confirmed before it ends)
+CLOSED = "closed"  # the tab or the terminal went away: the session ends at once
+START_KEY = "space"
 KEYMAP = {
     "gridworld": {"up": gridworld.UP, "down": gridworld.DOWN, "left": gridworld.LEFT, "right": gridworld.RIGHT,
                   "space": gridworld.STAY},
@@ -73,6 +84,24 @@ class Robot:
         return int(self._act(state, key))
 
 
+@dataclass(frozen=True)
+class KeyPress:
+    """A key as a front end saw it. Stamps in seconds on the front end's own clock (the browser's
+    `performance.now()`, the terminal's monotonic clock at read time); None where unknown."""
+
+    name: str  # a name in KEYS, QUIT, CLOSED, or an unknown key's text
+    frame: int | None = None  # the frame on screen when it was pressed (None: before the first)
+    pressed_at: float | None = None
+    shown_at: float | None = None  # when that frame was shown, on the same clock
+    received_at: float = 0.0  # esr's monotonic clock when the game loop got it
+
+    @property
+    def reaction_s(self) -> float | None:
+        if self.pressed_at is None or self.shown_at is None:
+            return None
+        return round(self.pressed_at - self.shown_at, 4)
+
+
 @dataclass
 class Step:
     t: int
@@ -82,14 +111,20 @@ class Step:
     reward: float
     score: float  # the return so far, this step's reward included
     wall_time: float  # unix time of the step
-    reaction_s: float | None  # from the frame being shown to the key; None without a key
+    reaction_s: float | None  # the key's press minus its frame's display (front end's clock); None without a key
     state: dict  # the environment state the step was taken from (state_record)
+    frame: int | None = None  # the frame that showed `state`
+    frame_sent_at: float | None = None  # esr's monotonic clock when that frame went to the front end
+    frame_shown_at: float | None = None  # the front end's clock when it was on screen
+    key_pressed_at: float | None = None  # the front end's clock
+    key_received_at: float | None = None  # esr's monotonic clock
+    dropped_keys: int = 0  # keys dropped since the previous step (pressed before the frame they would act on)
 
 
 class Game:
-    """One episode. `shown()` marks when the person sees the current state (reaction times);
-    `act(key, pressed_at)` plays one step (key None: a tick without a key) and returns its
-    records, more than one when the rest of a finished gridworld episode is played out."""
+    """One episode. `act(press, frame)` plays one step (press None: a tick without a key) from
+    the state `frame` showed and returns its records, more than one when the rest of a finished
+    gridworld episode is played out."""
 
     def __init__(self, env_kind: str, robot: Robot, seed: int):
         self.env_kind, self.robot, self.env = env_kind, robot, robot.env
@@ -97,7 +132,7 @@ class Game:
         self.key, k_reset = jax.random.split(self.key)
         self.state = self.env.reset(k_reset)
         self.robot.start(self.state)
-        self.t, self.score, self.shown_at, self.prev_human = 0, 0.0, time.time(), 0
+        self.t, self.score, self.prev_human = 0, 0.0, 0
         self._step = jax.jit(self.env.step)
         self.robot.warm(self.state)  # compiled before the first frame is shown
         jax.block_until_ready(self._step(self.state, jnp.int32(0), jnp.int32(0)))
@@ -114,23 +149,21 @@ class Game:
     def done(self) -> bool:
         return self.t >= self.env.episode_steps
 
-    def shown(self) -> None:
-        self.shown_at = time.time()
-
-    def act(self, key: str | None, pressed_at: float | None = None) -> list[Step]:
-        if key is None:
-            steps = [self._advance(IDLE_ACTION[self.env_kind], None, None)]
+    def act(self, press: KeyPress | None, frame: dict | None = None) -> list[Step]:
+        """`frame`: the Step fields of the frame the step is taken from (frame, frame_sent_at,
+        frame_shown_at, dropped_keys), recorded on the first step."""
+        if press is None:
+            steps = [self._advance(IDLE_ACTION[self.env_kind], None, frame)]
         else:
-            if key not in KEYMAP[self.env_kind]:
-                raise ValueError(f"unknown key {key!r}: {', '.join(KEYS)}")
-            reaction = (pressed_at or time.time()) - self.shown_at
-            steps = [self._advance(KEYMAP[self.env_kind][key], key, reaction)]
+            if press.name not in KEYMAP[self.env_kind]:
+                raise ValueError(f"unknown key {press.name!r}: {', '.join(KEYS)}")
+            steps = [self._advance(KEYMAP[self.env_kind][press.name], press, frame)]
         if self.env_kind == "gridworld" and bool(self.env.frozen(self.state)):
             while not self.done:  # nothing can move any more: play the rest out
                 steps.append(self._advance(gridworld.STAY, None, None))
         return steps
 
-    def _advance(self, human_action: int, key: str | None, reaction: float | None) -> Step:
+    def _advance(self, human_action: int, press: KeyPress | None, frame: dict | None) -> Step:
         if self.done:
             raise RuntimeError("the episode is over")
         before = state_record(self.state)
@@ -138,8 +171,13 @@ class Game:
         robot_action = self.robot.act(self.state, k_robot, self.prev_human)
         self.state, reward = self._step(self.state, jnp.int32(robot_action), jnp.int32(human_action))
         self.t, self.score, self.prev_human = self.t + 1, self.score + float(reward), human_action
-        return Step(self.t - 1, key, human_action, robot_action, float(reward), self.score, time.time(),
-                    None if reaction is None else round(reaction, 4), before)
+        timing = dict(frame or {})
+        if press is not None:
+            timing.update(key_pressed_at=press.pressed_at, key_received_at=round(press.received_at, 6))
+            if press.shown_at is not None:
+                timing["frame_shown_at"] = press.shown_at
+        return Step(self.t - 1, None if press is None else press.name, human_action, robot_action, float(reward),
+                    self.score, time.time(), None if press is None else press.reaction_s, before, **timing)
 
     def state_record(self) -> dict:
         return state_record(self.state)
@@ -152,7 +190,8 @@ class Game:
         """What the person is looking at: the characters of `text()`, or the picture's colours."""
         if self.env_kind == "gridworld":
             if as_text:
-                return "@ you   G your goal (the robot does not know it)   # block"
+                return "@ you   G your goal (the robot does not know it)   # a block the robot can push   " \
+                       "X you, trapped under a block   . floor"
             return "orange: you · green: your goal (the robot does not know it) · purple: blocks the robot can push"
         return f"you play the {'blue' if self.env.robot_seat == 0 else 'red'} chef; the robot plays the other"
 
@@ -183,6 +222,7 @@ class View:
     legend: str = ""
     message: str = ""
     over: bool = False
+    seq: int = 0  # the frame's number: counted by the game loop within an episode
 
 
 @runtime_checkable
@@ -197,9 +237,13 @@ class FrontEnd(Protocol):
 
     def show(self, view: View) -> None: ...
 
-    def key(self, timeout: float | None) -> str | None:
-        """The next key within `timeout` seconds (None: wait): a name in KEYS, QUIT, any other
-        string for an unknown key; None when the time ran out."""
+    def key(self, timeout: float | None) -> KeyPress | None:
+        """The next key within `timeout` seconds (None: wait), its name a name in KEYS, QUIT,
+        CLOSED or any other string for an unknown key; None when the time ran out."""
+        ...
+
+    def shown_at(self, frame: int) -> float | None:
+        """When the front end had `frame` on screen (its own clock), if it has said so."""
         ...
 
     def finish(self, lines: list[str]) -> None:
@@ -207,45 +251,114 @@ class FrontEnd(Protocol):
         ...
 
 
-def play_episode(game: Game, front: FrontEnd, fps: float, title: str, write: Callable[[Step], None]) -> bool:
-    """Run one episode; every step is written as it happens. -> completed (False: the person
-    ended it: q, Ctrl-C, a closed tab)."""
-    interval = 1.0 / fps if game.ticks else None
-    message, pending = "", None
-    help_line = "arrow keys move; space " + ("interacts" if game.env_kind == "overcooked" else "stays") + "; q ends"
+class Screen:
+    """Numbers the frames a front end shows and remembers when each was sent."""
 
-    def show(over=False):
-        text = game.text() if front.draws_text else None
-        front.show(View(title, game.score, game.steps_left, game.frame(), text, game.legend(text is not None),
-                        message or help_line, over))
-        game.shown()
+    def __init__(self, front: FrontEnd, game: Game, title: str):
+        self.front, self.game, self.title = front, game, title
+        self.frame, self.sent_at = 0, 0.0
 
-    show()
-    next_tick = time.monotonic() + (interval or 0)
-    while not game.done:
-        timeout = None if interval is None else max(0.0, next_tick - time.monotonic())
-        key = front.key(timeout)
-        if key == QUIT:
-            return False
-        if key is not None and key not in KEYS:
-            message = f"unknown key {key!r}: {help_line}"
-            show()
-            continue
-        if interval is not None:
-            if key is not None:  # the latest key before the tick is the human's action
-                pending = (key, time.time())
-                continue
-            steps = game.act(*(pending or (None, None)))
-            # the next tick an interval from now: a stall (a slow first compile) is not caught up
-            pending, next_tick = None, max(next_tick + interval, time.monotonic() + interval / 2)
-        elif key is None:
-            continue
+    def show(self, message: str, over: bool = False) -> None:
+        game = self.game
+        text = game.text() if self.front.draws_text else None
+        self.frame += 1
+        self.front.show(View(self.title, game.score, game.steps_left, game.frame(), text, game.legend(text is not None),
+                             message, over, self.frame))
+        self.sent_at = time.monotonic()
+
+    def record(self, dropped: int) -> dict:
+        """The current frame's Step fields."""
+        return {"frame": self.frame, "frame_sent_at": round(self.sent_at, 6),
+                "frame_shown_at": self.front.shown_at(self.frame), "dropped_keys": dropped}
+
+
+class SessionEnded(Exception):
+    """The person ended the session (q, confirmed) or left it (CLOSED)."""
+
+
+def confirm_quit(screen: Screen, back: str) -> None:
+    """`q` was pressed: ask before ending (the game waits); raise SessionEnded on a second `q`."""
+    screen.show("end the session? press q again to end it, any other key to go on")
+    while True:
+        press = screen.front.key(None)
+        if press.name in (QUIT, CLOSED):
+            raise SessionEnded
+        if press.frame == screen.frame:  # an answer to the question, not a key typed before it
+            screen.show(back)
+            return
+
+
+def ready_gate(screen: Screen, countdown_s: float) -> int:
+    """Show the first state until the person presses space on it, then count down; -> the keys
+    dropped meanwhile (any other key, and every key during the countdown)."""
+    dropped = 0
+    screen.show("press space to start")
+    while True:
+        press = screen.front.key(None)
+        if press.name == CLOSED:
+            raise SessionEnded
+        if press.name == QUIT:
+            confirm_quit(screen, "press space to start")
+        elif press.name == START_KEY and press.frame == screen.frame:
+            break
         else:
-            steps = game.act(key, time.time())
-        for step in steps:
-            write(step)
-        message = ""
-        show()
-    message = f"episode over: return {game.score:g}"
-    show(over=True)
+            dropped += 1
+    steps = math.ceil(countdown_s)  # "starting in 3", "2", "1": each a second (or an equal part of it)
+    for left in range(steps, 0, -1):
+        screen.show(f"starting in {left}")
+        deadline = time.monotonic() + countdown_s / steps
+        while (wait := deadline - time.monotonic()) > 0:
+            press = screen.front.key(wait)
+            if press is None:
+                continue
+            if press.name == CLOSED:
+                raise SessionEnded
+            dropped += 1
+    return dropped
+
+
+def play_episode(game: Game, front: FrontEnd, fps: float, title: str, write: Callable[[Step], None],
+                 countdown_s: float = 3.0) -> bool:
+    """Run one episode; every step is written as it happens. -> completed (False: the person
+    ended it: q confirmed, Ctrl-C, a closed tab)."""
+    interval = 1.0 / fps if game.ticks else None
+    help_line = "arrow keys move; space " + ("interacts" if game.env_kind == "overcooked" else "stays") + "; q ends"
+    screen = Screen(front, game, title)
+    try:
+        dropped = ready_gate(screen, countdown_s)
+        screen.show(help_line)
+        pending, next_tick = None, time.monotonic() + (interval or 0)
+        while not game.done:
+            timeout = None if interval is None else max(0.0, next_tick - time.monotonic())
+            press = front.key(timeout)
+            if press is not None and press.name == CLOSED:
+                return False
+            if press is not None and press.name == QUIT:
+                confirm_quit(screen, help_line)
+                pending, next_tick = None, time.monotonic() + (interval or 0)
+                continue
+            if press is not None and press.frame != screen.frame:
+                dropped += 1  # pressed before the frame it would act on was on screen
+                continue
+            if press is not None and press.name not in KEYS:
+                screen.show(f"unknown key {press.name!r}: {help_line}")
+                continue
+            if interval is not None:
+                if press is not None:  # the latest key on this frame is the human's action at the tick
+                    pending = press
+                    continue
+                steps = game.act(pending, screen.record(dropped))
+                # the next tick an interval from now: a stall (a slow first compile) is not caught up
+                pending, next_tick = None, max(next_tick + interval, time.monotonic() + interval / 2)
+            elif press is None:
+                continue
+            else:
+                steps = game.act(press, screen.record(dropped))
+            dropped = 0
+            for step in steps:
+                write(step)
+            screen.show(help_line)
+    except SessionEnded:
+        return False
+    screen.show(f"episode over: return {game.score:g}", over=True)
     return True

@@ -30,7 +30,6 @@ from esr_cli.targets import run_spec
 from esr_cli.store import PLAY_KIND, LockBusy, Store, StoreError, atomic_write_text, digest_bytes
 
 
-
 # ---------------------------------------------------------------- the plan
 def participant_number(participant: str) -> int:
     """A stable number from the participant's id (the same id: the same order and labels)."""
@@ -103,8 +102,11 @@ def _spec_of(target: str, budget: str, sets, store: Store, need_run: bool):
 
 
 # ---------------------------------------------------------------- the artifacts
+# The clock of each front end's own stamps (frame_shown_at, key_pressed_at), in seconds.
+FRONT_CLOCKS = {"web": "performance.now() of the page", "terminal": "monotonic, at read time"}
+
 def episode_recipe(spec, opponent: Opponent, participant: str, session: str, episode: int, seed: int, front,
-                   front_name: str, fps: float, title: str) -> Recipe:
+                   front_name: str, fps: float, title: str, countdown_s: float) -> Recipe:
     components = {"kind": "play", "session": session, "episode": episode, "participant": participant,
                   "robot": opponent.ref, "env": spec.training_part()["env"], "seed": seed}
 
@@ -112,7 +114,12 @@ def episode_recipe(spec, opponent: Opponent, participant: str, session: str, epi
         header = {"participant": participant, "session": session, "episode": episode, "robot": opponent.ref,
                   "robot_label": opponent.label, "env": components["env"], "seed": seed, "front_end": front_name,
                   "episode_steps": spec.env.episode_steps,
-                  "fps": fps if spec.env.kind == "overcooked" else None, "started_at": time.time()}
+                  "fps": fps if spec.env.kind == "overcooked" else None, "countdown_s": countdown_s,
+                  "started_at": time.time(),
+                  # the clocks of the steps' stamps (docs/play.md)
+                  "clocks": {"frame_sent_at": "esr, monotonic", "key_received_at": "esr, monotonic",
+                             "frame_shown_at": f"{front_name}, {FRONT_CLOCKS.get(front_name, 'monotonic')}",
+                             "key_pressed_at": f"{front_name}, {FRONT_CLOCKS.get(front_name, 'monotonic')}"}}
         atomic_write_text(out / EPISODE_FILE, json.dumps(header, indent=2))
         game = Game(spec.env.kind, opponent.robot, seed)
         with open(out / STEPS_FILE, "a") as log:
@@ -122,7 +129,7 @@ def episode_recipe(spec, opponent: Opponent, participant: str, session: str, epi
                 os.fsync(log.fileno())
 
             try:
-                completed = play_episode(game, front, fps, title, write)
+                completed = play_episode(game, front, fps, title, write, countdown_s)
             except KeyboardInterrupt:
                 completed = False
         atomic_write_text(out / FINAL_STATE_FILE, json.dumps(game.state_record()))  # the last step's next state
@@ -139,12 +146,14 @@ def summarize(path: Path, completed: bool) -> dict:
     episode_steps = header.get("episode_steps")
     ret = float(sum(s["reward"] for s in steps))
     reactions = [s["reaction_s"] for s in steps if s["reaction_s"] is not None]
+    dropped = sum(s.get("dropped_keys", 0) for s in steps)
     return {
         "participant": header.get("participant"), "robot": header.get("robot"), "robot_label": header.get("robot_label"),
         "episode": header.get("episode"), "completed": bool(completed and len(steps) == episode_steps),
         "steps": len(steps), "episode_steps": episode_steps, "score": ret, "success": ret > 0,
         "keys": sum(s["key"] is not None for s in steps),
         "reaction_s_mean": round(sum(reactions) / len(reactions), 4) if reactions else None,
+        "dropped_keys": dropped,  # pressed before the frame they would have acted on
         "return": {"mean": ret, "of": "played episode"},
     }
 
@@ -193,17 +202,19 @@ def new_session_id() -> str:
 
 
 def run_session(spec, opponents: list[Opponent], participant: str, episodes: int, seed: int, fps: float, front,
-                front_name: str, store: Store, console: Console) -> list[dict]:
+                front_name: str, store: Store, console: Console, countdown_s: float = 3.0,
+                session: str | None = None) -> list[dict]:
     """Play the planned episodes in order; stop at the first one the person ends early.
     -> the summaries of the episodes played."""
-    session = new_session_id()
+    session = session or new_session_id()
     order = episode_order(len(opponents), episodes, participant)
     played = []
     front.ready()
     for i, which in enumerate(order):
         opponent = opponents[which]
         title = f"episode {i + 1} of {episodes} · {opponent.label}"
-        built = ensure(episode_recipe(spec, opponent, participant, session, i, seed + i, front, front_name, fps, title), store)
+        built = ensure(episode_recipe(spec, opponent, participant, session, i, seed + i, front, front_name, fps, title,
+                                      countdown_s), store)
         summary = built.summary() | {"path": str(built.path)}
         played.append(summary)
         if not summary["completed"]:

@@ -1,6 +1,11 @@
 """The terminal front end of `esr play`: keys from the terminal in cbreak mode, the game drawn
 with rich (colours; works over ssh). The gridworld is drawn as characters, Overcooked as its
-rendered picture in half-block cells (two pixels per character)."""
+rendered picture in half-block cells (two pixels per character).
+
+Timing: a frame is stamped with the monotonic clock once it is written and flushed, a key with
+the same clock when it is read. Keys already waiting in the terminal when a frame is drawn were
+typed before it: they are read then and keep the previous frame's number, so the game loop
+drops them (esr_cli/play/game.py)."""
 
 from __future__ import annotations
 
@@ -8,13 +13,15 @@ import os
 import select
 import sys
 import termios
+import time
 import tty
+from collections import deque
 
 import numpy as np
 from rich.console import Console, Group
 from rich.text import Text
 
-from esr_cli.play.game import QUIT, View
+from esr_cli.play.game import CLOSED, QUIT, KeyPress, View
 
 ARROWS = {"A": "up", "B": "down", "C": "right", "D": "left"}
 GRID_STYLE = {"@": "bold rgb(230,150,0)", "X": "bold red", "G": "bold rgb(120,215,10)", "#": "rgb(150,60,235)",
@@ -41,6 +48,8 @@ class Terminal:
         if self.fd < 0 or not os.isatty(self.fd):
             raise NotATerminal("esr play needs a terminal for its keys (or --web for a browser)")
         self.buffer = b""
+        self.waiting: deque[KeyPress] = deque()  # keys read ahead of the game loop
+        self.frame, self.frame_shown_at = None, None
 
     def __enter__(self):
         self.saved = termios.tcgetattr(self.fd)
@@ -60,17 +69,31 @@ class Terminal:
         self.console.print(Text("  ".join(lines), style="bold green"))
 
     # ---------------------------------------------------------------- keys
-    def key(self, timeout: float | None):
-        """The next key: a name in game.KEYS, QUIT, an unknown key's text, or None on timeout."""
-        if not self.buffer:
-            ready, _, _ = select.select([self.fd], [], [], timeout)
-            if not ready:
-                return None
-            data = os.read(self.fd, 64)
-            if not data:  # end of input: the terminal went away
-                return QUIT
-            self.buffer += data
-        return self._next_key()
+    def key(self, timeout: float | None) -> KeyPress | None:
+        """The next key (its name a name in game.KEYS, QUIT, CLOSED or an unknown key's text), or
+        None on timeout."""
+        if not self.waiting and not self._read(timeout):
+            return None
+        return self.waiting.popleft()
+
+    def shown_at(self, frame: int) -> float | None:
+        return self.frame_shown_at if frame == self.frame else None
+
+    def _read(self, timeout: float | None) -> bool:
+        """Read what the terminal has (waiting up to `timeout`) into keys stamped now, on the
+        frame on screen; -> whether any key came."""
+        ready, _, _ = select.select([self.fd], [], [], timeout)
+        if not ready:
+            return False
+        data = os.read(self.fd, 64)
+        now = time.monotonic()
+        if not data:  # end of input: the terminal went away
+            self.waiting.append(KeyPress(CLOSED, self.frame, now, self.frame_shown_at, now))
+            return True
+        self.buffer += data
+        while self.buffer:
+            self.waiting.append(KeyPress(self._next_key(), self.frame, now, self.frame_shown_at, now))
+        return True
 
     def _next_key(self):
         b = self.buffer
@@ -90,6 +113,8 @@ class Terminal:
 
     # ---------------------------------------------------------------- drawing
     def show(self, view: View) -> None:
+        while self._read(0):  # typed before this frame: stamped with the frame before it
+            pass
         header = Text.assemble((view.title, "bold"), "   score ", (f"{view.score:g}", "bold"),
                                "   steps left ", (str(view.steps_left), "bold"))
         body = grid_text(view.text) if view.text is not None else picture_text(view.frame)
@@ -98,6 +123,7 @@ class Terminal:
         self.console.file.write("\x1b[H\x1b[2J")
         self.console.print(Group(header, Text(""), body, Text(""), legend, message))
         self.console.file.flush()
+        self.frame, self.frame_shown_at = view.seq, time.monotonic()
 
 
 def grid_text(rows: list[str]) -> Text:

@@ -5,6 +5,10 @@ The page draws each state as a PNG from esr's own renderer and sends the keys; t
 robot and the log stay in Python (esr_cli/play/game.py). One browser tab plays at a time.
 Closing the tab ends the episode (kept as incomplete), as does Ctrl-C in the terminal.
 
+Timing is measured in the browser (`performance.now()`): the page reports when each numbered
+frame was painted, and each key carries the event's time stamp, the frame on screen and that
+frame's paint time. A key pressed before any frame was painted names no frame.
+
 Any web page the participant has open can reach 127.0.0.1, so the server answers only its own
 page: the address esr prints carries a random token that the page and its websocket must send,
 the Host header must name this server (a DNS-rebound name reaches 127.0.0.1 under another), and
@@ -35,11 +39,12 @@ from starlette.responses import HTMLResponse, PlainTextResponse
 from starlette.routing import Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
-from esr_cli.play.game import QUIT, View
+from esr_cli.play.game import CLOSED, KeyPress, View
 
 HOST = "127.0.0.1"  # never reachable from another machine
 HOST_NAMES = (HOST, "localhost", "[::1]")  # the names a browser on this machine may give it
 MAX_KEY_TEXT = 40
+SHOWN_KEPT = 256  # paint times kept for the most recent frames
 MAX_MESSAGE_BYTES = 4096  # a key message is a few bytes; the server's frames go the other way
 # Close codes with which the websocket layer ends a connection over a bad frame from the browser.
 BAD_FRAMES = {1002: "a malformed frame", 1007: "text that is not UTF-8", 1009: f"a message over {MAX_MESSAGE_BYTES:,} bytes"}
@@ -65,10 +70,22 @@ const IGNORED = ["Shift", "Control", "Alt", "Meta", "CapsLock", "Tab"];
 const $ = (id) => document.getElementById(id);
 const token = new URLSearchParams(location.search).get("token") ?? "";
 const ws = new WebSocket(`ws://${location.host}/ws?token=${encodeURIComponent(token)}`);
-ws.onopen = () => { document.body.dataset.connected = "true"; };
+let onScreen = null, paintedAt = null;  // the frame number on screen and when it was painted
+ws.onopen = () => { document.body.dataset.connected = "true"; $("title").textContent = "connected: waiting for the game"; };
 ws.onmessage = (event) => {
   const m = JSON.parse(event.data);
-  if (m.frame) { $("frame").src = "data:image/png;base64," + m.frame; $("frame").style.width = m.width + "px"; }
+  if (m.frame) {
+    const img = new Image();
+    img.onload = () => {
+      $("frame").src = img.src; $("frame").style.width = m.width + "px";
+      // after the next paint: the moment the person can see it
+      requestAnimationFrame(() => setTimeout(() => {
+        onScreen = m.seq; paintedAt = performance.now(); document.body.dataset.frame = m.seq;
+        if (ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify({shown: m.seq, t: paintedAt}));
+      }, 0));
+    };
+    img.src = "data:image/png;base64," + m.frame;
+  }
   if (m.title !== undefined) $("title").textContent = m.title;
   if (m.score !== undefined) $("score").textContent = m.score;
   if (m.steps_left !== undefined) { $("steps").textContent = m.steps_left; document.body.dataset.stepsLeft = m.steps_left; }
@@ -84,7 +101,7 @@ ws.onclose = () => { document.body.dataset.connected = "closed"; $("message").te
 document.addEventListener("keydown", (e) => {
   if (IGNORED.includes(e.key) || ws.readyState !== WebSocket.OPEN) return;
   e.preventDefault();
-  ws.send(JSON.stringify({key: KEYS[e.key] ?? e.key}));
+  ws.send(JSON.stringify({key: KEYS[e.key] ?? e.key, frame: onScreen, t: e.timeStamp, shown: paintedAt}));
 });
 </script></body></html>
 """
@@ -110,14 +127,43 @@ class OneLine(logging.Handler):
         self.console.print(f"esr play: web server: {text}" + (f" ({type(error).__name__}: {error})"[:200] if error else ""))
 
 
-def key_of(text: str | None) -> str | None:
-    """The key a page's message names ({"key": "up"}), cut to MAX_KEY_TEXT; None for a binary
-    frame or anything that is not such an object."""
+def _stamp(value) -> float | None:
+    """A browser time stamp in ms -> seconds; None unless a finite, non-negative number."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < 1e13:
+        return None
+    return round(value / 1000.0, 6)
+
+
+def _frame(value) -> int | None:
+    return value if isinstance(value, int) and not isinstance(value, bool) and 0 <= value < 2**53 else None
+
+
+def key_of(text: str | None) -> KeyPress | None:
+    """The key a page's message names ({"key": "up", "frame": 3, "t": ms, "shown": ms}), its name
+    cut to MAX_KEY_TEXT and stamps that are not numbers left unknown; None for a binary frame or
+    anything that is not such an object."""
+    message = _json_object(text)
+    if message is None or "key" not in message:
+        return None
+    return KeyPress(str(message["key"])[:MAX_KEY_TEXT], _frame(message.get("frame")), _stamp(message.get("t")),
+                    _stamp(message.get("shown")), time.monotonic())
+
+
+def shown_of(text: str | None) -> tuple[int, float] | None:
+    """(frame, paint time in seconds) of a page's {"shown": frame, "t": ms}; None otherwise."""
+    message = _json_object(text)
+    if message is None or "key" in message:
+        return None
+    frame, at = _frame(message.get("shown")), _stamp(message.get("t"))
+    return None if frame is None or at is None else (frame, at)
+
+
+def _json_object(text: str | None) -> dict | None:
     try:
         message = json.loads(text) if text is not None else None
     except (ValueError, RecursionError):
         return None
-    return str(message["key"])[:MAX_KEY_TEXT] if isinstance(message, dict) and "key" in message else None
+    return message if isinstance(message, dict) else None
 
 
 def png_base64(frame: np.ndarray) -> str:
@@ -145,6 +191,7 @@ class Web:
             probe.close()
         self.token = secrets.token_urlsafe(32)  # only who reads esr's console can open the page
         self.keys: queue.Queue = queue.Queue()
+        self.painted: dict[int, float] = {}  # frame -> the browser's paint time (the latest SHOWN_KEPT)
         self.latest: str | None = None
         self.socket: WebSocket | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -220,7 +267,7 @@ class Web:
             pass  # the browser left while esr was sending
         finally:
             self.socket = None
-            self.keys.put(QUIT)  # a closed tab ends the episode
+            self.keys.put(KeyPress(CLOSED, received_at=time.monotonic()))  # a closed tab ends the episode
 
     async def _receive_keys(self, websocket: WebSocket) -> None:
         """Queue each key the page sends until it closes; anything but a key message (a binary
@@ -232,7 +279,13 @@ class Web:
                 if why := BAD_FRAMES.get(message.get("code")):
                     self._bad_message(why)
                 return
-            key = key_of(message.get("text"))
+            text = message.get("text")
+            if (shown := shown_of(text)) is not None:
+                self.painted[shown[0]] = shown[1]
+                while len(self.painted) > SHOWN_KEPT:
+                    del self.painted[next(iter(self.painted))]
+                continue
+            key = key_of(text)
             if key is None:
                 self._bad_message("binary data" if message.get("bytes") is not None else "text that is not a key")
                 await websocket.close(code=1003)
@@ -250,7 +303,7 @@ class Web:
             future = asyncio.run_coroutine_threadsafe(ws.send_text(text), loop)
             try:
                 future.result(timeout=5)
-            except Exception:  # noqa: BLE001 - a tab closing mid-send: its key queue says QUIT
+            except Exception:  # noqa: BLE001 - a tab closing mid-send: its key queue says CLOSED
                 pass
 
     # ---------------------------------------------------------------- the game side
@@ -262,15 +315,18 @@ class Web:
 
     def show(self, view: View) -> None:
         frame = np.asarray(view.frame)
-        self._send({"frame": png_base64(frame), "width": frame.shape[1] * SCALE[frame.shape[1] < 200],
+        self._send({"frame": png_base64(frame), "seq": view.seq, "width": frame.shape[1] * SCALE[frame.shape[1] < 200],
                     "title": view.title, "score": f"{view.score:g}", "steps_left": view.steps_left,
                     "legend": view.legend, "message": view.message, "over": view.over})
 
-    def key(self, timeout: float | None):
+    def key(self, timeout: float | None) -> KeyPress | None:
         try:
             return self.keys.get(timeout=timeout) if timeout is not None else self.keys.get()
         except queue.Empty:
             return None
+
+    def shown_at(self, frame: int) -> float | None:
+        return self.painted.get(frame)
 
     def finish(self, lines: list[str]) -> None:
         self._send({"message": "  ".join(lines), "over": True, "finished": True})
