@@ -62,6 +62,7 @@ def describe(human_spec) -> str:
         return f"bc {network} stay_weight={d['stay_weight']:g} epochs={d['epochs']}"
     if human_spec.kind == "ppo":
         extra = f" kl_coef={d['kl_coef']:g}" if d["mode"] == "bc_kl" else ""
+        extra += f" random_partner={d['random_partner']:g}" if d["random_partner"] else ""
         return f"ppo {d['mode']} steps={d['total_steps']:.3g}{extra}"
     return human_spec.kind
 

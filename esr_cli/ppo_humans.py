@@ -41,7 +41,8 @@ EPISODE_STEPS = 400  # the paper's Overcooked horizon, in training and in the re
 
 
 def ppo_config(human_spec) -> ppo.PPOConfig:
-    fields = {k: getattr(human_spec, k) for k in ("total_steps", "num_envs", "rollout_steps", "lr", "ent_coef")}
+    fields = {k: getattr(human_spec, k) for k in ("total_steps", "num_envs", "rollout_steps", "lr", "ent_coef",
+                                                  "random_partner")}
     if human_spec.mode == "bc_kl":
         fields["kl_coef"] = human_spec.kl_coef
     return ppo.mode_config(human_spec.mode, **fields)

@@ -314,6 +314,10 @@ class PPOHumanSpec(_Model):
     lr: Float = Field(2.5e-4, gt=0.0, description="Adam's learning rate, annealed linearly to 0")
     ent_coef: Float = Field(0.01, ge=0.0)
     kl_coef: Float = Field(1.0, ge=0.0, description="mode bc_kl: the KL term's weight")
+    random_partner: Float = Field(
+        0.0, ge=0.0, le=1.0, description="probability that the partner's seat (the robot's) acts uniformly at random in "
+        "a step instead of by the network; those steps are not learnt from (1: trained beside the paper's Random robot)",
+    )
     clone: Optional[BCHumanSpec] = Field(None, description="mode bc_kl: the BC human it is pulled towards "
                                          "(default: kind bc with its defaults)")
     seed: Int = Field(0, ge=0, le=MAX_SEED)
@@ -347,6 +351,8 @@ class PPOHumanSpec(_Model):
         part = {"layout": self.layout or layout, **{k: d[k] for k in keep}}
         if self.mode == "bc_kl":
             part["kl_coef"] = d["kl_coef"]
+        if self.random_partner:  # only when set, so that the humans trained before this field keep their keys
+            part["random_partner"] = d["random_partner"]
         return part
 
     def clones(self, seeds: tuple[int, ...]) -> list["PPOHumanSpec"]:

@@ -122,6 +122,33 @@ def test_self_play_coordinates_on_the_better_convention():
     assert probs[1] > 0.9, probs
 
 
+def test_beside_a_random_partner_the_human_learns_its_best_response_to_it():
+    # Seat 1 (the human's) alone earns 0.6 with action 2 whatever the partner does; matching the
+    # partner on action 0 earns 1.0. In self-play the one network coordinates on (0, 0); beside
+    # a uniform random partner matching pays 1/3 on average, so the best response is action 2.
+    payoff = jnp.array([[1.0, 0.0, 0.6], [0.0, 0.9, 0.6], [0.0, 0.0, 0.6]], jnp.float32)  # [a0, a1]
+
+    def step(key, state, actions):
+        return state, payoff[actions[0], actions[1]], jnp.zeros((2,), jnp.float32), jnp.bool_(True)
+
+    env = bandit([0.0, 0.0, 0.0], players=2)._replace(step=step)
+    config = {**TOY, "total_steps": 120 * 128}
+    selfplay, _ = final_probs(PPO(env, tabular_agent(3), PPOConfig(**config)), updates=120)
+    assert selfplay[0] > 0.9, selfplay
+    beside, metrics = final_probs(PPO(env, tabular_agent(3), PPOConfig(**config, random_partner=1.0)), updates=120)
+    assert beside[2] > 0.9, beside
+    assert abs(float(np.mean(metrics["episode_return"][-10:])) - 0.6) < 0.05  # the partner stays random
+    # Only the partner's seat is ever random, with the probability asked for.
+    ppo = PPO(env, tabular_agent(3), PPOConfig(**config, random_partner=0.5))
+    fixed = jnp.log(jnp.array([1e-6, 1e-6, 1.0]))[None, None].repeat(4000, 0).repeat(2, 1)  # the network: action 2
+    action, learnt = ppo.act(jax.random.PRNGKey(1), fixed)
+    assert (np.asarray(action[:, 1]) == 2).all() and np.asarray(learnt[:, 1]).all()
+    random_steps = ~np.asarray(learnt[:, 0], bool)
+    assert abs(random_steps.mean() - 0.5) < 0.03 and (np.asarray(action[:, 0])[~random_steps] == 2).all()
+    with pytest.raises(ValueError, match="random_partner"):
+        PPOConfig(**TOY, random_partner=1.5)
+
+
 def test_a_large_kl_coefficient_holds_the_policy_at_the_clone():
     clone = np.array([0.6, 0.1, 0.3], np.float32)
     clone_logits = lambda obs: jnp.broadcast_to(jnp.log(clone), obs.shape[:-1] + (3,))  # noqa: E731

@@ -103,6 +103,15 @@ def test_non_finite_parameters_are_a_problem():
     assert ppo_humans.params_problem({"a": np.zeros(3)}) is None
 
 
+def test_a_random_partner_names_itself_in_the_key_and_reaches_the_trainer():
+    plain = specs.load(SPEC, "smoke", [tiny()]).human
+    beside = specs.load(SPEC, "smoke", [tiny(), "human.random_partner=1"]).human
+    assert "random_partner" not in plain.training_part("cramped_room")  # humans from before the field keep their keys
+    assert beside.training_part("cramped_room")["random_partner"] == 1.0
+    assert ppo_humans.ppo_human_key(plain, "cramped_room")[0] != ppo_humans.ppo_human_key(beside, "cramped_room")[0]
+    assert ppo_humans.ppo_config(beside).random_partner == 1.0 and ppo_humans.ppo_config(plain).random_partner == 0.0
+
+
 def test_a_checkpoint_of_another_shape_is_refused(tmp_path):
     trainer = ppo_humans.ppo.overcooked_ppo(Overcooked("cramped_room", 400), ppo_humans.ppo_config(specs.load(SPEC, "smoke", [tiny()]).human))
     runner = trainer.init(jax.random.PRNGKey(0))

@@ -19,6 +19,12 @@ Two optional terms make the three training modes (`mode_config`):
   fixed behaviour-cloned policy given as a function of the observation: the human learns
   to play but stays near the humans' own behaviour.
 
+With `random_partner` = p > 0, in every step of every environment the partner's seat
+(player 0: the robot's seat, so the human learns in its own) acts uniformly at random with
+probability p instead of by the network, and those random actions are left out of the loss
+(masked means). p = 1 trains the human beside a uniform random partner, the paper's Random
+robot; p = 0 is plain self-play (and computes exactly what it did before the option).
+
 The core sees the environment only through `SelfPlayEnv` (reset, step with automatic reset,
 observe) and the network only through `Agent` (init, apply), so the tests run it on toy
 environments; `overcooked_env` and `overcooked_agent` are the Overcooked side.
@@ -55,6 +61,7 @@ class PPOConfig:
     max_grad_norm: float = 0.5
     shaping_fraction: float = 0.0  # shaped reward annealed 1 -> 0 over this fraction; 0: sparse only
     kl_coef: float = 0.0  # weight of KL(pi_clone || pi); > 0 needs a clone
+    random_partner: float = 0.0  # probability that player 0 acts uniformly at random in a step
 
     def __post_init__(self):
         if self.num_updates < 1:
@@ -63,6 +70,8 @@ class PPOConfig:
             raise ValueError(f"shaping_fraction must be in [0, 1], got {self.shaping_fraction}")
         if self.kl_coef < 0:
             raise ValueError(f"kl_coef must be >= 0, got {self.kl_coef}")
+        if not 0.0 <= self.random_partner <= 1.0:
+            raise ValueError(f"random_partner must be in [0, 1], got {self.random_partner}")
 
     @property
     def steps_per_update(self) -> int:
@@ -134,6 +143,7 @@ class Transition(NamedTuple):
     reward: jax.Array
     done: jax.Array
     clone_log_probs: jax.Array  # [..., A] (zeros-size placeholder when there is no KL term)
+    learnt: jax.Array  # 1.0 where the network chose the action, 0.0 where the random partner did
 
 
 METRICS = (
@@ -214,7 +224,7 @@ class PPO(NamedTuple):
             params, env_state, obs, ep_ret = carry
             k_act, k_env = jax.random.split(key)
             logits, value = self.agent.apply(params, obs)  # [E, P, A], [E, P]
-            action = jax.random.categorical(k_act, logits)
+            action, learnt = self.act(k_act, logits)
             log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[..., None], -1)[..., 0]
             env_state, sparse, shaped, done = jax.vmap(env.step)(jax.random.split(k_env, c.num_envs), env_state, action)
             reward = sparse[:, None] + coef * shaped
@@ -223,7 +233,7 @@ class PPO(NamedTuple):
             ended = jnp.where(done, ep_ret, 0.0)
             ep_ret = jnp.where(done, 0.0, ep_ret)
             done_p = jnp.broadcast_to(done[:, None], action.shape)
-            t = Transition(obs, action, log_prob, value, reward.astype(jnp.float32), done_p, clone)
+            t = Transition(obs, action, log_prob, value, reward.astype(jnp.float32), done_p, clone, learnt)
             next_obs = jax.vmap(env.observe)(env_state)
             return (params, env_state, next_obs, ep_ret), (t, sparse, done, ended)
 
@@ -238,6 +248,19 @@ class PPO(NamedTuple):
             "shaping_coef": coef,
         }
         return runner._replace(env_state=env_state, obs=obs, episode_return=ep_ret, key=key), traj, stats
+
+    def act(self, key, logits):
+        """Sampled actions [E, P] and where the network chose them (1.0) rather than the random
+        partner (0.0). Without a random partner, exactly `categorical(key, logits)`."""
+        p = self.config.random_partner
+        if p == 0:
+            action = jax.random.categorical(key, logits)
+            return action, jnp.ones(action.shape, jnp.float32)
+        k_net, k_uniform, k_coin = jax.random.split(key, 3)
+        action = jax.random.categorical(k_net, logits)
+        partner = (jnp.arange(action.shape[-1]) == 0) & jax.random.bernoulli(k_coin, p, action.shape[:-1] + (1,))
+        action = jnp.where(partner, jax.random.randint(k_uniform, action.shape, 0, logits.shape[-1]), action)
+        return action, (~partner).astype(jnp.float32)
 
     def gae(self, traj: Transition, last_value):
         """-> (advantages, value targets), [T, E, P]."""
@@ -256,19 +279,27 @@ class PPO(NamedTuple):
     # ---- loss
     def loss(self, params, t: Transition, adv, target):
         c = self.config
+        if c.random_partner > 0:  # over the network's own actions only
+            weight = t.learnt / jnp.maximum(t.learnt.sum(), 1.0)
+            mean = lambda x: (weight * x).sum()  # noqa: E731
+            adv_mean = mean(adv)
+            adv_std = jnp.sqrt(mean(jnp.square(adv - adv_mean)))
+        else:  # plain means, as before the option (bit for bit)
+            mean = jnp.mean
+            adv_mean, adv_std = adv.mean(), adv.std()
         logits, value = self.agent.apply(params, t.obs)
         logp_all = jax.nn.log_softmax(logits)
         logp = jnp.take_along_axis(logp_all, t.action[..., None], -1)[..., 0]
         v_clipped = t.value + jnp.clip(value - t.value, -c.clip_eps, c.clip_eps)
-        value_loss = 0.5 * jnp.maximum(jnp.square(value - target), jnp.square(v_clipped - target)).mean()
+        value_loss = 0.5 * mean(jnp.maximum(jnp.square(value - target), jnp.square(v_clipped - target)))
         log_ratio = logp - t.log_prob
         ratio = jnp.exp(log_ratio)
-        adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-        actor_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - c.clip_eps, 1 + c.clip_eps) * adv).mean()
+        adv = (adv - adv_mean) / (adv_std + 1e-8)
+        actor_loss = -mean(jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - c.clip_eps, 1 + c.clip_eps) * adv))
         probs = jnp.exp(logp_all)
-        entropy = -(probs * logp_all).sum(-1).mean()
+        entropy = mean(-(probs * logp_all).sum(-1))
         if c.kl_coef > 0:
-            kl = (jnp.exp(t.clone_log_probs) * (t.clone_log_probs - logp_all)).sum(-1).mean()
+            kl = mean((jnp.exp(t.clone_log_probs) * (t.clone_log_probs - logp_all)).sum(-1))
         else:
             kl = jnp.float32(0.0)
         total = actor_loss + c.vf_coef * value_loss - c.ent_coef * entropy + c.kl_coef * kl
@@ -278,8 +309,8 @@ class PPO(NamedTuple):
             "value_loss": value_loss,
             "entropy": entropy,
             "kl_to_clone": kl,
-            "approx_kl": ((ratio - 1) - log_ratio).mean(),
-            "clip_fraction": (jnp.abs(ratio - 1) > c.clip_eps).mean(),
+            "approx_kl": mean((ratio - 1) - log_ratio),
+            "clip_fraction": mean((jnp.abs(ratio - 1) > c.clip_eps).astype(jnp.float32)),
         }
         return total, aux
 
