@@ -418,7 +418,7 @@ def _plain_tar() -> bytes:
     return _block(f"{RUN_DIR}/metrics.jsonl".encode(), size=3) + b"{}\n".ljust(512, b"\0") + END
 
 
-def _gz(data: bytes) -> bytes:
+def _gzip_bytes(data: bytes) -> bytes:
     return gzip.compress(data, mtime=0)  # the same bytes on every collection (xdist workers compare them)
 
 
@@ -427,12 +427,11 @@ MISNAMED = [
     ("xz.tar.gz", lzma.compress(_plain_tar()), "xz-compressed, though its name says gzip"),
     ("zst.tar.gz", b"\x28\xb5\x2f\xfd" + bytes(600), "zstd-compressed, though its name says gzip"),
     ("plain.tar.gz", _plain_tar(), "an uncompressed tar, though its name says gzip"),
-    ("gzip.tar.bz2", _gz(_plain_tar()), "not named .tar.gz or .tgz"),
-    ("gzip.tar", _gz(_plain_tar()), "not named .tar.gz or .tgz"),
-    ("tail.tar.gz", _gz(_plain_tar()) + b"junk after the gzip stream", "damaged gzip data"),
-    ("crc.tar.gz", _gz(_plain_tar())[:-8] + bytes(8), "damaged gzip data"),
-    ("cut.tar.gz", _gz(_plain_tar())[:40], "cut short"),
-
+    ("gzip.tar.bz2", _gzip_bytes(_plain_tar()), "not named .tar.gz or .tgz"),
+    ("gzip.tar", _gzip_bytes(_plain_tar()), "not named .tar.gz or .tgz"),
+    ("tail.tar.gz", _gzip_bytes(_plain_tar()) + b"junk after the gzip stream", "damaged gzip data"),
+    ("crc.tar.gz", _gzip_bytes(_plain_tar())[:-8] + bytes(8), "damaged gzip data"),
+    ("cut.tar.gz", _gzip_bytes(_plain_tar())[:40], "cut short"),
 ]
 
 
