@@ -168,16 +168,20 @@ def test_weighted_ce_downweights_stay():
     np.testing.assert_allclose(float(light), float((3 * 0.1 * nll_stay + nll_interact) / 1.3), rtol=1e-6)
 
 
-def test_bc_learns_a_state_dependent_rule_and_reports_non_stay_accuracy():
-    # Synthetic: the action is which of 3 cells holds a 1 (else stay); stays dominate.
-    rng = np.random.default_rng(0)
-    n = 1000
+def cell_rule(n: int, moving_fraction: float, seed: int):
+    """Synthetic pairs: the action is which of 3 cells holds a 1, else stay. -> (obs, action, moving)."""
+    rng = np.random.default_rng(seed)
     obs = np.zeros((n, 4, 5, 26), np.uint8)
     action = np.full(n, STAY, np.int8)
-    moving = rng.random(n) < 0.3
+    moving = rng.random(n) < moving_fraction
     which = rng.integers(0, 3, n)
     obs[moving, 0, which[moving], 3] = 1
     action[moving] = which[moving]
+    return obs, action, moving
+
+
+def test_bc_learns_a_state_dependent_rule_and_reports_non_stay_accuracy():
+    obs, action, moving = cell_rule(1000, 0.3, seed=0)  # stays dominate
     spec = specs.BCHumanSpec(kind="bc", epochs=10, lr=5e-3, batch_size=100)
     params, losses = bc.train_bc(obs, action, spec)
     assert losses[-1] < losses[0]
@@ -189,14 +193,7 @@ def test_bc_learns_a_state_dependent_rule_and_reports_non_stay_accuracy():
 def test_bc_with_the_papers_network_learns_the_rule_and_has_the_ppo_humans_parameters():
     from esr_cli.humans import conv_actor_critic as cac
 
-    rng = np.random.default_rng(1)
-    n = 600
-    obs = np.zeros((n, 4, 5, 26), np.uint8)
-    action = np.full(n, STAY, np.int8)
-    moving = rng.random(n) < 0.4
-    which = rng.integers(0, 3, n)
-    obs[moving, 0, which[moving], 3] = 1
-    action[moving] = which[moving]
+    obs, action, _ = cell_rule(600, 0.4, seed=1)
     spec = specs.BCHumanSpec(kind="bc", network="conv", epochs=15, lr=3e-3, batch_size=50)
     params, losses = bc.train_bc(obs, action, spec)
     assert losses[-1] < 0.5 * losses[0]
