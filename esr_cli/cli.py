@@ -6,6 +6,7 @@ interrupted (resumable)."""
 from __future__ import annotations
 
 import errno
+import io
 import json
 import os
 import shlex
@@ -22,7 +23,7 @@ from esr_cli import spec as specs, targets
 from esr_cli.artifacts import ensure
 from esr_cli.printing import plain_console, print_table, printable, tagged
 from esr_cli.stop_signals import StopSignals, Terminated, stop_signals_raise
-from esr_cli.store import KINDS, RUN_KIND, Store, StoreError, nearest_existing, probe_writable
+from esr_cli.store import KINDS, RUN_KIND, Store, StoreError, atomic_write_bytes, nearest_existing, probe_writable
 
 def _flag_type_hidden(display_type_rich):
     """Typer's help names a flag's type ("--json <bool>") as if it took a value; a flag takes
@@ -923,9 +924,9 @@ def plays(
         if count == 0:
             raise Exit(2, "--export: none of these episodes is an Overcooked episode")
         export.parent.mkdir(parents=True, exist_ok=True)
-        tmp = export.with_name(f".{export.name}.tmp")
-        frame.to_csv(tmp, index=False) if export.suffix == ".csv" else frame.to_pickle(tmp)
-        tmp.replace(export)
+        buffer = io.BytesIO()
+        frame.to_csv(buffer, index=False) if export.suffix == ".csv" else frame.to_pickle(buffer)
+        atomic_write_bytes(export, buffer.getvalue())
         err.print(tagged("exported", "green", f" {count} Overcooked episode(s), {len(frame)} rows: {export}"))
 
 

@@ -567,6 +567,9 @@ def test_overcooked_episodes_export_to_the_human_data_schema_and_replay(tmp_path
 
     again = pd.read_pickle(tmp_path / "out" / "p9.pickle")
     assert list(again["joint_action"]) == list(frame["joint_action"])
+    esr("plays", "--participant", "p9", "--export", str(tmp_path / "out" / "p9.csv"), store=tmp_path)
+    assert list(pd.read_csv(tmp_path / "out" / "p9.csv")["joint_action"]) == list(frame["joint_action"])
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["p9.csv", "p9.pickle"]  # no temporary file left
     # As a human's data: the person's view of each logged state and their action, on this
     # layout only; one episode leaves no test split.
     from esr_cli.humans import play_data
