@@ -185,6 +185,23 @@ class Pty:
         raise AssertionError(f"esr play did not end:\n{self.screen[-2000:]!r}")
 
 
+def test_a_terminal_that_goes_away_ends_the_session_at_once():
+    """Its input stays readable at end of input (or raises EIO): drawing a frame must not spin
+    on it, and every key from then on is CLOSED."""
+    from rich.console import Console
+
+    from esr_cli.play.game import View
+    from esr_cli.play.terminal import Terminal
+
+    master, child = pty.openpty()
+    with os.fdopen(child, "rb", buffering=0) as stdin:
+        term = Terminal(Console(file=io.StringIO(), width=80), stdin=stdin)
+        os.close(master)
+        view = View("t", 0.0, 5, jax.numpy.zeros((8, 8, 3), "uint8"), ["..", ".."], seq=1)
+        term.show(view)  # returns, having read the end of input
+        assert term.key(None).name == CLOSED and term.key(0.01).name == CLOSED
+
+
 def test_terminal_gridworld_to_the_goal(tmp_path):
     keys = grid_keys(0)
     term = Pty(["play", *GRID, "--participant", "p1"], tmp_path)

@@ -110,6 +110,8 @@ def episode_recipe(spec, opponent: Opponent, participant: str, session: str, epi
     components = {"kind": "play", "session": session, "episode": episode, "participant": participant,
                   "robot": opponent.ref, "env": spec.training_part()["env"], "seed": seed}
 
+    front_clock = f"{front_name}, {FRONT_CLOCKS.get(front_name, 'monotonic')}"
+
     def build(out: Path, store: Store) -> dict:
         header = {"participant": participant, "session": session, "episode": episode, "robot": opponent.ref,
                   "robot_label": opponent.label, "env": components["env"], "seed": seed, "front_end": front_name,
@@ -118,8 +120,7 @@ def episode_recipe(spec, opponent: Opponent, participant: str, session: str, epi
                   "started_at": time.time(),
                   # the clocks of the steps' stamps (docs/play.md)
                   "clocks": {"frame_sent_at": "esr, monotonic", "key_received_at": "esr, monotonic",
-                             "frame_shown_at": f"{front_name}, {FRONT_CLOCKS.get(front_name, 'monotonic')}",
-                             "key_pressed_at": f"{front_name}, {FRONT_CLOCKS.get(front_name, 'monotonic')}"}}
+                             **dict.fromkeys(("frame_shown_at", "key_pressed_at"), front_clock)}}
         atomic_write_text(out / EPISODE_FILE, json.dumps(header, indent=2))
         game = Game(spec.env.kind, opponent.robot, seed)
         with open(out / STEPS_FILE, "a") as log:

@@ -50,6 +50,7 @@ class Terminal:
         self.buffer = b""
         self.waiting: deque[KeyPress] = deque()  # keys read ahead of the game loop
         self.frame, self.frame_shown_at = None, None
+        self.gone = False  # the terminal went away: every key from now on is CLOSED
 
     def __enter__(self):
         self.saved = termios.tcgetattr(self.fd)
@@ -73,7 +74,7 @@ class Terminal:
         """The next key (its name a name in game.KEYS, QUIT, CLOSED or an unknown key's text), or
         None on timeout."""
         if not self.waiting and not self._read(timeout):
-            return None
+            return KeyPress(CLOSED) if self.gone else None
         return self.waiting.popleft()
 
     def shown_at(self, frame: int) -> float | None:
@@ -82,12 +83,18 @@ class Terminal:
     def _read(self, timeout: float | None) -> bool:
         """Read what the terminal has (waiting up to `timeout`) into keys stamped now, on the
         frame on screen; -> whether any key came."""
+        if self.gone:
+            return False
         ready, _, _ = select.select([self.fd], [], [], timeout)
         if not ready:
             return False
-        data = os.read(self.fd, 64)
+        try:
+            data = os.read(self.fd, 64)
+        except OSError:  # EIO: the terminal's other side has closed
+            data = b""
         now = time.monotonic()
-        if not data:  # end of input: the terminal went away
+        if not data:  # end of input: the terminal went away (and stays readable: read no more)
+            self.gone = True
             self.waiting.append(KeyPress(CLOSED, self.frame, now, self.frame_shown_at, now))
             return True
         self.buffer += data

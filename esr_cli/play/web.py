@@ -138,21 +138,18 @@ def _frame(value) -> int | None:
     return value if isinstance(value, int) and not isinstance(value, bool) and 0 <= value < 2**53 else None
 
 
-def key_of(text: str | None) -> KeyPress | None:
+def key_of(message: dict) -> KeyPress | None:
     """The key a page's message names ({"key": "up", "frame": 3, "t": ms, "shown": ms}), its name
-    cut to MAX_KEY_TEXT and stamps that are not numbers left unknown; None for a binary frame or
-    anything that is not such an object."""
-    message = _json_object(text)
-    if message is None or "key" not in message:
+    cut to MAX_KEY_TEXT and stamps that are not numbers left unknown; None for any other object."""
+    if "key" not in message:
         return None
     return KeyPress(str(message["key"])[:MAX_KEY_TEXT], _frame(message.get("frame")), _stamp(message.get("t")),
                     _stamp(message.get("shown")), time.monotonic())
 
 
-def shown_of(text: str | None) -> tuple[int, float] | None:
+def shown_of(message: dict) -> tuple[int, float] | None:
     """(frame, paint time in seconds) of a page's {"shown": frame, "t": ms}; None otherwise."""
-    message = _json_object(text)
-    if message is None or "key" in message:
+    if "key" in message:
         return None
     frame, at = _frame(message.get("shown")), _stamp(message.get("t"))
     return None if frame is None or at is None else (frame, at)
@@ -279,13 +276,13 @@ class Web:
                 if why := BAD_FRAMES.get(message.get("code")):
                     self._bad_message(why)
                 return
-            text = message.get("text")
-            if (shown := shown_of(text)) is not None:
+            parsed = _json_object(message.get("text"))  # None for a binary frame or text that is no object
+            if parsed is not None and (shown := shown_of(parsed)) is not None:
                 self.painted[shown[0]] = shown[1]
                 while len(self.painted) > SHOWN_KEPT:
                     del self.painted[next(iter(self.painted))]
                 continue
-            key = key_of(text)
+            key = key_of(parsed) if parsed is not None else None
             if key is None:
                 self._bad_message("binary data" if message.get("bytes") is not None else "text that is not a key")
                 await websocket.close(code=1003)
