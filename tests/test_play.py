@@ -3,8 +3,9 @@ screen text out) and the browser through a real headless Chromium. Each plays a 
 episode to the goal and an Overcooked episode, and the logged artifact must match the keys
 sent."""
 
-import json
 import io
+import json
+import math
 import os
 import pty
 import re
@@ -19,6 +20,8 @@ from pathlib import Path
 
 import jax
 import pytest
+from hypothesis import HealthCheck, event, given, settings
+from hypothesis import strategies as st
 from conftest import ROOT, esr, esr_env
 
 from esr_cli import spec as specs
@@ -522,6 +525,149 @@ def test_bad_frames_end_the_connection_with_one_line_each():
             conn.close()
             assert said.getvalue().splitlines()[-1] == f"esr play: the browser sent {what}; its connection is closed"
     assert len(said.getvalue().splitlines()) == len(sent) and "Traceback" not in said.getvalue()
+
+
+# ---------------------------------------------------------------- fuzzed websocket messages
+WEBSOCKET_FUZZ_CASES = int(os.environ.get("ESR_WEBSOCKET_FUZZ_CASES", 200))
+FIELDS = ("key", "frame", "t", "shown")
+_scalars = st.one_of(st.none(), st.booleans(), st.integers(-2**70, 2**70), st.floats(), st.text(max_size=50))
+_json = st.recursive(_scalars, lambda kids: st.lists(kids, max_size=4) | st.dictionaries(st.text(max_size=6), kids, max_size=4),
+                     max_leaves=12)
+# Objects near the page's own ({"key": ..., "frame": ..., "t": ..., "shown": ...}), with every field
+# of any JSON type, the page's well-formed paint reports, and whatever else text and bytes can be.
+_page_like = st.dictionaries(st.sampled_from(FIELDS) | st.text(max_size=6), _json, max_size=5).map(json.dumps)
+_painted = st.builds(lambda f, t: json.dumps({"shown": f, "t": t}), st.integers(0, 2**53 - 1),
+                     st.floats(0, 1e13, exclude_max=True))
+_pressed = st.builds(lambda k, f, t, at: json.dumps({"key": k, "frame": f, "t": t, "shown": at}),
+                     st.sampled_from(["up", "down", "left", "right", "space", "q", "y", "n"]) | st.text(max_size=60),
+                     st.none() | st.integers(0, 2**53), st.floats(0, 1e13), st.none() | st.floats(0, 1e13))
+_nested = st.builds(lambda n, open_: open_ * n, st.integers(1, 4000), st.sampled_from(["[", '{"key":', '{"shown":[']))
+WS_TEXT = st.one_of(_page_like, _painted, _json.map(json.dumps), st.text(max_size=80), _nested)
+WS_MESSAGES = st.one_of(st.tuples(st.just("text"), _pressed), st.tuples(st.just("text"), _pressed | _painted),
+                        st.tuples(st.just("text"), WS_TEXT),
+                        st.tuples(st.just("binary"), st.binary(max_size=60)),
+                        st.tuples(st.just("raw text"), st.binary(max_size=60)),  # a text frame of any bytes
+                        st.tuples(st.just("oversize"), st.integers(1, 3000)),
+                        st.tuples(st.just("reserved opcode"), st.integers(3, 7)))
+
+
+def expected_of(kind: str, payload) -> tuple[str, object]:
+    """What the server must make of one message, read from the protocol the page speaks rather
+    than from the server's code: ("key", name), ("painted", (frame, seconds)), or ("bad", the
+    reason it prints)."""
+    from esr_cli.play.web import MAX_KEY_TEXT, MAX_MESSAGE_BYTES
+
+    if kind == "binary":
+        return "bad", "binary data"
+    if kind == "reserved opcode":
+        return "bad", "a malformed frame"
+    if kind == "oversize":
+        return "bad", f"a message over {MAX_MESSAGE_BYTES:,} bytes"
+    if kind == "raw text":
+        try:
+            payload = payload.decode("utf-8")
+        except UnicodeDecodeError:
+            return "bad", "text that is not UTF-8"
+    if len(payload.encode()) > MAX_MESSAGE_BYTES:
+        return "bad", f"a message over {MAX_MESSAGE_BYTES:,} bytes"
+    try:
+        message = json.loads(payload)
+    except (ValueError, RecursionError):
+        return "bad", "text that is not a key"
+    if not isinstance(message, dict):
+        return "bad", "text that is not a key"
+    if "key" in message:
+        return "key", str(message["key"])[:MAX_KEY_TEXT]
+    frame, at = message.get("shown"), message.get("t")
+    frame_ok = type(frame) is int and 0 <= frame < 2**53
+    at_ok = type(at) in (int, float) and 0 <= at < 1e13
+    return ("painted", (frame, round(at / 1000, 6))) if frame_ok and at_ok else ("bad", "text that is not a key")
+
+
+def send_one(conn, kind: str, payload) -> None:
+    import struct
+
+    import websocket
+
+    if kind == "binary":
+        conn.send_binary(payload)
+    elif kind == "raw text":
+        conn.send(payload, opcode=websocket.ABNF.OPCODE_TEXT)
+    elif kind == "oversize":
+        conn.send("k" * (4096 + payload))
+    elif kind == "reserved opcode":  # a frame no websocket may send (opcodes 3-7 are reserved), masked as a client's
+        conn.sock.sendall(struct.pack("!BB4s", 0x80 | payload, 0x80, b"\0\0\0\0"))
+    else:
+        conn.send(payload)
+
+
+@pytest.fixture(scope="module")
+def web_server():
+    from rich.console import Console
+
+    from esr_cli.play.web import Web
+
+    said = io.StringIO()
+    with Web(free_port(), Console(file=said, markup=False, soft_wrap=True, width=400)) as web:
+        yield web, said
+
+
+@settings(max_examples=WEBSOCKET_FUZZ_CASES, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(messages=st.lists(WS_MESSAGES, min_size=1, max_size=6))
+def test_fuzzed_websocket_messages_queue_only_keys_and_end_bad_ones_in_one_line(web_server, messages):
+    """Whatever a page sends over an accepted websocket, the server queues exactly the key
+    messages before the first message that is not a key or a paint report, records the paint
+    reports, ends the connection there with one line naming what it got (a clean close prints
+    nothing), and stays up for the next connection: never a traceback, never a stuck game."""
+    import websocket
+
+    from esr_cli.play.web import MAX_MESSAGE_BYTES
+
+    web, said = web_server
+    web.painted.clear()
+    expected = [expected_of(kind, payload) for kind, payload in messages]
+    upto = next((i for i, (what, _) in enumerate(expected) if what == "bad"), len(expected))
+    lines_before = len(said.getvalue().splitlines())
+    conn = websocket.create_connection(f"ws://127.0.0.1:{web.port}/ws?token={web.token}", timeout=10,
+                                       origin=f"http://127.0.0.1:{web.port}")
+    for kind, payload in messages:
+        try:
+            send_one(conn, kind, payload)
+        except (OSError, websocket.WebSocketException):
+            break  # the server has closed the connection over an earlier message
+    if upto == len(expected):
+        conn.close()
+    got = []
+    while (press := web.key(timeout=20)) is not None and press.name != CLOSED:
+        got.append(press)
+    conn.close()
+    assert press is not None, "the game never heard that the connection ended"
+    keys = [value for what, value in expected[:upto] if what == "key"]
+    painted = dict(value for what, value in expected[:upto] if what == "painted")
+    ended_by = expected[upto][1] if upto < len(expected) else None
+    lines = said.getvalue().splitlines()[lines_before:]
+    for p in got:
+        assert p.frame is None or type(p.frame) is int and p.frame >= 0
+        assert all(v is None or math.isfinite(v) and v >= 0 for v in (p.pressed_at, p.shown_at))
+    # The websocket layer refuses a malformed or oversized frame as it parses the bytes of one
+    # network read, before the messages that came in the same read reach the server: those may
+    # be lost, and the connection ends over the refused frame.
+    refused_unparsed = {what for what in ("a malformed frame", f"a message over {MAX_MESSAGE_BYTES:,} bytes")
+                        if ("bad", what) in expected[upto:]}
+    if unparsed := next((what for what in refused_unparsed if lines == [line_for(what)]), None):
+        ended_by = unparsed + (" (with messages before it unread)" if lines != [line_for(ended_by)] else "")
+        assert [p.name for p in got] == keys[:len(got)]
+        assert web.painted.items() <= painted.items()
+    else:
+        assert [p.name for p in got] == keys
+        assert web.painted == painted
+        assert lines == ([line_for(ended_by)] if ended_by else [])
+    event(f"ended by {ended_by or 'a clean close'}")
+    event(f"keys queued: {min(len(got), 3)}{'+' if len(got) >= 3 else ''}")
+
+
+def line_for(what: str) -> str:
+    return f"esr play: the browser sent {what}; its connection is closed"
 
 
 def test_a_port_left_in_time_wait_is_free_to_serve_on():

@@ -285,7 +285,10 @@ class Web:
             key = key_of(parsed) if parsed is not None else None
             if key is None:
                 self._bad_message("binary data" if message.get("bytes") is not None else "text that is not a key")
-                await websocket.close(code=1003)
+                try:
+                    await websocket.close(code=1003)
+                except RuntimeError:  # the websocket layer closed first, over a bad frame right behind it
+                    pass
                 return
             self.keys.put(key)
 
