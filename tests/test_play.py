@@ -169,6 +169,15 @@ class Pty:
             self.read_until(b"steps left", timeout=timeout)
             if select.select([self.fd], [], [], 0.1)[0]:
                 self.screen += os.read(self.fd, 65536)
+        # The frame's header has come; the rest of it (the message at the bottom) may be a read
+        # behind on a loaded machine: read until the terminal has been quiet for a moment or the
+        # next frame begins (a ticking game never goes quiet).
+        after = self.frames()
+        while self.frames() == after and select.select([self.fd], [], [], 0.3)[0]:
+            try:
+                self.screen += os.read(self.fd, 65536)
+            except OSError:
+                break
 
     def start(self) -> None:
         """Pass the ready gate."""

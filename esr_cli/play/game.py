@@ -99,7 +99,7 @@ class KeyPress:
     def reaction_s(self) -> float | None:
         if self.pressed_at is None or self.shown_at is None:
             return None
-        return round(self.pressed_at - self.shown_at, 4)
+        return round(self.pressed_at - self.shown_at, 6)  # the stamps' own precision (a microsecond)
 
 
 @dataclass
