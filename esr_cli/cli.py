@@ -138,9 +138,16 @@ def train(
     stop_after: Optional[str] = typer.Option(
         None, "--stop-after", help="stop at the last chunk boundary before this much time has passed "
         "(90s, 9m, 1.5h), saved and resumable, exit 75; for a job or machine with a time limit"),
+    wandb: bool = typer.Option(
+        False, "--wandb", help="also log to Weights & Biases in offline mode, in STORE/wandb/KEY (`wandb sync` "
+        "uploads it; needs the wandb extra)"),
 ):
     """Train a spec (all its seeds in one program); a finished spec is a cache hit."""
+    import importlib.util
     import time
+
+    if wandb and importlib.util.find_spec("wandb") is None:
+        raise Exit(2, "--wandb needs the wandb package: pip install 'esr[wandb]' (or pip install wandb)")
 
     # the limit counts from the command's start, as a scheduler's or a lent machine's does
     stop_at = None if stop_after is None else time.monotonic() + parse_duration(stop_after, "--stop-after")
@@ -148,7 +155,7 @@ def train(
     quick = _quick_spec(spec_file, set_) if budget != "quick" else None
     from esr_cli import runs  # JAX and the training code: after the spec is known to be good
 
-    built = ensure(runs.run_recipe(spec, err, stop_at=stop_at, quick=quick), STATE.store)
+    built = ensure(runs.run_recipe(spec, err, stop_at=stop_at, quick=quick, wandb=wandb), STATE.store)
     path, cached = built.path, built.cached
     err.print(tagged("cache hit" if cached else "trained", "green", f": {spec.name} ({spec.budget}) -> {path}"))
     out.print(str(path), highlight=False)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+from functools import partial
 from pathlib import Path
 
 import jax
@@ -20,6 +21,7 @@ from esr_cli import provenance, spec as specs, stored_humans
 from esr_cli.artifacts import Recipe
 from esr_cli.checkpoint_files import run_length
 from esr_cli.core import evaluate as ev, loop
+from esr_cli.core.wandb_log import WandbLog, wandb_folder
 from esr_cli.core.train import make_trainer
 from esr_cli.finals import read_rows
 from esr_cli.printing import train_line
@@ -110,11 +112,16 @@ def _check_disk(store: Store, spec) -> None:
         raise StoreError(f"only {free >> 20} MiB free under {store.root}; this run needs about {need >> 20} MiB for checkpoints")
 
 
-def run_recipe(spec, console: Console, stop_at: float | None = None, quick=None) -> Recipe:
+def _wandb_log(folder: Path, key: str, spec, run_dir: Path, seeds: list[int], rows: list[dict]) -> WandbLog:
+    return WandbLog(folder, key, f"{spec.name} ({spec.budget})", spec.model_dump(mode="json"), seeds, rows)
+
+
+def run_recipe(spec, console: Console, stop_at: float | None = None, quick=None, wandb: bool = False) -> Recipe:
     """The training run of `spec` as an artifact: trained, or resumed from its checkpoint, when
     the store lacks it; its BC humans (if any) are made first. stop_at (a time.monotonic()
     value): stop at the last chunk boundary before it, resumable (loop.TimeLimitReached).
-    quick: the same spec at --budget quick, whose time the run estimates too."""
+    quick: the same spec at --budget quick, whose time the run estimates too. wandb: also log
+    to an offline wandb run in the store (esr_cli/core/wandb_log.py)."""
     key, components = run_key(spec)
 
     def check(store: Store):  # memory and disk, before anything is built or written
@@ -126,10 +133,11 @@ def run_recipe(spec, console: Console, stop_at: float | None = None, quick=None)
         atomic_write_text(run_dir / "spec.yaml", specs.to_yaml(spec))
         adopt_shorter_run(store, key, components, run_dir, spec.train.epochs, console)
         trainer = build_trainer(spec, store)
+        logs = [partial(_wandb_log, wandb_folder(store.root, key), key, spec)] if wandb else []
         with progress_bar(console) as bar:
             report = TrainingReport(spec, trainer, console, bar, key, quick)
             summary = loop.train(trainer, run_dir, on_chunk=report.on_chunk, on_start=report.on_start, stop_at=stop_at,
-                                 on_phase=report.on_phase, on_stop=report.on_stop)
+                                 on_phase=report.on_phase, on_stop=report.on_stop, logs=logs)
         from esr_cli import plots  # matplotlib: only once a run is trained
 
         plots.learning_curve(

@@ -190,14 +190,15 @@ def not_a_play_key(text: str) -> str:
             "or a unique prefix of at least 4)")
 
 
-# Cloning settings whose human, paired with the Random robot, scores closest to the published
-# Random column (quick budget, 3 seeds; every candidate tried is in docs/overcooked.md). Only the
-# layouts the paper reports have one.
+# Named humans per layout, each the fields of a human section (its kind included). Only the
+# layouts the paper reports have one. paper_random: the MLP cloning settings whose human, with the
+# Random robot, scores closest to the published Random column (quick budget, 3 seeds; every
+# candidate tried is in docs/overcooked.md).
 HUMAN_PRESETS = {
     "paper_random": {
-        "cramped_room": {"stay_weight": 0.05, "hidden": (64, 64), "epochs": 60},
-        "coord_ring": {"stay_weight": 1.0, "hidden": (64, 64), "epochs": 60},
-        "asymm_advantages": {"stay_weight": 0.1, "hidden": (128, 128), "epochs": 200},
+        "cramped_room": {"kind": "bc", "stay_weight": 0.05, "hidden": (64, 64), "epochs": 60},
+        "coord_ring": {"kind": "bc", "stay_weight": 1.0, "hidden": (64, 64), "epochs": 60},
+        "asymm_advantages": {"kind": "bc", "stay_weight": 0.1, "hidden": (128, 128), "epochs": 200},
     },
 }
 
@@ -230,8 +231,8 @@ class BCHumanSpec(_Model):
         "2019 trials; their last quarter is the test split",
     )
     preset: Optional[Literal[tuple(HUMAN_PRESETS)]] = Field(
-        None, description="named cloning settings for the layout, replacing hidden, stay_weight and epochs "
-        "(paper_random: the human whose Random-robot score is closest to the paper's; docs/overcooked.md)",
+        None, description="a named human for the layout, setting these fields (paper_random: the MLP clone whose "
+        "Random-robot score is closest to the paper's; docs/overcooked.md)",
     )
     per_seed: Bool = Field(False, description="clone one human per training seed (cloning seed = human.seed + "
                            "the training seed), so that the seeds' spread includes the human's")
@@ -320,6 +321,8 @@ class PPOHumanSpec(_Model):
     )
     clone: Optional[BCHumanSpec] = Field(None, description="mode bc_kl: the BC human it is pulled towards "
                                          "(default: kind bc with its defaults)")
+    preset: Optional[Literal[tuple(HUMAN_PRESETS)]] = Field(
+        None, description="a named human for the layout, setting these fields (docs/overcooked.md)")
     seed: Int = Field(0, ge=0, le=MAX_SEED)
     per_seed: Bool = Field(False, description="train one human per training seed (seed = human.seed + the training "
                            "seed), as the paper had one human per seed")
@@ -561,20 +564,27 @@ class Spec(_Model):
     @model_validator(mode="before")
     @classmethod
     def _human_preset(cls, data):
-        """A BC human's `preset` sets its cloning fields for the layout before validation."""
+        """A human's `preset` sets the layout's human fields, its kind included, before validation:
+        `human: {preset: NAME}` alone is the whole human; fields written beside it are kept unless
+        the preset sets them."""
         human = data.get("human") if isinstance(data, dict) else None
-        if not isinstance(human, dict) or human.get("kind") != "bc" or human.get("preset") not in HUMAN_PRESETS:
+        if not isinstance(human, dict) or human.get("preset") not in HUMAN_PRESETS:
             return data  # no preset, or an unknown one: the field's own check names it
+        name = human["preset"]
         env = data.get("env") if isinstance(data.get("env"), dict) else {}
         layout = human.get("layout") or env.get("layout")
-        settings = HUMAN_PRESETS[human["preset"]]
-        if human.get("network", "mlp") != "mlp":
-            raise ValueError(f"human.preset={human['preset']!r} names MLP settings: it does not apply to network "
-                             f"{human['network']!r}")
+        settings = HUMAN_PRESETS[name]
         if layout not in settings:
-            raise ValueError(f"human.preset={human['preset']!r} is defined for {', '.join(settings)} (the layouts the "
+            raise ValueError(f"human.preset={name!r} is defined for {', '.join(settings)} (the layouts the "
                              f"paper reports a Random score for), not {layout!r}")
-        return {**data, "human": {**human, **settings[layout]}}
+        chosen = settings[layout]
+        if human.get("kind", chosen["kind"]) != chosen["kind"]:
+            raise ValueError(f"human.preset={name!r} makes a {chosen['kind']} human on {layout}, not kind "
+                             f"{human['kind']!r}: give the preset alone, human={{preset: {name}}}")
+        if chosen["kind"] == "bc" and "hidden" in chosen and human.get("network", "mlp") != "mlp":
+            raise ValueError(f"human.preset={name!r} names MLP settings on {layout}: it does not apply to network "
+                             f"{human['network']!r}")
+        return {**data, "human": {**human, **chosen}}
 
     @model_validator(mode="after")
     def _cross_checks(self):

@@ -25,6 +25,21 @@ def _finite(values) -> list[float]:
     return [float(v) for v in values if v is not None and math.isfinite(v)]
 
 
+def scalars(row: dict, seeds: list[int]) -> list[tuple[str, str, float]]:
+    """(run, metric, value) of one metrics row: each seed's finite values under `seed_<s>`, their
+    mean and `env_steps` under `mean`; what every live record of a run shows."""
+    out = []
+    for name, values in row.items():
+        if name == "env_steps":
+            out.append((MEAN_RUN, name, float(values)))
+        if name == "epoch" or not isinstance(values, list):
+            continue
+        out += [(f"seed_{seed}", name, float(v)) for seed, v in zip(seeds, values) if v is not None and math.isfinite(v)]
+        if finite := _finite(values):
+            out.append((MEAN_RUN, name, sum(finite) / len(finite)))
+    return out
+
+
 class EventLog:
     """Scalars of metrics rows ({"epoch", "env_steps", name: [value per seed]}) as event files."""
 
@@ -40,18 +55,8 @@ class EventLog:
 
     def append(self, rows: list[dict]) -> None:
         for row in rows:
-            step = int(row["epoch"])
-            for name, values in row.items():
-                if name == "epoch" or not isinstance(values, list):
-                    if name == "env_steps":
-                        self.writers[MEAN_RUN].add_scalar("env_steps", float(values), step)
-                    continue
-                for seed, value in zip(self.seeds, values):
-                    if value is not None and math.isfinite(value):
-                        self.writers[f"seed_{seed}"].add_scalar(name, float(value), step)
-                finite = _finite(values)
-                if finite:
-                    self.writers[MEAN_RUN].add_scalar(name, sum(finite) / len(finite), step)
+            for run, name, value in scalars(row, self.seeds):
+                self.writers[run].add_scalar(name, value, int(row["epoch"]))
         self.flush()
 
     def flush(self) -> None:

@@ -22,7 +22,7 @@ import shutil
 import time
 from functools import partial
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -205,6 +205,7 @@ def train(
     stop_at: float | None = None,
     on_phase: Callable[[str], None] | None = None,
     on_stop: Callable[[int, int], None] | None = None,
+    logs: Sequence[Callable[[Path, list[int], list[dict]], Any]] = (),
 ) -> dict:
     """Train (or resume) in `run_dir` until `spec.train.epochs`; -> summary of the last epoch.
 
@@ -215,6 +216,8 @@ def train(
     (Interrupted follows, keeping the checkpoint of kept_epoch).
     stop_at: a time.monotonic() value; after each saved chunk the run stops (TimeLimitReached)
     when the next chunk would end past it. At least one chunk always runs.
+    logs: live records beside the TensorBoard files, each made as log(run_dir, seeds, rows kept)
+    and then given each chunk's rows (`append`) until `close`.
     """
     spec = trainer.spec
     run_dir = Path(run_dir)
@@ -226,7 +229,8 @@ def train(
     if on_start:
         on_start(epoch, total)
     mngr = checkpoint_manager(run_dir)
-    events = EventLog(run_dir, seeds, read_rows(run_dir))
+    kept = read_rows(run_dir)
+    events = [EventLog(run_dir, seeds, kept), *(log(run_dir, seeds, kept) for log in logs)]
     chunks_done = 0
     try:
         with StopRequests(on_stop).installed() as stop:
@@ -240,7 +244,8 @@ def train(
                 rows = _metric_rows(metrics, epoch, steps_per_epoch)
                 with open(run_dir / METRICS_FILE, "a") as f:
                     f.write("".join(json.dumps(r) + "\n" for r in rows))
-                events.append(rows)
+                for log in events:
+                    log.append(rows)
                 epoch += n
                 chunks_done += 1
                 faults.reached("after_metrics", chunks_done)
@@ -254,7 +259,8 @@ def train(
                     raise TimeLimitReached(epoch, total)
     finally:
         mngr.close()
-        events.close()
+        for log in events:
+            log.close()
     keep_newest_checkpoint(run_dir)
     return summarize(read_rows(run_dir))
 
