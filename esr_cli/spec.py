@@ -192,13 +192,20 @@ def not_a_play_key(text: str) -> str:
 
 # Named humans per layout, each the fields of a human section (its kind included). Only the
 # layouts the paper reports have one. paper_random: the MLP cloning settings whose human, with the
-# Random robot, scores closest to the published Random column (quick budget, 3 seeds; every
-# candidate tried is in docs/overcooked.md).
+# Random robot, scores closest to the published Random column (quick budget, 3 seeds). paper: per
+# layout, the candidate of `esr human calibrate` closest to that column by the selection rule
+# (every candidate tried, and the rule, are in docs/overcooked.md).
+_CLOSEST_CLONES = {
+    "cramped_room": {"kind": "bc", "stay_weight": 0.05, "hidden": (64, 64), "epochs": 60},
+    "coord_ring": {"kind": "bc", "stay_weight": 1.0, "hidden": (64, 64), "epochs": 60},
+    "asymm_advantages": {"kind": "bc", "stay_weight": 0.1, "hidden": (128, 128), "epochs": 200},
+}
 HUMAN_PRESETS = {
-    "paper_random": {
-        "cramped_room": {"kind": "bc", "stay_weight": 0.05, "hidden": (64, 64), "epochs": 60},
-        "coord_ring": {"kind": "bc", "stay_weight": 1.0, "hidden": (64, 64), "epochs": 60},
-        "asymm_advantages": {"kind": "bc", "stay_weight": 0.1, "hidden": (128, 128), "epochs": 200},
+    "paper_random": _CLOSEST_CLONES,
+    "paper": {
+        **_CLOSEST_CLONES,
+        # the paper's network, trained by PPO beside a partner that acts at random half the time
+        "cramped_room": {"kind": "ppo", "mode": "shaped", "total_steps": 1_000_000, "random_partner": 0.5},
     },
 }
 
@@ -231,8 +238,8 @@ class BCHumanSpec(_Model):
         "2019 trials; their last quarter is the test split",
     )
     preset: Optional[Literal[tuple(HUMAN_PRESETS)]] = Field(
-        None, description="a named human for the layout, setting these fields (paper_random: the MLP clone whose "
-        "Random-robot score is closest to the paper's; docs/overcooked.md)",
+        None, description="a named human for the layout, setting these fields and the kind (paper: the calibrated "
+        "human closest to the paper's Random column; paper_random: the closest MLP clone; docs/overcooked.md)",
     )
     per_seed: Bool = Field(False, description="clone one human per training seed (cloning seed = human.seed + "
                            "the training seed), so that the seeds' spread includes the human's")
@@ -977,6 +984,9 @@ def _switch_kind(tree: dict, dotted: str, value: Any) -> bool:
     section, _, field = dotted.partition(".")
     if section not in KIND_MODELS or not isinstance(tree.get(section), dict):
         return False
+    if section == "human" and not field and isinstance(value, dict) and "kind" not in value and "preset" in value:
+        tree[section] = {}  # `human={preset: NAME}`: the named human, whatever the file's kind (`_human_preset`)
+        return True
     kind = value if field == "kind" else value.get("kind") if not field and isinstance(value, dict) else None
     if kind is None or kind == tree[section].get("kind"):
         return False

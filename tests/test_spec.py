@@ -208,10 +208,29 @@ def test_a_human_preset_sets_the_layouts_cloning_fields_and_keys_by_value():
     assert "preset" not in plain.training_part()["human"]  # runs from before the field keep their keys
 
 
+def test_the_paper_preset_is_a_whole_human_per_layout_whatever_the_file_s_kind():
+    cramped = specs.load(Path("experiments/cramped_room.yaml"), "quick", ["human={preset: paper}"])
+    assert cramped.human.kind == "ppo" and (cramped.human.mode, cramped.human.total_steps) == ("shaped", 1_000_000)
+    assert cramped.human.random_partner == 0.5
+    written_out = specs.load(Path("experiments/cramped_room.yaml"), "quick",
+                             ["human={kind: ppo, mode: shaped, total_steps: 1000000, random_partner: 0.5}"])
+    assert cramped.training_part() == written_out.training_part()  # keyed by the values, not the name
+    ring = specs.load(Path("experiments/coord_ring.yaml"), "quick", ["human={preset: paper}"])
+    closest_clone = specs.load(Path("experiments/coord_ring.yaml"), "quick", ["human.preset=paper_random"])
+    assert ring.human.kind == "bc" and ring.training_part() == closest_clone.training_part()
+    assert specs.load(Path("experiments/coord_ring.yaml"), "quick", ["human={preset: paper, seed: 2}"]).human.seed == 2
+    # as a field of the file's BC section, a preset that makes another kind is named, not mixed in
+    with pytest.raises(specs.SpecError, match=r"human.preset='paper' makes a ppo human on cramped_room, not kind "
+                                              r"'bc': give the preset alone, human=\{preset: paper\}"):
+        specs.load(Path("experiments/cramped_room.yaml"), "quick", ["human.preset=paper"])
+    with pytest.raises(specs.SpecError, match=r"human.preset='paper' is defined for cramped_room.*not 'forced_coord'"):
+        specs.load(Path("experiments/forced_coord_random.yaml"), "quick", ["human={preset: paper}"])
+
+
 def test_a_human_preset_is_refused_where_it_has_no_settings():
     with pytest.raises(specs.SpecError, match=r"human.preset='paper_random' is defined for cramped_room.*not 'forced_coord'"):
         specs.load(Path("experiments/forced_coord_random.yaml"), "quick", ["human.preset=paper_random"])
-    with pytest.raises(specs.SpecError, match=r"human.preset: Input should be 'paper_random'"):
+    with pytest.raises(specs.SpecError, match=r"human.preset: Input should be 'paper_random' or 'paper'"):
         specs.load(Path("experiments/cramped_room.yaml"), "quick", ["human.preset=closest"])
 
 
