@@ -21,6 +21,9 @@ from conftest import ROOT, esr, esr_env
 # programs the uninterrupted run (1, 400, 1) compiled already.
 LONG_SETS = ("--set", "train.epochs=402", "--set", "train.chunk_epochs=400")
 LONG = ("train", "experiments/grid_2.yaml", "--budget", "smoke", *LONG_SETS)
+# The same with a 4,000-epoch chunk: 100-200 s here, stopped a second into it.
+VERY_LONG = ("train", "experiments/grid_2.yaml", "--budget", "smoke", "--set", "train.epochs=4002",
+             "--set", "train.chunk_epochs=4000")
 
 
 def final_arrays(run_dir):
@@ -32,17 +35,17 @@ def final_arrays(run_dir):
     return [np.asarray(x) for x in jax.tree.leaves(loop.final_state(trainer, run_dir))]
 
 
-def stop_mid_chunk(store: Path, sig) -> tuple[int, float, str]:
-    """Start LONG, send `sig` a second into its long chunk; -> (exit code, seconds from the
+def stop_mid_chunk(store: Path, sig, args=LONG) -> tuple[int, float, str]:
+    """Start `args`, send `sig` a second into its long chunk; -> (exit code, seconds from the
     signal to the exit, stderr)."""
-    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli", *LONG], cwd=ROOT, env=esr_env(store),
+    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli", *args], cwd=ROOT, env=esr_env(store),
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)
     reader.start()
     try:
         deadline = time.monotonic() + 300
-        while sum("compiled in" in line for line in lines) < 2:  # the 400-epoch program: its chunk runs now
+        while sum("compiled in" in line for line in lines) < 2:  # the long chunk's program: it runs now
             assert proc.poll() is None and time.monotonic() < deadline, "".join(lines)
             time.sleep(0.05)
         time.sleep(1)
@@ -77,8 +80,8 @@ def test_ctrl_c_mid_chunk_stops_within_seconds_and_the_run_resumes_bit_identical
         np.testing.assert_array_equal(a, b)
 
 
-def test_sigterm_mid_chunk_stops_within_seconds_with_143(tmp_path):
-    code, took, err = stop_mid_chunk(tmp_path / "store", signal.SIGTERM)
+def test_sigterm_in_a_chunk_of_minutes_stops_within_seconds_with_143(tmp_path):
+    code, took, err = stop_mid_chunk(tmp_path / "store", signal.SIGTERM, VERY_LONG)
     assert code == 143 and took < 5, (took, err)
     assert "stopping (SIGTERM)" in err and "a second signal exits at once" in err
     assert "terminated (SIGTERM) after epoch 1; the checkpoint is saved" in err and "Traceback" not in err
