@@ -230,9 +230,11 @@ def train(
         on_start(epoch, total)
     mngr = checkpoint_manager(run_dir)
     kept = read_rows(run_dir)
-    events = [EventLog(run_dir, seeds, kept), *(log(run_dir, seeds, kept) for log in logs)]
+    records = []  # the live records made so far: closed on the way out, whatever fails
     chunks_done = 0
     try:
+        for make in (EventLog, *logs):
+            records.append(make(run_dir, seeds, kept))
         with StopRequests(on_stop).installed() as stop:
             chunks = _Chunks(trainer, stop, on_phase)
             while epoch < total:
@@ -244,8 +246,8 @@ def train(
                 rows = _metric_rows(metrics, epoch, steps_per_epoch)
                 with open(run_dir / METRICS_FILE, "a") as f:
                     f.write("".join(json.dumps(r) + "\n" for r in rows))
-                for log in events:
-                    log.append(rows)
+                for record in records:
+                    record.append(rows)
                 epoch += n
                 chunks_done += 1
                 faults.reached("after_metrics", chunks_done)
@@ -259,8 +261,8 @@ def train(
                     raise TimeLimitReached(epoch, total)
     finally:
         mngr.close()
-        for log in events:
-            log.close()
+        for record in records:
+            record.close()
     keep_newest_checkpoint(run_dir)
     return summarize(read_rows(run_dir))
 
