@@ -159,6 +159,14 @@ class Pty:
     def frames(self) -> int:
         return self.screen.count(b"steps left")
 
+    def next_frame(self, timeout=120) -> None:
+        """Wait until the next frame has begun."""
+        before, deadline = self.frames(), time.time() + timeout
+        while self.frames() == before:
+            assert time.time() < deadline, f"no new frame:\n{self.screen[-2000:]!r}"
+            if select.select([self.fd], [], [], 0.05)[0]:
+                self.screen += os.read(self.fd, 65536)
+
     def press(self, data: bytes, timeout=120) -> None:
         """Send a key and wait for the frame it brings (a key typed before its frame is dropped)."""
         before = self.frames()
@@ -239,12 +247,15 @@ def test_terminal_gridworld_to_the_goal(tmp_path):
 
 
 def test_terminal_overcooked_ticks_and_logs_the_keys(tmp_path):
-    term = Pty(["play", *COOK, "--participant", "p2"], tmp_path)
+    # 2 ticks a second: a key sent as soon as a frame shows lands on that frame even on a loaded
+    # machine (a key still in the terminal when the next frame is drawn is stale, and dropped).
+    term = Pty(["play", *COOK, "--participant", "p2", "--fps", "2"], tmp_path)
     term.start()
+    term.next_frame()  # the first tick (and its compile) is past
     sent = ["up", "space", "left"]
     for k in sent:
         term.send(ARROW[k])
-        time.sleep(0.3)
+        term.next_frame()
     assert term.wait(timeout=240) == 0
     (path,) = played(tmp_path)
     steps = logged_steps(path)
