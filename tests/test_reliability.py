@@ -415,9 +415,10 @@ def test_a_stop_signal_a_library_wraps_in_its_own_error_still_ends_the_command_a
 def test_a_misspelt_fault_point_is_an_error_not_a_fault_that_never_fires(monkeypatch):
     from esr_cli import faults
 
-    assert faults.parse("after_metrics@2") == ("after_metrics", 2) and faults.parse("compile") == ("compile", 1)
+    assert faults.parse("after_metrics@2") == ("after_metrics", 2, "kill") and faults.parse("compile") == ("compile", 1, "kill")
+    assert faults.parse("during_save@3:hang") == ("during_save", 3, "hang")
     for bad, said in (("after_metric@2", "unknown fault point 'after_metric'"), ("compile@0", "positive integer"),
-                      ("compile@x", "positive integer")):
+                      ("compile@x", "positive integer"), ("compile:stall", "unknown action 'stall'")):
         with pytest.raises(faults.FaultSpecError, match=said):
             faults.parse(bad)
     monkeypatch.setenv("ESR_FAULT", "after_metric@1")

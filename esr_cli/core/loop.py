@@ -251,7 +251,7 @@ def train(
                 epoch += n
                 chunks_done += 1
                 faults.reached("after_metrics", chunks_done)
-                stop.wait(partial(_save, mngr, run_dir, epoch, state), epoch, abandon=False)
+                stop.wait(partial(_save, mngr, run_dir, epoch, state, chunks_done), epoch, abandon=False)
                 faults.reached("after_checkpoint", chunks_done)
                 if on_chunk:
                     on_chunk(epoch, total, rows[-1], chunks.epoch_seconds)
@@ -314,7 +314,8 @@ def _run_chunk(program, state: TrainState) -> tuple[TrainState, dict]:
     return state, {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
 
 
-def _save(mngr: ocp.CheckpointManager, run_dir: Path, epoch: int, state: TrainState) -> None:
+def _save(mngr: ocp.CheckpointManager, run_dir: Path, epoch: int, state: TrainState, chunk: int) -> None:
+    faults.reached("during_save", chunk)
     mngr.save(epoch, args=ocp.args.StandardSave(state))
     mngr.wait_until_finished()
     record_digests(run_dir, mngr.all_steps(), epoch)
