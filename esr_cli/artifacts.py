@@ -47,6 +47,9 @@ class Recipe:
     # training run's, it is neither cleared before a build nor removed after a failed or stopped
     # one, so the next `esr play` can commit it as incomplete. Any other artifact starts afresh.
     keeps_partial: bool = False
+    # Runs it reads that are still training ("LABEL: epoch E of T"): a preview, drawn by
+    # `preview` outside the store and never committed, since those runs have not said their last.
+    unfinished: tuple[str, ...] = ()
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -55,6 +58,15 @@ class Recipe:
     @property
     def key(self) -> str:
         return content_key(self.components)
+
+
+def preview(recipe: Recipe, out_dir: Path, store: Store) -> dict:
+    """Build `recipe` into `out_dir`, outside the store (a figure of unfinished runs). -> summary"""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    summary = recipe.build(out_dir, store)
+    if recipe.summary_file:
+        atomic_write_text(out_dir / SUMMARY_FILE, json.dumps(summary, indent=2, default=float))
+    return summary
 
 
 class Built(NamedTuple):
@@ -67,6 +79,8 @@ class Built(NamedTuple):
 
 def ensure(recipe: Recipe, store: Store) -> Built:
     """The committed artifact of `recipe`, made (or resumed) if the store lacks it."""
+    if recipe.unfinished:
+        raise ValueError(f"{recipe.name} reads unfinished runs ({'; '.join(recipe.unfinished)}): draw it with preview()")
     key = recipe.key
     hit = store.lookup(recipe.kind, key)
     if hit:

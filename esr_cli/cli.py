@@ -162,8 +162,12 @@ def train(
 
 
 # ---------------------------------------------------------------- sweep
-def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait, job_opts):
+def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait, job_opts,
+                                  unfinished=False, out_dir=None):
     """An option that would change nothing is a mistake to name, not to ignore."""
+    for flag, given in (("--unfinished", unfinished), ("--out", out_dir is not None)):
+        if given and not plot:
+            raise Exit(2, f"{flag} applies with --results --plot only")
     if show_status and show_results:
         raise Exit(2, "--status and --results: choose one")
     if as_json and markdown:
@@ -195,7 +199,11 @@ def sweep(
     markdown: bool = typer.Option(False, "--markdown", help="--results: print a markdown table"),
     metric: Optional[list[str]] = typer.Option(None, "--metric", help="--results: a logged metric to show (repeat for "
                                                "several; default: return and success), e.g. mi_estimate"),
-    plot: bool = typer.Option(False, "--plot", help="--results: also draw the runs' learning curves (a figures artifact; every run must be done)"),
+    plot: bool = typer.Option(False, "--plot", help="--results: also draw the runs' learning curves (a figures artifact; every run must be done, unless --unfinished)"),
+    unfinished: bool = typer.Option(False, "--unfinished", help="--plot: draw runs still training as far as they have got, "
+                                    "marked unfinished (a preview outside the store)"),
+    out_dir: Optional[Path] = typer.Option(None, "--out", help="--plot --unfinished: the folder for the preview "
+                                           "(default: suite-NAME-BUDGET-unfinished here)"),
     wait: Optional[bool] = typer.Option(None, "--wait/--no-wait", help="wait for submitted jobs (default: wait, except for slurm)"),
     partition: Optional[str] = typer.Option(None, "--partition", help="slurm: partition (default: the suite's slurm.partition)"),
     time_min: Optional[int] = typer.Option(None, "--time-min", help="slurm: wall-clock limit per job, minutes"),
@@ -209,7 +217,7 @@ def sweep(
     _check_executor(executor, sw.EXECUTORS)
     _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait,
                                   {"--partition": partition, "--time-min": time_min, "--gpus": gpus,
-                                   "--cpus": cpus, "--mem-gb": mem_gb})
+                                   "--cpus": cpus, "--mem-gb": mem_gb}, unfinished, out_dir)
     overrides = {"partition": partition, "time_min": time_min, "gpus": gpus, "cpus": cpus, "mem_gb": mem_gb}
     try:
         sw.slurm_options(sw.SlurmOptions(), overrides, "")  # before the suite's runs are built
@@ -233,11 +241,15 @@ def sweep(
                 from esr_cli import figures as figs, paper
 
                 try:
-                    built = ensure(paper.suite_figure_recipe(suite, STATE.store), STATE.store)
+                    recipe = paper.suite_figure_recipe(suite, STATE.store, unfinished)
                 except figs.MissingRuns as e:
                     raise Exit(2, f"{e}\nor all at once: esr sweep {suite_file} --budget {budget}") from None
-                path = built.path
-                err.print(tagged("cache hit" if built.cached else "drawn", "green", f": {path / 'suite.png'}  (table: {path / 'table.md'})"))
+                if recipe.unfinished:
+                    _draw_preview(recipe, out_dir or Path(f"suite-{suite.name}-{budget}-unfinished"), print_path=False)
+                else:
+                    built = ensure(recipe, STATE.store)
+                    path = built.path
+                    err.print(tagged("cache hit" if built.cached else "drawn", "green", f": {path / 'suite.png'}  (table: {path / 'table.md'})"))
             return
         if show_status:
             rows = sw.status(suite, STATE.store)
@@ -559,7 +571,10 @@ def plot(
     budget: Optional[str] = typer.Option(None, "--budget", "-b", help="paper figures: paper | quick | smoke (default paper)"),
     gamma: Optional[float] = typer.Option(None, "--gamma", help="geometry: the future-state horizon (default 0.2)"),
     state: Optional[int] = typer.Option(None, "--state", help="geometry: which of the 3 states (default 0)"),
-    out_file: Optional[Path] = typer.Option(None, "--out", help="curve: the PNG to write (default: NAME-KEY8-curve.png here)"),
+    unfinished: bool = typer.Option(False, "--unfinished", help="paper figures: draw runs still training as far as they "
+                                    "have got, marked unfinished (a preview outside the store)"),
+    out_file: Optional[Path] = typer.Option(None, "--out", help="curve: the PNG to write (default: NAME-KEY8-curve.png "
+                                            "here); a paper figure with --unfinished: the folder for the preview"),
 ):
     """Draw a figure from artifacts (never trains; a missing run is named with its command).
     `esr plot curve RUN` draws a run's learning curves as far as it has got, unfinished or not."""
@@ -568,8 +583,11 @@ def plot(
     # Each figure reads some of the options; one it would ignore is a mistake worth naming.
     if ref is not None and figure not in ("estimator", "curve"):
         raise Exit(2, f"esr plot {figure} takes no artifact (got {ref!r}); only `esr plot curve` and `esr plot estimator` read one")
-    if out_file is not None and figure != "curve":
-        raise Exit(2, f"--out applies to `esr plot curve` only, not to {figure}")
+    if unfinished and figure not in PAPER_FIGURES:
+        raise Exit(2, f"--unfinished applies to the paper figures ({', '.join(PAPER_FIGURES)}); "
+                      "`esr plot curve` draws an unfinished run without it")
+    if out_file is not None and figure != "curve" and not unfinished:
+        raise Exit(2, f"--out applies to `esr plot curve`, or to a paper figure with --unfinished; not to {figure}")
     if figure == "curve":
         if ref is None:
             raise Exit(2, "esr plot curve needs a training run: its key, a key prefix or its directory (`esr ls`)")
@@ -610,12 +628,34 @@ def plot(
         from esr_cli import figures as figs, paper
 
         try:
-            built = ensure(paper.figure_recipe(STATE.store, budget, figure), STATE.store)
+            recipe = paper.figure_recipe(STATE.store, budget, figure, figs.PaperInputs(STATE.store, budget, unfinished=unfinished))
         except figs.MissingRuns as e:
             raise Exit(2, f"{e}\nor all at once: make paper-figures BUDGET={budget}") from None
+        if recipe.unfinished:
+            _draw_preview(recipe, out_file or Path(f"{figure}-{budget}-unfinished"))
+            return
+        built = ensure(recipe, STATE.store)
         png = built.path / f"{figs.FIGURES[figure][0]}.png"
     err.print(tagged("cache hit" if built.cached else "drawn", "green", f": {png}"))
     out.print(str(png), highlight=False)
+
+
+def _draw_preview(recipe, out_dir: Path, print_path: bool = True) -> Path:
+    """A figure that reads unfinished runs, drawn into `out_dir` outside the store (it would
+    change as they train, so it is never an artifact); its PNG is named on stderr (and printed
+    on stdout with `print_path`)."""
+    from esr_cli.artifacts import preview
+
+    if out_dir.exists() and not out_dir.is_dir():
+        raise Exit(2, f"--out: {out_dir} is a file; name a folder")
+    _refuse_inside_store(out_dir / "x", "--out")
+    _check_output_file(out_dir / "x", "--out")
+    summary = preview(recipe, out_dir, STATE.store)
+    png = next((out_dir / f for f in summary.get("files", []) if f.endswith(".png")), None) or next(out_dir.glob("*.png"))
+    err.print(tagged("drawn", "green", f": {png}", f"  (a preview of unfinished runs: {'; '.join(recipe.unfinished)})"))
+    if print_path:
+        out.print(str(png), highlight=False)
+    return out_dir
 
 
 def _plot_curve(ref: str, out_file: Optional[Path]) -> None:

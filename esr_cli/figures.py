@@ -77,31 +77,60 @@ class FigureResult:
     summary: dict = field(default_factory=dict)
 
 
-class PaperInputs:
-    """The paper suite at one budget, resolved against a store."""
+def find_run(store: Store, run, unfinished: bool = False) -> tuple[Path | None, int | None]:
+    """A suite run's committed artifact -> (path, None); with `unfinished`, else its partial
+    directory once it has logged an epoch -> (path, epochs logged); (None, None): neither."""
+    path = store.lookup(RUN_KIND, run.key)
+    if path is not None or not unfinished:
+        return path, None
+    part = store.partial_path(RUN_KIND, run.key)
+    rows = read_rows(part) if part.is_dir() else []
+    return (part, int(rows[-1]["epoch"])) if rows else (None, None)
 
-    def __init__(self, store: Store, budget: str, suite_path: Path = PAPER_SUITE):
-        self.store, self.budget = store, budget
+
+def unfinished_note(run, epochs: int) -> str:
+    return f"{run.label}: epoch {epochs:,} of {run.spec.train.epochs:,}"
+
+
+class PaperInputs:
+    """The paper suite at one budget, resolved against a store. unfinished: runs still training
+    are read as far as they have got (a preview, never a stored figure: see `progress`)."""
+
+    def __init__(self, store: Store, budget: str, suite_path: Path = PAPER_SUITE, unfinished: bool = False):
+        self.store, self.budget, self.unfinished = store, budget, unfinished
         self.suite = suites.load(suite_path, budget)
         self._by_name = {(run.spec_path.stem, tuple(run.sets)): run for run in self.suite.runs}
+        self.progress: dict[Path, tuple[object, int]] = {}  # unfinished runs read: path -> (run, epochs logged)
 
     def run(self, stem: str, sets: tuple[str, ...] = ()):
         return self._by_name[(stem, tuple(sets))]
 
-    def paths(self, figure: str, wanted: list[tuple[str, tuple[str, ...]]]) -> list[Path]:
-        """The committed artifacts of `wanted` runs, or MissingRuns naming the commands."""
+    def paths(self, figure: str, wanted: list[tuple[str, tuple[str, ...]]], finished_only: bool = False) -> list[Path]:
+        """The artifacts of `wanted` runs (committed, or with `unfinished` and not
+        `finished_only` partial), or MissingRuns naming the commands."""
         runs = [self.run(stem, sets) for stem, sets in wanted]
-        found = [self.store.lookup(RUN_KIND, r.key) for r in runs]
-        missing = [r.command(self.budget, self.store.invocation()) for r, p in zip(runs, found) if p is None]
+        found = [find_run(self.store, r, self.unfinished and not finished_only) for r in runs]
+        missing = [r.command(self.budget, self.store.invocation()) for r, (p, _) in zip(runs, found) if p is None]
         if missing:
             raise MissingRuns(figure, missing)
-        return found
+        for r, (p, epochs) in zip(runs, found):
+            if epochs is not None:
+                self.progress[p] = (r, epochs)
+        return [p for p, _ in found]
+
+    def key(self, path: Path) -> str:
+        return self.progress[path][0].key if path in self.progress else self.store.read_manifest(path)["key"]
+
+    def seeds(self, path: Path) -> list[int]:
+        if path in self.progress:
+            return [int(s) for s in self.progress[path][0].spec.train.seeds]
+        return list(self.store.read_manifest(path).get("seeds", []))
 
     def provenance(self, figure: str, paths: list[Path], **extra) -> dict:
-        manifests = [self.store.read_manifest(p) for p in paths]
-        seeds = sorted({s for m in manifests for s in m.get("seeds", [])})
-        return {"figure": figure, "artifacts": {"runs": [m["key"] for m in manifests]}, "budget": self.budget,
-                "seeds": seeds, "suite": str(self.suite.path.name), **extra}
+        seeds = sorted({s for p in paths for s in self.seeds(p)})
+        unfinished = [unfinished_note(*self.progress[p]) for p in paths if p in self.progress]
+        return {"figure": figure, "artifacts": {"runs": [self.key(p) for p in paths]}, "budget": self.budget,
+                "seeds": seeds, "suite": str(self.suite.path.name), **extra, **({"unfinished": unfinished} if unfinished else {})}
 
 
 def _smooth(y: np.ndarray, window: int) -> np.ndarray:
@@ -116,7 +145,7 @@ def _band(ax, rows: list[dict], name: str, color, label: str, style: str = "-") 
         mean = np.nanmean(vals, axis=1)
         n = np.isfinite(vals).sum(axis=1)
         se = np.where(n > 1, np.nanstd(vals, axis=1, ddof=1) / np.sqrt(np.maximum(n, 1)), 0.0)
-    ax.plot(epochs, mean, style, color=color, label=label, lw=1.6)
+    ax.plot(epochs, mean, style, color=color, label=label, lw=1.6, marker="o" if len(epochs) == 1 else None)  # one epoch: a point
     ax.fill_between(epochs, mean - se, mean + se, color=color, alpha=0.2, linewidth=0)
 
 
@@ -127,6 +156,11 @@ def _style():
 def save(fig, out_dir: Path, name: str, provenance: dict) -> list[Path]:
     """PNG (provenance in its metadata) + PDF (in its Subject) + sidecar JSON."""
     out_dir.mkdir(parents=True, exist_ok=True)
+    if provenance.get("unfinished"):  # said on the figure itself, as well as in its metadata
+        note = "UNFINISHED, drawn as far as these runs have got: " + "; ".join(provenance["unfinished"])
+        title, width = fig.get_suptitle(), int(fig.get_figwidth() * 13)
+        fig.suptitle("\n".join(filter(None, (title, textwrap.fill(note, width)))), fontsize=9, color="C3")
+        fig.tight_layout()
     text = json.dumps(provenance, sort_keys=True)
     png, pdf, side = out_dir / f"{name}.png", out_dir / f"{name}.pdf", out_dir / f"{name}.json"
     fig.savefig(png, dpi=130, metadata={"Description": text})
@@ -300,6 +334,9 @@ def overcooked_table(inputs: PaperInputs, out_dir: Path) -> FigureResult:
     tex = [r"\begin{tabular}{l" + "c" * len(OVERCOOKED_METHODS) + "}", r"\toprule", " & ".join(header) + r" \\", r"\midrule"]
     tex += [" & ".join(c.replace("±", r"$\pm$").replace("_", r"\_") for c in r) + r" \\" for r in body]
     tex += [r"\bottomrule", r"\end{tabular}"]
+    prov = inputs.provenance("fig2_overcooked", paths, paper_numbers="the paper's published table")
+    if prov.get("unfinished"):
+        md = [f"UNFINISHED, as far as these runs have got: {'; '.join(prov['unfinished'])}", ""] + md
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "fig2_overcooked.md").write_text("\n".join(md) + "\n")
     (out_dir / "fig2_overcooked.tex").write_text("\n".join(tex) + "\n")
@@ -314,7 +351,6 @@ def overcooked_table(inputs: PaperInputs, out_dir: Path) -> FigureResult:
             c.set_text_props(color="0.4", style="italic")
     ax.set_title(f"Overcooked with the BC human: return per 400 steps (ours: {inputs.budget} budget, "
                  f"{seeds_phrase(seed_counts).replace('1 SE', 'SE')}; paper in grey)", fontsize=9)
-    prov = inputs.provenance("fig2_overcooked", paths, paper_numbers="the paper's published table")
     files = save(fig, out_dir, "fig2_overcooked", prov) + [out_dir / "fig2_overcooked.md", out_dir / "fig2_overcooked.tex"]
     return FigureResult("fig2_overcooked", files, prov, {"final_return": ours})
 
@@ -379,7 +415,7 @@ def representations(inputs: PaperInputs, out_dir: Path) -> FigureResult:
     from esr_cli.targets import run_spec
 
     _style()
-    (path,) = inputs.paths("fig6_representations", WANTS["fig6_representations"]())
+    (path,) = inputs.paths("fig6_representations", WANTS["fig6_representations"](), finished_only=True)
     spec = run_spec(path)
     trainer = build_trainer(spec, inputs.store)
     state = loop.final_state(trainer, path)
@@ -424,7 +460,7 @@ def overcooked_filmstrip(inputs: PaperInputs, out_dir: Path, frames: int = 8) ->
     from esr_cli.targets import run_spec
 
     _style()
-    (path,) = inputs.paths("fig8_filmstrip", WANTS["fig8_filmstrip"]())
+    (path,) = inputs.paths("fig8_filmstrip", WANTS["fig8_filmstrip"](), finished_only=True)
     spec = run_spec(path)
     trainer = build_trainer(spec, inputs.store)
     state = loop.final_state(trainer, path)

@@ -32,23 +32,26 @@ PLOT_SOURCES = ("figures.py", "plots.py", "paper.py", "analysis")
 def figure_key(inputs: figs.PaperInputs, figure: str) -> tuple[str, dict, list[Path]]:
     paths = inputs.paths(figure, figs.WANTS[figure]())
     components = {"kind": "figure", "figure": figure, "budget": inputs.budget,
-                  "inputs": [inputs.store.read_manifest(p)["key"] for p in paths],
+                  "inputs": [inputs.key(p) for p in paths],
                   "code": provenance.code_digest(PLOT_SOURCES)}
     return content_key(components), components, paths
 
 
 def figure_recipe(store: Store, budget: str, name: str, inputs: Optional[figs.PaperInputs] = None) -> Recipe:
-    """`esr plot NAME --budget B`. Raises figs.MissingRuns when a run it reads is not trained."""
+    """`esr plot NAME --budget B`. Raises figs.MissingRuns when a run it reads is not trained
+    (with `inputs.unfinished`, not started). A recipe that reads an unfinished run is a preview:
+    `preview(recipe, dir)` draws it outside the store."""
     figure, draw = figs.FIGURES[name]
     inputs = inputs or figs.PaperInputs(store, budget)
     _, components, paths = figure_key(inputs, figure)
-    seeds = sorted({s for p in paths for s in store.read_manifest(p).get("seeds", [])})
+    seeds = sorted({s for p in paths for s in inputs.seeds(p)})
 
     def build(out: Path, store: Store) -> dict:
         result = draw(inputs, out)
         return {"figure": figure, "files": [f.name for f in result.files], "provenance": result.provenance, **result.summary}
 
-    return Recipe(FIGURE_KIND, figure, components, build, budget=budget, seeds=tuple(seeds))
+    return Recipe(FIGURE_KIND, figure, components, build, budget=budget, seeds=tuple(seeds),
+                  unfinished=tuple(figs.unfinished_note(*inputs.progress[p]) for p in paths if p in inputs.progress))
 
 
 def ensure_report(store: Store, budget: str, console: Console) -> Path:
@@ -88,31 +91,36 @@ def ensure_report(store: Store, budget: str, console: Console) -> Path:
     return ensure(Recipe(FIGURE_KIND, f"paper-report-{budget}", components, build, budget=budget), store).path
 
 
-def suite_figure_recipe(suite, store: Store) -> Recipe:
+def suite_figure_recipe(suite, store: Store, unfinished: bool = False) -> Recipe:
     """`esr sweep SUITE --results --plot`: learning curves of every run of a suite (one panel
     per environment) and their final-return table, keyed by the runs and the plotting code.
-    Raises figs.MissingRuns; never trains."""
-    found = [store.lookup(RUN_KIND, run.key) for run in suite.runs]
-    missing = [run.command(suite.budget, store.invocation()) for run, p in zip(suite.runs, found) if p is None]
+    unfinished: runs still training are drawn as far as they have got (the recipe is then a
+    preview). Raises figs.MissingRuns; never trains."""
+    found = [figs.find_run(store, run, unfinished) for run in suite.runs]
+    missing = [run.command(suite.budget, store.invocation()) for run, (p, _) in zip(suite.runs, found) if p is None]
     if missing:
         raise figs.MissingRuns(f"suite {suite.name}", missing)
-    manifests = [store.read_manifest(p) for p in found]
-    keys = [m["key"] for m in manifests]
+    keys = [run.key for run in suite.runs]
     components = {"kind": "suite_figure", "suite": suite.name, "budget": suite.budget, "runs": keys,
                   "code": provenance.code_digest(PLOT_SOURCES)}
-    seeds = sorted({s for m in manifests for s in m.get("seeds", [])})
+    seeds = sorted({int(s) for run in suite.runs for s in run.spec.train.seeds})
     warmups = {getattr(run.spec.learner, "warmup_epochs", 0) for run in suite.runs}
+    notes = [figs.unfinished_note(run, epochs) for run, (_, epochs) in zip(suite.runs, found) if epochs is not None]
 
     def build(out: Path, store: Store) -> dict:
-        fig, table = figs.panels_figure(figs.suite_panels(list(zip(suite.runs, found))), f"suite {suite.name}", "return",
+        paths = [p for p, _ in found]
+        fig, table = figs.panels_figure(figs.suite_panels(list(zip(suite.runs, paths))), f"suite {suite.name}", "return",
                                         warmups.pop() if len(warmups) == 1 else 0, suite.budget)
         prov = {"figure": "suite", "suite": suite.name, "artifacts": {"runs": keys}, "budget": suite.budget,
-                "seeds": seeds, "runs": {run.label: k for run, k in zip(suite.runs, keys)}}
+                "seeds": seeds, "runs": {run.label: k for run, k in zip(suite.runs, keys)},
+                **({"unfinished": notes} if notes else {})}
         figs.save(fig, out, "suite", prov)
-        atomic_write_text(out / "table.md", "\n".join(_final_table(table)) + "\n")
+        head = [f"UNFINISHED, as far as these runs have got: {'; '.join(notes)}", ""] if notes else []
+        atomic_write_text(out / "table.md", "\n".join(head + _final_table(table)) + "\n")
         return {"final_return": table, "provenance": prov}
 
-    return Recipe(FIGURE_KIND, f"suite {suite.name}", components, build, budget=suite.budget, seeds=tuple(seeds))
+    return Recipe(FIGURE_KIND, f"suite {suite.name}", components, build, budget=suite.budget, seeds=tuple(seeds),
+                  unfinished=tuple(notes))
 
 
 def _final_table(table: dict) -> list[str]:

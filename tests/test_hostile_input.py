@@ -445,6 +445,8 @@ def test_options_that_only_apply_to_a_spec_file_are_refused_with_an_artifact(tmp
         (["plot", "geometry", "--budget", "quick"], "--budget"),
         (["plot", "mi", "--gamma", "0.5"], "--gamma"),
         (["plot", "estimator", "0123abcd", "--state", "1"], "--state"),
+        (["plot", "geometry", "--unfinished"], "--unfinished applies to the paper figures"),
+        (["plot", "mi", "--out", "x"], "--out applies to `esr plot curve`, or to a paper figure with --unfinished"),
     ):
         proc = esr(*args, store=store, check=False)
         assert proc.returncode == 2 and problem in proc.stderr, (args, proc.stderr)
@@ -594,6 +596,8 @@ def test_eval_and_report_options_are_checked_before_the_store(tmp_path, capsys):
 @pytest.mark.parametrize("flags, problem", [
     (["--status", "--results"], "choose one"), (["--status", "--metric", "x"], "--metric applies with --results only"),
     (["--plot"], "--plot applies with --results only"), (["--results", "--json", "--markdown"], "choose one"),
+    (["--results", "--unfinished"], "--unfinished applies with --results --plot only"),
+    (["--results", "--out", "x"], "--out applies with --results --plot only"),
     (["--partition", "p"], "--partition: not used by --executor local"),
     (["--executor", "submitit-local", "--gpus", "1"], "--gpus: not used by --executor submitit-local"),
     (["--executor", "slurm", "--time-min", "5", "--status"], "--status and --results submit nothing"),

@@ -5,6 +5,7 @@ committed, and report their state. Four smoke runs of one spec share one compile
 import json
 import os
 import pickle
+import shlex
 from pathlib import Path
 
 import pytest
@@ -402,3 +403,58 @@ def test_a_run_stopped_on_purpose_is_stopped_not_failed(tmp_path):
     rows = sweep.status(suite, store)
     assert [row.state for row in rows] == ["stopped", "failed"]
     assert rows[0].note == "stopped (interrupted) after epoch 3; sweep again (or esr train) to continue it"
+
+
+def test_curves_of_unfinished_runs_are_a_preview_marked_unfinished_outside_the_store(tmp_path):
+    store, preview = tmp_path / "store", tmp_path / "preview"
+    path = seeds_suite(tmp_path, 2)
+    suite = sweep.load_suite(path, "smoke")
+    esr(*shlex.split(suite.runs[0].command("smoke"))[1:], store=store)
+    # The second run is killed once its first epoch is saved: a partial run with one of 2 epochs.
+    killed = esr(*shlex.split(suite.runs[1].command("smoke"))[1:], store=store, check=False, ESR_FAULT="after_checkpoint@1")
+    assert killed.returncode == -9
+
+    refused = esr("sweep", str(path), "--budget", "smoke", "--results", "--plot", store=store, check=False)
+    assert refused.returncode == 2 and "needs 1 run(s) the store lacks" in refused.stderr
+    assert esr("sweep", str(path), "--budget", "smoke", "--results", "--unfinished", store=store,
+               check=False).returncode == 2  # --unfinished without --plot: named, not ignored
+
+    proc = esr("sweep", str(path), "--budget", "smoke", "--results", "--plot", "--unfinished", "--out", str(preview),
+               store=store, **WIDE)
+    assert f"drawn: {preview / 'suite.png'}" in proc.stderr and (preview / "suite.png").stat().st_size > 0
+    note = f"{suite.runs[1].label}: epoch 1 of 2"
+    assert f"a preview of unfinished runs: {note}" in proc.stderr
+    assert json.loads((preview / "suite.json").read_text())["unfinished"] == [note]
+    table = (preview / "table.md").read_text()
+    assert table.startswith(f"UNFINISHED, as far as these runs have got: {note}")
+    assert not (store / "figures").exists() or not any((store / "figures").rglob("manifest.json"))
+
+
+def test_a_paper_figure_of_unfinished_runs_is_drawn_as_a_preview_and_never_stored(tmp_path):
+    from esr_cli import figures as figs, paper
+    from esr_cli.artifacts import ensure, preview
+
+    store = Store(tmp_path / "store")
+    inputs = figs.PaperInputs(store, "smoke", unfinished=True)
+    wanted = figs.WANTS["fig1_gridworld"]()
+    for i, (stem, sets) in enumerate(wanted):  # each run has logged 3 epochs of its 2 seeds
+        part = store.partial_path("runs", inputs.run(stem, sets).key)
+        part.mkdir(parents=True)
+        rows = [{"epoch": e, "return": [float(i + e), float(i)], "success": [0.0, 1.0]} for e in (1, 2, 3)]
+        (part / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    with pytest.raises(figs.MissingRuns):  # without unfinished, every one of them is missing
+        paper.figure_recipe(store, "smoke", "gridworld")
+    recipe = paper.figure_recipe(store, "smoke", "gridworld", inputs)
+    assert len(recipe.unfinished) == len(wanted) and all(n.endswith(": epoch 3 of 2") for n in recipe.unfinished)
+    with pytest.raises(ValueError, match="reads unfinished runs"):
+        ensure(recipe, store)
+    summary = preview(recipe, tmp_path / "out", store)
+    side = json.loads((tmp_path / "out" / "fig1_gridworld.json").read_text())
+    assert side["unfinished"] == list(recipe.unfinished)
+    assert side["artifacts"]["runs"] == [inputs.run(stem, sets).key for stem, sets in wanted]
+    # the final return of the first line at N = 2: the last 10% of 3 epochs is the last one
+    first = summary["final_return"]["N = 2 blocks"][figs.PAPER_LABELS["esr"]]
+    assert first["per_seed"] == [3.0, 0.0]
+    # the figures that restore a run's final state still need it finished
+    with pytest.raises(figs.MissingRuns):
+        paper.figure_recipe(store, "smoke", "representations", inputs)
