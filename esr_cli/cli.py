@@ -21,9 +21,10 @@ from rich.text import Text
 
 from esr_cli import spec as specs, targets
 from esr_cli.artifacts import ensure
+from esr_cli.failures import Failure
 from esr_cli.printing import plain_console, print_table, printable, tagged
 from esr_cli.stop_signals import StopSignals, Terminated, stop_signals_raise
-from esr_cli.store import KINDS, RUN_KIND, Store, StoreError, atomic_write_bytes, nearest_existing, probe_writable
+from esr_cli.store import KINDS, RUN_KIND, Store, atomic_write_bytes, nearest_existing, probe_writable
 
 def _flag_type_hidden(display_type_rich):
     """Typer's help names a flag's type ("--json <bool>") as if it took a value; a flag takes
@@ -47,9 +48,15 @@ out = plain_console()
 err = plain_console(stderr=True)
 
 
-class Exit(Exception):
+class Exit(Failure):
+    """A command's own ending: `code` and the line to print (none: nothing to add)."""
+
     def __init__(self, code: int, message: str = ""):
-        self.code, self.message = code, message
+        super().__init__(message)
+        self.exit_code, self.message = code, message
+
+    def one_line(self) -> str:
+        return self.message
 
 
 class Ctx:
@@ -1183,8 +1190,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(argv: list[str], debug: bool, stops: StopSignals) -> int:
-    from esr_cli.core.stops import CorruptCheckpoint, Diverged, Interrupted, TimeLimitReached
-    from esr_cli.resources import ResourceError
+    from esr_cli.core.stops import Interrupted
 
     try:
         code = app(args=argv, standalone_mode=False)
@@ -1208,25 +1214,8 @@ def _run(argv: list[str], debug: bool, stops: StopSignals) -> int:
         if hasattr(e, "show") and hasattr(e, "exit_code"):  # the CLI library's usage errors
             e.show()
             return int(e.exit_code) if e.exit_code else 2
-        if isinstance(e, specs.SpecError):
-            code, msg = 2, f"bad spec: {e}"
-        elif isinstance(e, Exit):
-            code, msg = e.code, e.message
-        elif isinstance(e, StoreError):
-            code, msg = 2, str(e)
-        elif isinstance(e, ResourceError):
-            code, msg = 2, f"too large for this machine: {e}"
-        elif isinstance(e, TimeLimitReached):
-            code, msg = 75, (f"stopped after epoch {e.epoch:,} of {e.total:,}: the next chunk would pass the time limit; "
-                             "the checkpoint is saved: run the same command again to continue")
-        elif isinstance(e, Interrupted):
-            how = "interrupted" if e.exit_code == 130 else "terminated (SIGTERM)"
-            code, msg = e.exit_code, (f"{how} after {e.unit} {e.epoch:,}; the checkpoint is saved: run the same command again to resume"
-                                      if e.epoch else f"{how} before the first checkpoint: run the same command again to start over")
-        elif isinstance(e, CorruptCheckpoint):
-            code, msg = 1, str(e)
-        elif isinstance(e, Diverged):
-            code, msg = 1, f"run diverged: {e} (the partial run is kept for inspection)"
+        if isinstance(e, Failure):  # each says its exit code and its line (esr_cli/failures.py)
+            code, msg = e.exit_code, e.one_line()
         elif isinstance(e, OSError) and e.errno == errno.ENAMETOOLONG:  # a path given on the command line
             name = str(e.filename or "")
             code, msg = 2, f"file name too long: {name[:60]}{'...' if len(name) > 60 else ''} (at most 255 bytes per component)"

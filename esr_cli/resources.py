@@ -25,12 +25,19 @@ import resource
 from dataclasses import dataclass
 from pathlib import Path
 
+from esr_cli.failures import Failure
+
 GIB = 1 << 30
 RUNTIME_BYTES = 3 * GIB // 2
 
 
-class ResourceError(Exception):
+class ResourceError(Failure):
     """A run that cannot fit this machine; `str()` says the estimate and the field to lower."""
+
+    exit_code = 2
+
+    def one_line(self) -> str:
+        return f"too large for this machine: {self}"
 
 
 PARAMETER_COPIES, ACTIVATION_COPIES = 20, 8

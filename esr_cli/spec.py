@@ -21,6 +21,7 @@ import yaml
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, Strict, ValidationError, field_validator, model_validator
 
 from esr_cli import yamlio
+from esr_cli.failures import Failure
 
 BUDGETS = ("paper", "quick", "smoke")
 
@@ -66,8 +67,13 @@ MAX_EPOCHS, MAX_ENVS, MAX_UPDATES, MAX_ENV_STEPS = 10_000_000, 1 << 20, 1_000_00
 MAX_EVAL_EPISODES = 1_000_000  # eval.episodes, and `esr eval --episodes` that replaces it
 
 
-class SpecError(Exception):
+class SpecError(Failure):
     """A spec that cannot be used. `str()` is one line naming file, key path and problem."""
+
+    exit_code = 2
+
+    def one_line(self) -> str:
+        return f"bad spec: {self}"
 
     def __init__(self, source: str, path: str, problem: str):
         self.source, self.path, self.problem = source, path, problem

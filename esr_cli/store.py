@@ -32,6 +32,7 @@ from pathlib import Path, PurePosixPath
 from typing import Callable, Iterator
 
 from esr_cli import faults
+from esr_cli.failures import Failure
 from esr_cli.jsonl import JsonInputError, read_json
 
 MANIFEST = "manifest.json"
@@ -45,8 +46,10 @@ PLAY_KIND = "play"  # an episode a person played with a robot (esr play)
 KINDS = (RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND, PLAY_KIND)
 
 
-class StoreError(Exception):
+class StoreError(Failure):
     """A problem with the store or an artifact; `str()` is a one-line explanation."""
+
+    exit_code = 2
 
 
 class LockBusy(StoreError):
