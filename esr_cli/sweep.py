@@ -32,6 +32,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterable, Optional
 
+from pydantic import ValidationError
 from rich.console import Console
 from rich.table import Table
 from rich.text import Text
@@ -40,8 +41,6 @@ from esr_cli import provenance, spec as specs
 from esr_cli.artifacts import ensure
 from esr_cli.printing import plain_console, tagged
 from esr_cli.store import RUN_KIND, Store, atomic_write_text, read_pending
-from pydantic import ValidationError
-
 from esr_cli.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
 
 EXECUTORS = ("local", "slurm", "submitit-local")
