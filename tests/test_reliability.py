@@ -35,6 +35,14 @@ def final_arrays(run_dir):
     return [np.asarray(x) for x in jax.tree.leaves(loop.final_state(trainer, run_dir))]
 
 
+def assert_same_run(path: Path, reference) -> None:
+    """The run at `path` ends bit for bit where the uninterrupted one does: metrics and state."""
+    want_metrics, want_state = reference
+    assert (path / "metrics.jsonl").read_text() == want_metrics
+    for a, b in zip(final_arrays(path), want_state, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 @pytest.fixture(scope="module")
 def reference(smoke_run):
     """The uninterrupted smoke run: metrics text and final training state."""
@@ -55,10 +63,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path, reference, poi
     path = Path(resumed.stdout.strip())
     assert committed(store) == [path] and partials(store) == []
     assert esr("verify", store=store).returncode == 0
-    want_metrics, want_state = reference
-    assert (path / "metrics.jsonl").read_text() == want_metrics
-    for a, b in zip(final_arrays(path), want_state):
-        np.testing.assert_array_equal(a, b)
+    assert_same_run(path, reference)
 
 
 def test_stop_after_ends_at_a_chunk_boundary_and_resumes_to_the_uninterrupted_result(tmp_path, reference):
@@ -78,10 +83,7 @@ def test_stop_after_ends_at_a_chunk_boundary_and_resumes_to_the_uninterrupted_re
     resumed = esr(*SMOKE, "--stop-after", "1h", store=store)
     path = Path(resumed.stdout.strip())
     assert "resuming" in resumed.stderr and committed(store) == [path] and partials(store) == []
-    want_metrics, want_state = reference
-    assert (path / "metrics.jsonl").read_text() == want_metrics
-    for a, b in zip(final_arrays(path), want_state):
-        np.testing.assert_array_equal(a, b)
+    assert_same_run(path, reference)
 
 
 def test_next_chunk_fits_by_its_estimated_duration():
@@ -234,10 +236,7 @@ def test_a_damaged_newest_checkpoint_falls_back_to_the_one_before(tmp_path, refe
     proc = esr(*SMOKE, store=store)
     assert "resuming" in proc.stderr and "from epoch 1" in proc.stderr
     path = Path(proc.stdout.strip())
-    want_metrics, want_state = reference
-    assert (path / "metrics.jsonl").read_text() == want_metrics
-    for a, b in zip(final_arrays(path), want_state):
-        np.testing.assert_array_equal(a, b)
+    assert_same_run(path, reference)
 
 
 def test_not_enough_disk_fails_before_any_work(tmp_path, monkeypatch, capsys):
@@ -270,10 +269,7 @@ def test_a_longer_run_continues_a_shorter_one_bit_for_bit(tmp_path, reference):
     longer = esr(*SMOKE, store=store)
     assert f"starting from run {short.name[:12]} (complete) at epoch 1" in longer.stderr
     path = Path(longer.stdout.strip())
-    want_metrics, want_state = reference
-    assert (path / "metrics.jsonl").read_text() == want_metrics
-    for a, b in zip(final_arrays(path), want_state):
-        np.testing.assert_array_equal(a, b)
+    assert_same_run(path, reference)
     assert (short / "manifest.json").is_file()  # the shorter artifact is untouched
     assert esr("verify", store=store).returncode == 0
 
@@ -285,10 +281,7 @@ def test_an_unfinished_longer_run_gives_a_shorter_one_its_checkpoint(tmp_path, r
     shorter = esr(*SMOKE, store=store)
     assert "(partial) at epoch 2" in shorter.stderr
     path = Path(shorter.stdout.strip())
-    want_metrics, want_state = reference
-    assert (path / "metrics.jsonl").read_text() == want_metrics
-    for a, b in zip(final_arrays(path), want_state):
-        np.testing.assert_array_equal(a, b)
+    assert_same_run(path, reference)
     assert len(partials(store)) == 1  # the 3-epoch run is still there to be resumed
 
 
