@@ -28,9 +28,9 @@ PACKAGE_DIR = Path(__file__).resolve().parent
 def experiments_dir() -> Path:
     """The experiments/ folder commands read the paper's specs and suites from: the current
     directory's, where it has the paper suite (a researcher's own copy, edited or not), else
-    the one beside this package's checkout."""
+    the one installed with esr (the checkout's, through esr_cli/experiments, or a wheel's copy)."""
     here = Path.cwd() / "experiments"
-    return here if (here / "suites" / "paper.yaml").is_file() else PACKAGE_DIR.parent / "experiments"
+    return here if (here / "suites" / "paper.yaml").is_file() else PACKAGE_DIR / "experiments"
 # What a training run computes is decided by the runner and everything it imports: the code
 # digest covers the import closure of these roots (`module_closure`), found from the source, so
 # a module added to the training path re-keys runs without anyone listing it. The host loop

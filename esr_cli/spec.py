@@ -1051,7 +1051,24 @@ def _defines(tree: dict, dotted: str) -> bool:
     return True
 
 
+# The paper's specs and suites as installed with esr: the checkout's experiments/ (through a
+# link), or the copy a wheel carries.
+INSTALLED_EXPERIMENTS = Path(__file__).resolve().parent / "experiments"
+
+
+def experiment_file(path: str | Path) -> Path:
+    """A spec or suite file named on the command line: the path from the current directory; a
+    relative `experiments/...` path that is not there is read from INSTALLED_EXPERIMENTS, so
+    the README's commands work wherever an installed esr runs."""
+    p = Path(path)
+    if p.is_absolute() or len(p.parts) < 2 or p.parts[0] != "experiments" or p.exists():
+        return p
+    installed = INSTALLED_EXPERIMENTS.joinpath(*p.parts[1:])
+    return installed if installed.is_file() else p
+
+
 def load(path: str | Path, budget: str = "paper", overrides: list[str] | tuple[str, ...] = ()) -> Spec:
+    path = experiment_file(path)
     raw = load_raw(path)
     try:
         return resolve(raw, budget, overrides, source=str(path))

@@ -209,8 +209,8 @@ def run_count(model: SuiteModel) -> int:
 
 def load(path: str | Path, budget: str = "paper") -> Suite:
     """Read, validate and expand a suite: every run's spec is loaded and validated here."""
-    p = Path(path)
-    source = str(path)
+    p = specs.experiment_file(path)
+    source = str(p)
     if budget not in specs.BUDGETS:
         raise SuiteError(source, "--budget", f"unknown budget {budget!r}; known: {', '.join(specs.BUDGETS)}")
     try:
