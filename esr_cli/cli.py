@@ -951,17 +951,53 @@ def plays(
     session: Optional[str] = typer.Option(None, "--session", help="only this session's episodes"),
     export: Optional[Path] = typer.Option(None, "--export", help="write the Overcooked episodes shown in overcooked-ai's "
                                           "human-data schema: .pickle (a pandas DataFrame) or .csv"),
+    by_robot: bool = typer.Option(False, "--by-robot", help="a table per robot instead: participants, episodes, and the "
+                                  "return and success of completed episodes (per participant, then mean ± SE and IQM across participants)"),
+    csv_file: Optional[Path] = typer.Option(None, "--csv", help="also write one row per episode shown (participant, "
+                                            "robot, return, success, keys, reaction time...) to this CSV file"),
 ):
-    """List the played episodes (`esr play`), and export Overcooked ones as human data."""
-    from esr_cli.play import session as ps
+    """List the played episodes (`esr play`), sum them up per robot, and export them."""
+    from esr_cli.play import results, session as ps
 
     if export is not None and export.suffix not in (".pickle", ".pkl", ".csv"):
         raise Exit(2, f"--export: {export} should end in .pickle or .csv")
-    if export is not None:
-        _check_output_file(export, "--export")
+    for path, option in ((export, "--export"), (csv_file, "--csv")):
+        if path is not None:
+            _refuse_inside_store(path, option)
+            _check_output_file(path, option)
+    if export is not None and csv_file is not None and export.resolve() == csv_file.resolve():
+        raise Exit(2, "--export and --csv name the same file")
     found = ps.played_episodes(STATE.store, participant, session)
     if not found:
         raise Exit(1, f"no played episodes in {STATE.store.root}" + (" for that selection" if participant or session else ""))
+    rows = results.episode_rows(found)
+    if by_robot:
+        _print_by_robot(results.by_robot(rows))
+    else:
+        _print_plays(found)
+    if csv_file is not None:
+        csv_file.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(csv_file, results.episodes_csv(rows).encode())
+        err.print(tagged("written", "green", f" {len(rows)} episode(s): {csv_file}"))
+    if export is not None:
+        _export_overcooked(found, export)
+
+
+def _print_by_robot(rows: list[dict]) -> None:
+    from esr_cli.stats import format_summary
+
+    table = Table(title="played episodes per robot: completed episodes averaged per participant, then mean ± SE and "
+                        "IQM [95% bootstrap CI] across participants")
+    for col in ("robot", "env", "participants", "episodes", "return", "success"):
+        table.add_column(col, no_wrap=col == "robot")
+    for r in rows:
+        scored = "" if r["scored_participants"] == r["participants"] else f" ({r['scored_participants']} with a completed episode)"
+        table.add_row(str(r["robot"]), r["env"], f"{r['participants']}{scored}", f"{r['completed']} of {r['episodes']} completed",
+                      format_summary(r["return"], 2, "participant"), format_summary(r["success"], 2, "participant"))
+    print_table(out, table)
+
+
+def _print_plays(found) -> None:
     table = Table()
     for col in ("key", "participant", "session", "episode", "robot", "env", "completed", "steps", "return"):
         table.add_column(col, no_wrap=col == "key")  # the whole key, as human.data takes it
@@ -971,17 +1007,19 @@ def plays(
                       str(header["robot"][:12]), str(env.get("layout", env["kind"])), "yes" if summary["completed"] else "no", str(summary["steps"]),
                       f"{summary['score']:g}")
     print_table(out, table)
-    if export is not None:
-        from esr_cli.play import export as px
 
-        frame, count = px.export_overcooked(STATE.store, [k for k, _, _ in found])
-        if count == 0:
-            raise Exit(2, "--export: none of these episodes is an Overcooked episode")
-        export.parent.mkdir(parents=True, exist_ok=True)
-        buffer = io.BytesIO()
-        frame.to_csv(buffer, index=False) if export.suffix == ".csv" else frame.to_pickle(buffer)
-        atomic_write_bytes(export, buffer.getvalue())
-        err.print(tagged("exported", "green", f" {count} Overcooked episode(s), {len(frame)} rows: {export}"))
+
+def _export_overcooked(found, export: Path) -> None:
+    from esr_cli.play import export as px
+
+    frame, count = px.export_overcooked(STATE.store, [k for k, _, _ in found])
+    if count == 0:
+        raise Exit(2, "--export: none of these episodes is an Overcooked episode")
+    export.parent.mkdir(parents=True, exist_ok=True)
+    buffer = io.BytesIO()
+    frame.to_csv(buffer, index=False) if export.suffix == ".csv" else frame.to_pickle(buffer)
+    atomic_write_bytes(export, buffer.getvalue())
+    err.print(tagged("exported", "green", f" {count} Overcooked episode(s), {len(frame)} rows: {export}"))
 
 
 @app.command()

@@ -138,19 +138,20 @@ def scored_seeds(d: dict) -> int:
     return d.get("seeds", 0) - d.get("missing", 0)
 
 
-def format_summary(d: dict, digits: int = 2) -> str:
+def format_summary(d: dict, digits: int = 2, unit: str = "seed") -> str:
     """"m ± se; IQM i [lo, hi]" for several seeds, "m (1 seed)" for one: a single seed has no
     spread to show, and an SE of 0 would claim one. Seeds without a score are counted after
-    the figures; a run with none says "no value"."""
+    the figures; a run with none says "no value". `unit`: what the values are of (a seed, a
+    participant)."""
     total, n = d.get("seeds", 0), scored_seeds(d)
     if n == 0:
-        return "no value" + (f" ({total} seed{'s' if total > 1 else ''} without a final score)" if total else "")
+        return "no value" + (f" ({total} {unit}{'s' if total > 1 else ''} without a final score)" if total else "")
     if n == 1:
-        text = f"{d['mean']:.{digits}f} (1 seed)"
+        text = f"{d['mean']:.{digits}f} (1 {unit})"
     else:
         text = f"{d['mean']:.{digits}f} ± {d['se']:.{digits}f}"
         if "iqm" in d:
             text += f"; IQM {d['iqm']:.{digits}f} [{d['iqm_low']:.{digits}f}, {d['iqm_high']:.{digits}f}]"
     if n < total:
-        text += f" ({total - n} of {total} seeds without a final score)"
+        text += f" ({total - n} of {total} {unit}s without a final score)"
     return text

@@ -765,3 +765,43 @@ def test_overcooked_episodes_export_to_the_human_data_schema_and_replay(tmp_path
     with pytest.raises(play_data.PlayDataError, match="is not an Overcooked episode on coord_ring"):
         play_data.convert([built.path], "coord_ring")
     assert esr("plays", "--participant", "nobody", store=tmp_path, check=False).returncode == 1
+
+
+def test_plays_by_robot_averages_each_participant_first_and_writes_one_csv_row_per_episode(tmp_path):
+    import csv
+    import statistics
+
+    from esr_cli.artifacts import ensure
+
+    spec = specs.load(ROOT / GRID[0], "paper", [GRID[2], GRID[4]])
+    env = make_env(spec.env)
+    store = Store(tmp_path)
+    trained = "0123456789abcdef0123456789abcdef"  # a run key as a robot's reference (it plays uniformly here)
+    robots = [ps.Opponent("random", "robot A", Robot("random", env)), ps.Opponent(trained, "robot B", Robot(trained, env))]
+    # p1 and p2 play both robots twice; p3 ends robot B's only episode early (q, confirmed).
+    plan = [(p, robot, ep) for p in ("p1", "p2") for ep, robot in enumerate(robots * 2)] + [("p3", robots[1], 0)]
+    for participant, robot, episode in plan:
+        seed = episode + (5 if participant == "p2" else 0)  # p2 meets other start states
+        keys = grid_keys(seed)
+        script = keys[:1] + [QUIT, QUIT] if participant == "p3" else keys + ["space"] * 50
+        ensure(ps.episode_recipe(spec, robot, participant, f"s-{participant}", episode, seed, Scripted(script), "test",
+                                 6.0, "t", 0), store)
+
+    proc = esr("plays", "--by-robot", "--csv", str(tmp_path / "out" / "plays.csv"), store=tmp_path, COLUMNS="400")
+    with open(tmp_path / "out" / "plays.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == len(plan) and {r["participant"] for r in rows} == {"p1", "p2", "p3"}
+    summaries = {e.key: e.manifest["summary"] for e in Store(tmp_path).entries() if e.kind == PLAY_KIND}
+    for r in rows:
+        assert float(r["return"]) == summaries[r["key"]]["score"] and (r["completed"] == "True") == summaries[r["key"]]["completed"]
+    assert [r["completed"] for r in rows if r["participant"] == "p3"] == ["False"]
+    # independently: completed episodes averaged per participant, then across participants
+    for robot in ("random", trained):
+        per_person = [statistics.mean(float(r["return"]) for r in rows if r["robot"] == robot and r["participant"] == p
+                                      and r["completed"] == "True") for p in ("p1", "p2")]
+        mean, se = statistics.mean(per_person), statistics.stdev(per_person) / math.sqrt(2)
+        line = next(line for line in proc.stdout.splitlines() if robot in line)
+        assert se > 0 and f"{mean:.2f} ± {se:.2f}" in line, line
+    trained_line = next(line for line in proc.stdout.splitlines() if trained in line)
+    assert "3 (2 with a completed episode)" in trained_line and "4 of 5 completed" in trained_line
+    assert f"written {len(plan)} episode(s)" in proc.stderr
