@@ -24,7 +24,7 @@ from esr_cli.artifacts import ensure
 from esr_cli.failures import Failure
 from esr_cli.printing import plain_console, print_table, printable, tagged
 from esr_cli.stop_signals import StopSignals, Terminated, stop_signals_raise
-from esr_cli.store import KINDS, RUN_KIND, Store, atomic_write_bytes, nearest_existing, probe_writable
+from esr_cli.store import KINDS, PLAY_KIND, RUN_KIND, Store, atomic_write_bytes, nearest_existing, probe_writable
 
 def _flag_type_hidden(display_type_rich):
     """Typer's help names a flag's type ("--json <bool>") as if it took a value; a flag takes
@@ -949,8 +949,9 @@ def play(
 def plays(
     participant: Optional[str] = typer.Option(None, "--participant", help="only this participant's episodes"),
     session: Optional[str] = typer.Option(None, "--session", help="only this session's episodes"),
-    export: Optional[Path] = typer.Option(None, "--export", help="write the Overcooked episodes shown in overcooked-ai's "
-                                          "human-data schema: .pickle (a pandas DataFrame) or .csv"),
+    export: Optional[Path] = typer.Option(None, "--export", help="write the episodes shown: .jsonl, every step of any "
+                                          "environment (docs/play.md); .pickle (a pandas DataFrame) or .csv, the "
+                                          "Overcooked ones in overcooked-ai's human-data schema"),
     by_robot: bool = typer.Option(False, "--by-robot", help="a table per robot instead: participants, episodes, and the "
                                   "return and success of completed episodes (per participant, then mean ± SE and IQM across participants)"),
     csv_file: Optional[Path] = typer.Option(None, "--csv", help="also write one row per episode shown (participant, "
@@ -959,8 +960,8 @@ def plays(
     """List the played episodes (`esr play`), sum them up per robot, and export them."""
     from esr_cli.play import results, session as ps
 
-    if export is not None and export.suffix not in (".pickle", ".pkl", ".csv"):
-        raise Exit(2, f"--export: {export} should end in .pickle or .csv")
+    if export is not None and export.suffix not in (".jsonl", ".pickle", ".pkl", ".csv"):
+        raise Exit(2, f"--export: {export} should end in .jsonl (steps), .pickle or .csv (Overcooked human data)")
     for path, option in ((export, "--export"), (csv_file, "--csv")):
         if path is not None:
             _refuse_inside_store(path, option)
@@ -979,7 +980,14 @@ def plays(
         csv_file.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(csv_file, results.episodes_csv(rows).encode())
         err.print(tagged("written", "green", f" {len(rows)} episode(s): {csv_file}"))
-    if export is not None:
+    if export is not None and export.suffix == ".jsonl":
+        from esr_cli.play.step_export import export_jsonl
+
+        text, count = export_jsonl([STATE.store.lookup(PLAY_KIND, k) for k, _, _ in found])
+        export.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(export, text.encode())
+        err.print(tagged("exported", "green", f" {len(found)} episode(s), {count} steps: {export}"))
+    elif export is not None:
         _export_overcooked(found, export)
 
 

@@ -805,3 +805,14 @@ def test_plays_by_robot_averages_each_participant_first_and_writes_one_csv_row_p
     trained_line = next(line for line in proc.stdout.splitlines() if trained in line)
     assert "3 (2 with a completed episode)" in trained_line and "4 of 5 completed" in trained_line
     assert f"written {len(plan)} episode(s)" in proc.stderr
+    # Every step of every episode (gridworld included) as JSON lines, with its episode's fields.
+    proc = esr("plays", "--participant", "p3", "--export", str(tmp_path / "out" / "p3.jsonl"), store=tmp_path)
+    (key,) = [r["key"] for r in rows if r["participant"] == "p3"]
+    lines = [json.loads(line) for line in (tmp_path / "out" / "p3.jsonl").read_text().splitlines()]
+    logged = logged_steps(Store(tmp_path).lookup(PLAY_KIND, key))
+    assert len(lines) == len(logged) >= 1 and "exported 1 episode(s)" in proc.stderr
+    for line, step in zip(lines, logged):
+        assert line["play_key"] == key and line["participant"] == "p3" and line["robot"] == trained
+        assert line["robot_label"] == "robot B" and line["env"] == "gridworld" and line["layout"] is None
+        assert {k: line[k] for k in step} == step  # the logged step, state included, unchanged
+        assert line["human_action_name"] == ("left", "down", "right", "up", "stay")[step["human_action"]]
