@@ -40,6 +40,7 @@ def np_walk(human, blocks, actions, size=5):
     return pos
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", ["fixed", "original"])
 def test_ave_proxy_matches_numpy(variant):
     env = Gridworld(size=5, num_blocks=3, start="corner", episode_steps=50)
@@ -62,6 +63,7 @@ def test_ave_proxy_matches_numpy(variant):
     assert got == pytest.approx(want, rel=1e-5, abs=1e-5)
 
 
+@pytest.mark.slow
 def test_published_overcooked_ave_is_one_step_and_one_variance_over_the_human_observation():
     """variant: original on Overcooked, against JaxMARL stepped directly from the true state:
     each rollout is one uniform human action (the robot staying), the reward the log of one
@@ -94,6 +96,7 @@ def test_ave_proxy_is_lowest_for_a_trapped_human():
     assert float(r[1]) > 0.0
 
 
+@pytest.mark.slow
 def test_goal_belief_moves_toward_the_true_goal():
     env = Gridworld(size=5, num_blocks=2, start="corner", episode_steps=50)
     human_model = NoisyGreedyHuman(env=env, noise=0.2)
@@ -142,6 +145,7 @@ def test_goal_inference_does_nothing_when_the_way_is_clear():
     assert after.blocks.tolist() == s.blocks.tolist()
 
 
+@pytest.mark.slow
 def test_published_goal_inference_moves_weights_by_fixed_steps_as_computed_by_hand():
     """Du et al.'s rule on a 3 x 3 grid, one block at (0, 2), the human at (1, 1): the goal set is
     the 7 other cells, each starting at 1/7; alpha = 0.5, so a move shifts a weight by 1/14."""
@@ -193,6 +197,7 @@ def test_published_goal_inference_floors_weights_at_zero_and_keeps_a_belief_noth
     np.testing.assert_allclose(np.asarray(after), np.asarray(only))
 
 
+@pytest.mark.slow
 def test_published_goal_inference_helps_the_goal_mass_and_breaks_ties_at_random():
     env = Gridworld(size=5, num_blocks=2, start="corner", episode_steps=50)
     gi = GoalInference(env=env, human=NoisyGreedyHuman(env=env, noise=0.2), variant="original")
@@ -211,6 +216,7 @@ def test_published_goal_inference_helps_the_goal_mass_and_breaks_ties_at_random(
     assert int(exact.clearing_action(obs, jnp.array([4, 0]))) == (1 * 5 + 0) * 5 + RIGHT
 
 
+@pytest.mark.slow
 def test_iq_learn_reward_ranks_the_humans_actions_above_random_ones():
     """Fit on a toy gridworld whose goal the model sees and whose human is plainly greedy; the
     recovered reward must prefer the human's actual actions on held-out transitions."""
@@ -285,6 +291,7 @@ def test_iq_learn_reward_ranks_the_humans_actions_above_random_ones():
     np.testing.assert_allclose(method.reward_from_table(table, idx), direct, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_oracle_reward_is_the_environments():
     raw = specs.load_raw("experiments/grid_2_oracle.yaml")
     spec = specs.resolve(raw, "smoke", ["env.start=random", "train.num_envs=32"])

@@ -6,6 +6,7 @@ import signal
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from conftest import esr
 
@@ -27,6 +28,7 @@ def test_train_commits_a_complete_artifact(smoke_run):
     assert "grid_2 [smoke] epoch 1/2  last-epoch return" in proc.stderr and "grid_2 [smoke] epoch 2/2  last-epoch return" in proc.stderr
 
 
+@pytest.mark.slow
 def test_repeat_is_a_cache_hit_that_trains_nothing(smoke_run):
     store, path, _ = smoke_run
     before = {f: f.stat().st_mtime_ns for f in path.rglob("*")}
@@ -37,6 +39,7 @@ def test_repeat_is_a_cache_hit_that_trains_nothing(smoke_run):
     assert "cache hit" in proc.stderr
 
 
+@pytest.mark.slow
 def test_ls_show_verify(smoke_run):
     store, path, _ = smoke_run
     ls = esr("ls", store=store, COLUMNS="300").stdout  # rich wraps narrow columns off a terminal
@@ -49,6 +52,7 @@ def test_ls_show_verify(smoke_run):
     assert esr("verify", path.name, store=store).returncode == 0
 
 
+@pytest.mark.slow
 def test_ls_json_filters_and_piped_cells_in_full(smoke_run):
     store, path, _ = smoke_run
     rows = json.loads(esr("ls", "--json", store=store).stdout)
@@ -72,6 +76,7 @@ def test_unknown_key_is_a_one_line_error(smoke_run):
     assert proc.returncode == 2 and "no artifact" in proc.stderr and "Traceback" not in proc.stderr
 
 
+@pytest.mark.slow
 def test_eval_writes_summary_gif_and_curve(smoke_run):
     store, run_path, _ = smoke_run
     proc = esr("eval", "experiments/grid_2.yaml", "--budget", "smoke", store=store)
@@ -105,6 +110,7 @@ def test_eval_of_an_untrained_spec_says_how_to_train(smoke_run):
     assert proc.returncode == 2 and "esr train experiments/grid_2.yaml" in proc.stderr
 
 
+@pytest.mark.slow
 def test_a_spec_trained_only_at_another_budget_says_which_and_the_option(smoke_run):
     store, _, _ = smoke_run
     proc = esr("eval", "experiments/grid_2.yaml", store=store, check=False)
@@ -112,6 +118,7 @@ def test_a_spec_trained_only_at_another_budget_says_which_and_the_option(smoke_r
     assert "the store has grid_2 at --budget smoke (finished)" in proc.stderr
 
 
+@pytest.mark.slow
 def test_random_robot_runs_on_the_same_runner(smoke_store):
     proc = esr("train", "experiments/grid_2_random.yaml", "--budget", "smoke", store=smoke_store)
     path = Path(proc.stdout.strip().splitlines()[-1])
@@ -169,6 +176,7 @@ def test_help_shows_flags_as_flags_and_values_with_their_type(tmp_path):
     assert "<bool>" not in text and "<int>" in port and "<" not in web
 
 
+@pytest.mark.slow
 def test_plot_curve_draws_an_unfinished_run_and_says_so(tmp_path):
     store = tmp_path / "store"
     stopped = esr("train", "experiments/grid_2.yaml", "-b", "smoke", "--stop-after", "0s", store=store, check=False)

@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from conftest import esr
 from esr_cli.analysis.diagnose import SITUATIONS, free_trapped_contrast, situation, stored_effects
@@ -32,6 +33,7 @@ def test_free_trapped_contrast_is_cohens_d():
     assert np.isnan(free_trapped_contrast(rewards)["effect_size"])  # one trapped transition: no spread
 
 
+@pytest.mark.slow
 def test_diagnose_reads_a_trained_run(smoke_run):
     store, path, _ = smoke_run
     proc = esr("diagnose", str(path), "--batches", "3", "--json", store=store)
@@ -63,6 +65,7 @@ def test_diagnose_reads_a_trained_run(smoke_run):
     assert bad.returncode == 2 and "seed" in bad.stderr
 
 
+@pytest.mark.slow
 def test_diagnose_reads_an_unfinished_run_without_touching_it(tmp_path):
     store = tmp_path / "store"
     stopped = esr("train", "experiments/grid_2.yaml", "--budget", "smoke", "--stop-after", "0s", store=store, check=False)
@@ -109,6 +112,7 @@ def test_play_check_needs_a_robot_that_learns_a_policy():
         play_check(trainer, None, jax.random.PRNGKey(0))
 
 
+@pytest.mark.slow
 def test_representation_scores_of_hand_made_representations():
     import jax.numpy as jnp
 
@@ -151,6 +155,7 @@ def test_stored_effects_counts_the_transitions_out_of_a_trapped_corner():
     assert stored_effects(buf, (2, 2)) == {"trapped": 0, "free": 0, "dead": 0}
 
 
+@pytest.mark.slow
 def test_refit_recovers_log_4_when_the_next_state_names_one_of_4_human_actions():
     """Next observations place the human in the row its action names (4 rows, uniform) and a
     random column; with the future the next state, I(aH; s' | s, aR) = log 4 exactly. Labels

@@ -97,6 +97,7 @@ def _esr(condition=True):
     return ESR(env=env, spec=spec.method, network_spec=spec.network), env
 
 
+@pytest.mark.slow
 def test_phi_prime_ignores_the_human_action():
     esr, env = _esr()
     obs = env.observe(env.reset(jax.random.PRNGKey(0)))
@@ -159,6 +160,7 @@ def _filled_buffer(env, episodes=6, seed=0):
     return replay.add(replay.init(episodes, t_max, obs.shape, obs.dtype), eps)
 
 
+@pytest.mark.slow
 def test_reward_table_gives_the_rewards_of_direct_representation():
     from esr_cli import replay
 

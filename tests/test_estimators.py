@@ -47,6 +47,7 @@ def _filled_buffer(episodes=40, steps=10):
     return replay.add(buf, replay.Episodes(obs=obs, robot_action=zeros, human_action=zeros, reward=zeros.astype(jnp.float32)))
 
 
+@pytest.mark.slow
 def test_episode_group_one_is_the_plain_uniform_batch():
     buf = _filled_buffer()
     key = jax.random.PRNGKey(3)
@@ -87,6 +88,7 @@ def test_gridworld_human_view_keeps_only_the_human_plane():
     assert view[..., 1:].sum() == 0 and view.shape == obs.shape
 
 
+@pytest.mark.slow
 def test_human_future_psi_ignores_the_blocks_and_full_does_not():
     same_human = [_state([1, 1], [[0, 3], [2, 2]]), _state([1, 1], [[4, 0], [3, 3]])]
     for future, equal in (("human", True), ("full", False)):
@@ -97,6 +99,7 @@ def test_human_future_psi_ignores_the_blocks_and_full_does_not():
         assert np.allclose(psi[0], psi[1], atol=1e-6) == equal, future
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("future", ["full", "human"])
 def test_update_loss_is_the_stacked_infonce_of_the_variant_representations(future):
     """The loss the update reports equals numpy's stacked InfoNCE on (phi', phi, psi), with
@@ -185,12 +188,14 @@ def _synthetic_estimate(infonce: str, episode_group: int, future: str, updates: 
 TRUE_MI = float(np.log(ACTIONS))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("episode_group,future", [(8, "full"), (1, "human")])
 def test_variants_recover_the_true_mi_where_the_context_identifies_the_future(episode_group, future):
     estimate = _synthetic_estimate("stacked", episode_group, future)
     assert abs(estimate - TRUE_MI) < 0.45, estimate
 
 
+@pytest.mark.slow
 def test_stacked_batch_negatives_lose_the_human_where_the_context_identifies_the_future():
     """What the paper's estimator does here: with negatives from other contexts, phi' solves
     the contrastive task without the human's action and the stacked loss pulls phi onto phi',
@@ -199,6 +204,7 @@ def test_stacked_batch_negatives_lose_the_human_where_the_context_identifies_the
     assert estimate < 0.3 * TRUE_MI, estimate
 
 
+@pytest.mark.slow
 def test_the_separate_loss_estimate_carries_an_arbitrary_offset_here():
     """What the paper's equation (two separate InfoNCE problems) does here: each problem fixes
     its logits only up to its own constant, so phi - phi' is offset by their difference and the
@@ -258,6 +264,7 @@ def test_the_papers_simplified_reward_overflows_where_the_normalized_one_stays_s
         assert not np.isfinite(paper * paper).any() and np.isfinite(normalized * normalized).all()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("reward", ["simplified", "simplified_normalized"])
 def test_simplified_reward_needs_no_future_and_the_table_agrees(reward):
     esr, env = _esr(reward=reward)
@@ -299,6 +306,7 @@ def test_code_action_agreement_by_hand():
     assert float(got["code_action_mi"]) == pytest.approx(np.log(2), rel=1e-6)
 
 
+@pytest.mark.slow
 def test_inferred_human_actions_never_reach_a_parameter():
     """With human_action: inferred, permuting the true human actions of a batch changes no
     parameter, no reward and no metric but the ones that measure the codes against them."""

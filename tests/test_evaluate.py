@@ -2,12 +2,14 @@
 (episodes x seeds x episode length) per program."""
 
 import numpy as np
+import pytest
 
 from esr_cli import spec as specs
 from esr_cli.core import evaluate as ev, loop
 from esr_cli.core.train import make_trainer
 
 
+@pytest.mark.slow
 def test_many_episodes_run_in_chunks_whose_first_is_the_one_program_evaluation(monkeypatch):
     trainer = make_trainer(specs.load("experiments/grid_2_random.yaml", "smoke", ["env.episode_steps=8"]))
     seeds = (0, 1)

@@ -18,6 +18,7 @@ def scalars(path):
     return {tag: {e.step: e.value for e in acc.Scalars(tag)} for tag in acc.Tags()["scalars"]}
 
 
+@pytest.mark.slow
 def test_a_trained_run_has_event_files_with_the_values_of_its_metrics(tmp_path):
     proc = esr("train", "experiments/grid_2.yaml", "-b", "smoke", "--set", "train.seeds=2", store=tmp_path)
     run = proc.stdout.strip().splitlines()[-1]
@@ -97,6 +98,7 @@ def wandb_history(folder):
     return run, history
 
 
+@pytest.mark.slow
 def test_a_run_trained_with_wandb_has_an_offline_record_of_its_metrics(tmp_path):
     proc = esr("train", "experiments/grid_2.yaml", "-b", "smoke", "--set", "train.seeds=2", "--wandb", store=tmp_path)
     run_dir = proc.stdout.strip().splitlines()[-1]
@@ -120,6 +122,7 @@ def test_a_run_trained_with_wandb_has_an_offline_record_of_its_metrics(tmp_path)
                 assert logged[f"{name}/mean"] == pytest.approx(sum(finite) / len(finite), rel=1e-6)
 
 
+@pytest.mark.slow
 def test_the_wandb_record_is_written_afresh_from_the_metrics_kept(tmp_path):
     from esr_cli.core.wandb_log import WandbLog
 

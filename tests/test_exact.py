@@ -33,6 +33,7 @@ def index_of(space, human, block):
     return int(hits[0])
 
 
+@pytest.mark.slow
 def test_enumeration_is_closed_and_complete(tiny):
     env, _, space, *_ = tiny
     # 9 human cells x 9 block cells (the block may sit on the human), except the human on the
@@ -68,6 +69,7 @@ def test_mi_is_positive_for_a_free_human(tiny):
     assert emp.effective_empowerment > 0
 
 
+@pytest.mark.slow
 def test_mi_matches_monte_carlo_rollouts_of_the_environment(tiny):
     env, human, space, pi_h, _, emp = tiny
     s = index_of(space, [0, 0], [1, 1])
@@ -114,6 +116,7 @@ method: {kind: esr, future_gamma: 0.7}
 """
 
 
+@pytest.mark.slow
 def test_exact_and_estimator_cli(tmp_path):
     from conftest import esr
 
@@ -145,6 +148,7 @@ def test_exact_and_estimator_cli(tmp_path):
     assert refused.returncode == 2 and "leave out --robot for the uniform robot" in refused.stderr, refused.stderr
 
 
+@pytest.mark.slow
 def test_a_goal_that_no_start_leaves_free_is_refused_naming_the_goal(tmp_path):
     """A center start puts the human on the default goal (the centre): no start state is left."""
     from conftest import esr
@@ -157,6 +161,7 @@ def test_a_goal_that_no_start_leaves_free_is_refused_naming_the_goal(tmp_path):
     assert not list(store.rglob("*.partial"))
 
 
+@pytest.mark.slow
 def test_mi_is_zero_for_a_human_trapped_by_blocks():
     """Human in a corner, both neighbours blocked: whatever the robot does this step, the
     human's action cannot change the next state, so I(aH; s+ | s, aR) = 0 for every aR."""
@@ -257,6 +262,7 @@ def test_mi_restricted_to_some_pairs_equals_the_full_computation(tiny):
     assert np.isnan(part.mi[~pairs]).all() and not part.complete and emp.complete
 
 
+@pytest.mark.slow
 def test_too_large_a_space_is_refused_by_name():
     env = Gridworld(size=5, num_blocks=2, start="corner", episode_steps=50)
     with pytest.raises(exact.TooManyStates, match="more than 100 reachable states"):
@@ -279,6 +285,7 @@ def test_merged_mi_equals_the_true_mi_under_deterministic_dynamics(tiny):
     assert merges.any()  # the tiny grid does have indistinguishable actions
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("size, blocks, start", [(3, 1, "random"), (3, 2, "corner"), (3, 7, "random"), (4, 2, "corner")])
 def test_the_state_bound_holds_the_reachable_states(size, blocks, start):
     """`state_bound` is read from the spec before any enumeration: it must never be below what
@@ -300,6 +307,7 @@ def test_the_spec_alone_refuses_a_space_too_large():
         exact.check_size(5, 3)
 
 
+@pytest.mark.slow
 def test_exact_above_the_dense_limit_covers_the_visited_pairs(tmp_path, monkeypatch):
     """A space larger than DENSE_STATES (here made small) is solved with the series, over the
     pairs holding 99% of the robot's occupancy, and the summary says so; those pairs' MI equals
@@ -327,6 +335,7 @@ def test_exact_above_the_dense_limit_covers_the_visited_pairs(tmp_path, monkeypa
     assert some["effective_empowerment"] <= full["effective_empowerment"] + 1e-12
 
 
+@pytest.mark.slow
 def test_a_failed_exact_build_leaves_no_lock_or_partial_artifact(tmp_path, monkeypatch):
     from rich.console import Console
 

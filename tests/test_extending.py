@@ -5,6 +5,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+import pytest
 
 from esr_cli import spec as specs
 from esr_cli.core.train import make_trainer
@@ -14,6 +15,7 @@ from esr_cli.methods import registry
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 
 
+@pytest.mark.slow
 def test_the_example_method_trains(monkeypatch):
     (code,) = re.findall(r"```python\n(.*?)```", PAGE.read_text(), flags=re.S)
     namespace: dict = {}

@@ -116,6 +116,7 @@ def test_reward_counts_steps_on_the_goal():
     assert s3.blocks.tolist() == [[4, 4], [4, 3]]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("start,blocks,size", [("corner", 2, 5), ("corner", 10, 5), ("corner_hard", 5, 5), ("center", 7, 5), ("random", 10, 5), ("random", 0, 3), ("corner", 7, 4)])
 def test_reset_never_overlaps(start, blocks, size):
     e = env(blocks=blocks, size=size, start=start)

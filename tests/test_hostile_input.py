@@ -141,6 +141,7 @@ def test_memory_estimate_by_hand():
     assert est.total == 2 * (est.buffers + est.rollouts) + resources.RUNTIME_BYTES
 
 
+@pytest.mark.slow
 def test_huge_buffer_is_refused_before_anything_is_compiled_or_written(tmp_path):
     t0 = child_cpu_seconds()
     proc = esr("train", "experiments/grid_5.yaml", "--set", "learner.buffer_size=100000000000",
@@ -219,6 +220,7 @@ def hostile_texts(draw):
 FUZZ_CASES = 400
 
 
+@pytest.mark.slow
 @settings(max_examples=FUZZ_CASES, deadline=2000, suppress_health_check=[HealthCheck.too_slow,
                                                                          HealthCheck.function_scoped_fixture])
 @given(text=hostile_texts())
@@ -329,6 +331,7 @@ def test_network_size_estimate_counts_the_real_parameters(kind, params):
     assert resources._network_floats(net_spec, (5, 4, 3), 32)[0] == real
 
 
+@pytest.mark.slow
 def test_networks_too_wide_for_memory_are_refused_before_any_work(tmp_path):
     t0 = child_cpu_seconds()
     proc = esr("train", "experiments/grid_5.yaml", "--set", "network.hidden=16384",
@@ -359,6 +362,7 @@ def _refused_fast(fn, match, seconds=3.0, mib=50):
     return e.value
 
 
+@pytest.mark.slow
 def test_suite_expansion_is_capped_before_anything_is_built(tmp_path):
     limit = f"{suites.MAX_RUNS:,}"
     grid = "".join(f"  learner.k{i}: [{', '.join(str(v) for v in range(10))}]\n" for i in range(6))
@@ -384,6 +388,7 @@ def test_huge_suite_through_the_cli_exits_2_and_writes_nothing(tmp_path):
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "store").exists()
 
 
+@pytest.mark.slow
 def test_sweep_results_refuses_an_unknown_metric(tmp_path):
     p = write(tmp_path, f"specs: [{GRID_2}]\n", "suite.yaml")
     proc = esr("sweep", str(p), "--budget", "smoke", "--results", "--metric", "return", "--metric", "bogus",
@@ -434,6 +439,7 @@ def test_eval_episodes_are_bounded_like_the_spec(tmp_path):
         assert "not trained" not in proc.stderr and not (tmp_path / "store").exists()
 
 
+@pytest.mark.slow
 def test_options_that_only_apply_to_a_spec_file_are_refused_with_an_artifact(tmp_path):
     store = tmp_path / "store"
     for args, problem in (
@@ -609,6 +615,7 @@ def test_sweep_options_that_would_be_ignored_are_refused(tmp_path, capsys, flags
     assert not (tmp_path / "store").exists()
 
 
+@pytest.mark.slow
 def test_usage_errors_and_help_are_answered_without_loading_jax(tmp_path):
     """Refusing bad input costs the interpreter's start, not JAX's and orbax's import (seconds):
     the checks come before the heavy modules are imported."""
@@ -670,6 +677,7 @@ def test_a_file_where_a_store_folder_belongs_is_named(tmp_path, capsys):
         assert "runs is a file where its runs folder belongs" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_options_that_do_not_fit_a_stored_run_are_refused_without_loading_jax(smoke_run):
     """`eval` and `diagnose` on a trained run check their options against its spec and record
     (two small files) before the training code is imported."""
@@ -794,6 +802,7 @@ def _hostile_store(root: Path) -> tuple[str, str]:
     return keys[0], keys[1]
 
 
+@pytest.mark.slow
 def test_control_characters_from_a_store_are_printed_as_escapes(tmp_path):
     """ls (a run's name and budget), show (its manifest and path), plays (participant, session,
     robot, env) and verify (a file name in a problem) print what the store holds, escaped."""

@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from esr_cli.envs.gridworld import DOWN, LEFT, RIGHT, STAY, UP, Gridworld, GridState
 from esr_cli.humans.gridworld import NoisyGreedyHuman
@@ -35,6 +36,7 @@ def test_tie_breaks_to_the_first_action():
     assert int(h.greedy_action(s)) == DOWN
 
 
+@pytest.mark.slow
 def test_noise_frequencies():
     h, s = setup([2, 2], [[0, 0], [4, 4]], [2, 4], noise=0.2)
     actions = np.asarray(jax.vmap(lambda k: h.act(k, s))(jax.random.split(jax.random.PRNGKey(0), 20000)))
@@ -44,6 +46,7 @@ def test_noise_frequencies():
     np.testing.assert_allclose(freq, expected, atol=0.01)
 
 
+@pytest.mark.slow
 def test_noise_zero_is_deterministic_and_one_is_uniform():
     h, s = setup([2, 2], [[0, 0], [4, 4]], [2, 4], noise=0.0)
     keys = jax.random.split(jax.random.PRNGKey(3), 500)

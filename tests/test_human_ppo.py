@@ -25,6 +25,7 @@ def test_overcooked_ai_view_transposes_height_and_width():
     assert np.array_equal(np.asarray(cac.overcooked_ai_view(jnp.asarray(batch)))[0], view)
 
 
+@pytest.mark.slow
 def test_output_shapes_for_a_batch():
     params = cac.init_params(jax.random.PRNGKey(0), height=4, width=5)
     apply = jax.jit(cac.apply_jaxmarl)
@@ -109,6 +110,7 @@ def final_probs(ppo, updates=60, seed=0):
     return np.asarray(jax.nn.softmax(runner.params["logits"])), metrics
 
 
+@pytest.mark.slow
 def test_ppo_solves_a_bandit():
     probs, metrics = final_probs(PPO(bandit([0.0, 1.0, 0.3]), tabular_agent(3), PPOConfig(**TOY)))
     assert probs[1] > 0.95, probs
@@ -116,12 +118,14 @@ def test_ppo_solves_a_bandit():
     assert ret[-5:].mean() > 0.9 and ret[:3].mean() < 0.7  # every step ends an episode: returns are rewards
 
 
+@pytest.mark.slow
 def test_self_play_coordinates_on_the_better_convention():
     # Both seats are the one network: it must put both on the same action, the paying one.
     probs, _ = final_probs(PPO(bandit([0.0, 1.0, 0.0], players=2), tabular_agent(3), PPOConfig(**TOY)))
     assert probs[1] > 0.9, probs
 
 
+@pytest.mark.slow
 def test_beside_a_random_partner_the_human_learns_its_best_response_to_it():
     # Seat 1 (the human's) alone earns 0.6 with action 2 whatever the partner does; matching the
     # partner on action 0 earns 1.0. In self-play the one network coordinates on (0, 0); beside
@@ -149,6 +153,7 @@ def test_beside_a_random_partner_the_human_learns_its_best_response_to_it():
         PPOConfig(**TOY, random_partner=1.5)
 
 
+@pytest.mark.slow
 def test_a_large_kl_coefficient_holds_the_policy_at_the_clone():
     clone = np.array([0.6, 0.1, 0.3], np.float32)
     clone_logits = lambda obs: jnp.broadcast_to(jnp.log(clone), obs.shape[:-1] + (3,))  # noqa: E731
@@ -182,6 +187,7 @@ def test_modes_and_schedules():
     assert float(PPO(bandit([0.0, 1.0]), tabular_agent(2), d).shaping_coef(0)) == 0.0
 
 
+@pytest.mark.slow
 def test_shaped_reward_is_annealed_into_the_training_reward():
     # A bandit whose sparse reward favours arm 0 and whose shaped reward favours arm 1 much more:
     # while shaping is on, arm 1 wins.
@@ -197,6 +203,7 @@ def test_shaped_reward_is_annealed_into_the_training_reward():
 
 
 # ---------------------------------------------------------------- Overcooked
+@pytest.mark.slow
 def test_a_few_updates_on_cramped_room_run_and_are_deterministic():
     # Both optional terms at once (one compiled program): shaped reward and KL to a clone that
     # mostly stays. 20-step episodes so that resets happen within 3 updates of 16 steps.
@@ -250,6 +257,7 @@ def linear_logits(params, obs):
     return feats @ params["w"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("partner", human_eval.PARTNERS)
 def test_evaluation_matches_a_step_by_step_rollout(partner):
     env = Overcooked("cramped_room", 25)

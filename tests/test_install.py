@@ -7,7 +7,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from conftest import ROOT, esr_env
+
+pytestmark = pytest.mark.slow  # a package build and a training run
 
 # What a source distribution holds; the build runs in a copy so that it leaves nothing here.
 SOURCE = ("pyproject.toml", "README.md", "esr_cli", "experiments")

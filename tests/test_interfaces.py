@@ -25,6 +25,7 @@ def test_every_gridworld_method_meets_its_interface(name):
         assert isinstance(method, api.TableMethod)
 
 
+@pytest.mark.slow
 def test_overcooked_environment_and_an_adapting_bc_human_meet_theirs():
     import jax
     import jax.numpy as jnp

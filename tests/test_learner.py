@@ -28,6 +28,7 @@ def test_policy_is_a_distribution_and_beta_sharpens_it():
     assert h[0] == pytest.approx(np.log(3), rel=1e-3)
 
 
+@pytest.mark.slow
 def test_dual_step_moves_beta_toward_the_target_entropy():
     from esr_cli import spec as specs
     from esr_cli.core.learner import LearnerState, SoftQLearner
@@ -77,6 +78,7 @@ def test_linear_dual_step_moves_log_beta_by_the_entropy_gap():
     )
 
 
+@pytest.mark.slow
 def test_warmup_epochs_act_uniformly():
     import jax
 
@@ -98,6 +100,7 @@ def test_warmup_epochs_act_uniformly():
     assert len(np.unique(uniform_actions)) > 100  # 3,200 uniform draws over 125 actions
 
 
+@pytest.mark.slow
 def test_dual_step_on_a_q_table_equals_the_dual_step_on_states():
     import jax
 

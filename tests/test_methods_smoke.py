@@ -26,6 +26,7 @@ VARIANTS = [("experiments/grid_4x4_3.yaml", ("method.episode_group=4", "method.f
                                               "method.human_action=inferred", "method.reward=simplified"))]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path,sets", VARIANTS, ids=["esr_variants"])
 def test_esr_variants_train_at_smoke(path, sets, smoke_store):
     spec = specs.load(path, "smoke", list(sets))
@@ -37,6 +38,7 @@ def test_esr_variants_train_at_smoke(path, sets, smoke_store):
     assert all(0 <= row["code_accuracy"][0] <= 1 and row["latent_loss"][0] >= 0 for row in rows)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", SPECS, ids=lambda p: Path(p).stem)
 def test_spec_trains_at_smoke(path, smoke_store):
     spec = specs.load(path, "smoke")

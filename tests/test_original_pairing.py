@@ -35,6 +35,7 @@ def test_original_pairing_reads_the_post_step_observation_with_the_actions_befor
     np.testing.assert_array_equal(original.done, aligned.done)  # episode ends are where they were
 
 
+@pytest.mark.slow
 def test_original_pairing_trains_and_leaves_the_stored_buffer_as_played():
     """One epoch of the real runner under `pairing: original` (validation allows it only on
     Overcooked; the runner itself is environment-agnostic, so a gridworld smoke spec is
@@ -54,6 +55,7 @@ def test_original_pairing_trains_and_leaves_the_stored_buffer_as_played():
     assert tuple(human_cell) in {(0, 0), (0, 4), (4, 0), (4, 4)}
 
 
+@pytest.mark.slow
 def test_append_puts_each_action_once_and_broadcast_everywhere():
     from esr_cli.envs.overcooked import Overcooked
     from esr_cli.methods.esr import ESR

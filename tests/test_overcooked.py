@@ -18,6 +18,7 @@ def cramped():
     return Overcooked("cramped_room", 400)
 
 
+@pytest.mark.slow
 def test_env_interface(cramped):
     env = cramped
     s = jax.jit(env.reset)(jax.random.PRNGKey(0))
@@ -35,6 +36,7 @@ def test_env_interface(cramped):
     assert img.shape == (4 * 32, 5 * 32, 3) and img.dtype == np.uint8 and img.std() > 0
 
 
+@pytest.mark.slow
 def test_human_view_is_the_humans_position_and_orientation(cramped):
     """In the robot's view the human is layer 1 (position) and 6-9 (orientation, one-hot at its
     cell); the human's own view has them as 0 and 2-5. At the start it holds nothing, so
@@ -94,6 +96,7 @@ def test_an_episode_runs_400_steps_without_reset(cramped):
     assert obs[0, 0, 25] == 1  # the urgency channel is on at the end
 
 
+@pytest.mark.slow
 def test_conversion_details(cramped):
     # players[0] at (1, 2) facing west holding a plated soup ('soup'); players[1] at (3, 1)
     # facing north holding an empty plate ('dish'); 2 onions in the pot at (2, 0); a loose
@@ -133,6 +136,7 @@ def test_conversion_details(cramped):
     assert (statuses == 0).any() and ((statuses > 0) & (statuses < 20)).any()  # ready and cooking pots seen
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("layout,split", list(zip(LAYOUTS, ("train", "test", "train", "test", "train"))))
 def test_recorded_joint_actions_replay_in_jaxmarl(layout, split):
     """Stepping JaxMARL from a converted state with the recorded joint action gives the
@@ -180,6 +184,7 @@ def cell_rule(n: int, moving_fraction: float, seed: int):
     return obs, action, moving
 
 
+@pytest.mark.slow
 def test_bc_learns_a_state_dependent_rule_and_reports_non_stay_accuracy():
     obs, action, moving = cell_rule(1000, 0.3, seed=0)  # stays dominate
     spec = specs.BCHumanSpec(kind="bc", epochs=10, lr=5e-3, batch_size=100)
@@ -190,6 +195,7 @@ def test_bc_learns_a_state_dependent_rule_and_reports_non_stay_accuracy():
     assert abs(acc["stay_fraction"] - (1 - moving.mean())) < 1e-3
 
 
+@pytest.mark.slow
 def test_bc_with_the_papers_network_learns_the_rule_and_has_the_ppo_humans_parameters():
     from esr_cli.humans import conv_actor_critic as cac
 
@@ -254,6 +260,7 @@ def played(cramped):
     return play(jax.random.PRNGKey(0))
 
 
+@pytest.mark.slow
 def test_adapting_human_follows_the_reward_and_the_kl_holds_it_back(cramped, played):
     """Reward every step on which the human interacted: policy gradient raises the
     probability of interacting; a strong KL weight keeps the policy nearer the clone.
@@ -288,6 +295,7 @@ def test_adapting_human_follows_the_reward_and_the_kl_holds_it_back(cramped, pla
     assert kl_held < kl_free
 
 
+@pytest.mark.slow
 def test_flipped_seat_puts_the_robot_in_agent_1(cramped):
     flipped = Overcooked("cramped_room", 400, robot_seat=1)
     s = jax.jit(cramped.reset)(jax.random.PRNGKey(0))
@@ -303,6 +311,7 @@ def test_flipped_seat_puts_the_robot_in_agent_1(cramped):
     assert not (np.asarray(s0.agent_dir_idx) == np.asarray(s1.agent_dir_idx)).all()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seat", [0, 1])
 def test_observation_decodes_back_to_the_state(seat):
     """state_from_obs inverts observe (agents, orientations, inventories, map) along random
@@ -330,6 +339,7 @@ def test_observation_decodes_back_to_the_state(seat):
     assert futures.shape == (3, 4 * 5 * 26)
 
 
+@pytest.mark.slow
 def test_per_seed_humans_are_one_clone_per_training_seed(cramped):
     """human.per_seed: the clones' specs (cloning seed = human.seed + training seed), and each
     seed's training state holding its own clone's parameters."""
@@ -353,6 +363,7 @@ def test_per_seed_humans_are_one_clone_per_training_seed(cramped):
         specs.load("experiments/cramped_room.yaml", "smoke", ["human.per_seed=true", "human.adapt=true"])
 
 
+@pytest.mark.slow
 def test_jaxmarl_import_banner_is_dropped_and_nothing_reaches_stdout():
     """jaxmarl announces its optional environments when imported; esr's stdout carries results,
     so that banner is dropped, and anything else printed from jaxmarl code goes to stderr."""

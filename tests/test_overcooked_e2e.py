@@ -55,6 +55,7 @@ def random_smoke(small_data, store, console):
     return spec, path, cached
 
 
+@pytest.mark.slow
 def test_human_and_data_artifacts(random_smoke, store, console):
     spec, _, _ = random_smoke
     key, components = human_runs.human_key(spec.human, "coord_ring")
@@ -122,6 +123,7 @@ def test_co_adapting_human_learns_inside_the_runner(random_smoke, store):
     assert rows[-1]["human_kl_to_bc"][0] >= 0 and rows[-1]["human_entropy"][0] > 0
 
 
+@pytest.mark.slow
 def test_esr_takes_overcooked_batches():
     """ESR's input construction (observation + broadcast action planes) on Overcooked, MLP nets."""
     from esr_cli.replay import Batch
@@ -177,6 +179,7 @@ def test_all_overcooked_specs_load():
     assert paper.learner.buffer_size == 200_000 and paper.learner.target_entropy == 0.9 and len(paper.train.seeds) == 15
 
 
+@pytest.mark.slow
 def test_mlp_network_flattens_the_grid():
     net_spec = specs.NetworkSpec(kind="mlp", mlp_layers=(8, 8))
     net = conv_net(net_spec, 3)
@@ -193,6 +196,7 @@ def test_mlp_network_flattens_the_grid():
     assert "qr[" not in jaxpr and "householder" not in jaxpr  # flax's orthogonal shows "qr["
 
 
+@pytest.mark.slow
 def test_proxy_human_is_cloned_from_the_held_out_split(random_smoke, store, console):
     spec, path, _ = random_smoke
     proxy = spec.human.proxy()
@@ -217,6 +221,7 @@ def per_seed_run(small_data, store, console):
     return spec, path
 
 
+@pytest.mark.slow
 def test_a_run_with_per_seed_humans(per_seed_run, store):
     """Two seeds, two clones: both built as artifacts, both in the run's key, each seed playing
     with its own (the first clone is the module's usual human: cloning seed 0)."""
@@ -236,6 +241,7 @@ def test_a_run_with_per_seed_humans(per_seed_run, store):
             np.testing.assert_array_equal(got, w)
 
 
+@pytest.mark.slow
 def test_eval_with_the_proxy_human_and_in_the_flipped_seat(per_seed_run, store, console):
     spec, path = per_seed_run
     own, own_summary, _ = _evaluate(path, store, 2, console)
@@ -255,6 +261,7 @@ def test_eval_with_the_proxy_human_and_in_the_flipped_seat(per_seed_run, store, 
     assert _evaluate(path, store, 2, console, "training", 0)[0] == own
 
 
+@pytest.mark.slow
 def test_a_human_cloned_from_played_episodes_partners_a_robot(per_seed_run, store, console):
     """The loop closed: episodes played on coord_ring become a BC human's data (its last
     quarter held out), and `esr eval --human play:...` pairs the robot with that clone."""

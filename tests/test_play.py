@@ -90,6 +90,7 @@ def test_front_ends_meet_the_interface():
     assert isinstance(Scripted([]), FrontEnd)
 
 
+@pytest.mark.slow
 def test_the_game_loop_logs_every_key_and_plays_out_a_finished_gridworld():
     spec = specs.load(ROOT / GRID[0], "paper", [GRID[2], GRID[4]])
     env = make_env(spec.env)
@@ -222,6 +223,7 @@ def test_a_terminal_that_goes_away_ends_the_session_at_once():
         assert term.key(None).name == CLOSED and term.key(0.01).name == CLOSED
 
 
+@pytest.mark.slow
 def test_terminal_gridworld_to_the_goal(tmp_path):
     keys = grid_keys(0)
     term = Pty(["play", *GRID, "--participant", "p1"], tmp_path)
@@ -246,6 +248,7 @@ def test_terminal_gridworld_to_the_goal(tmp_path):
     assert b"robot A" in after and b"random" not in after and b"esr plays --session" in after
 
 
+@pytest.mark.slow
 def test_terminal_overcooked_ticks_and_logs_the_keys(tmp_path):
     # 2 ticks a second: a key sent as soon as a frame shows lands on that frame even on a loaded
     # machine (a key still in the terminal when the next frame is drawn is stale, and dropped).
@@ -267,6 +270,7 @@ def test_terminal_overcooked_ticks_and_logs_the_keys(tmp_path):
     assert all(s["human_action"] == 4 for s in steps if s["key"] is None)  # stay
 
 
+@pytest.mark.slow
 def test_terminal_quit_keeps_the_episode_as_incomplete(tmp_path):
     term = Pty(["play", *GRID, "--participant", "p3", "--episodes", "2"], tmp_path)
     term.start()
@@ -283,6 +287,7 @@ def test_terminal_quit_keeps_the_episode_as_incomplete(tmp_path):
     assert not summary["completed"] and summary["steps"] == 1
 
 
+@pytest.mark.slow
 def test_bad_input_is_one_line_and_writes_nothing(tmp_path):
     for args, message in [
         (["play", "deadbeef", "--web"], "no artifact with key 'deadbeef'"),
@@ -304,6 +309,7 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path):
     assert proc.returncode == 2 and f"port {port}" in proc.stderr and "not free" in proc.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stop", [signal.SIGKILL, signal.SIGTERM])
 def test_an_episode_left_by_a_killed_process_is_kept_as_incomplete(tmp_path, stop):
     """SIGKILL leaves the partial episode behind; SIGTERM (a closed terminal, a shutdown) ends the
@@ -396,6 +402,7 @@ def press_and_wait(driver, key) -> None:
     wait_for(driver, f"return Number(document.body.dataset.frame || 0) > {before}")
 
 
+@pytest.mark.slow
 def test_browser_gridworld_to_the_goal(browser, tmp_path):
     from selenium.webdriver.common.keys import Keys
 
@@ -435,6 +442,7 @@ def test_browser_gridworld_to_the_goal(browser, tmp_path):
     assert header["front_end"] == "web" and "performance.now()" in header["clocks"]["key_pressed_at"]
 
 
+@pytest.mark.slow
 def test_browser_overcooked_and_a_closed_tab(browser, tmp_path):
     port = free_port()
     # 40 ticks at 8 fps: the second episode lasts 5 s, time enough for the tab to leave it
@@ -480,6 +488,7 @@ def refused(url: str, **headers) -> int:
         return e.code
 
 
+@pytest.mark.slow
 def test_only_the_printed_address_plays(tmp_path):
     """Any web page on the participant's machine can reach 127.0.0.1: the server answers only
     requests with the printed token, for its own host name, and (a websocket) from its own page.
@@ -712,6 +721,7 @@ def test_a_port_left_in_time_wait_is_free_to_serve_on():
 
 
 # ---------------------------------------------------------------- the data it leaves
+@pytest.mark.slow
 def test_overcooked_episodes_export_to_the_human_data_schema_and_replay(tmp_path):
     """A played Overcooked episode, exported as overcooked-ai rows, converts back to the logged
     JaxMARL states, and each row's joint action steps its state to its next state."""
@@ -767,6 +777,7 @@ def test_overcooked_episodes_export_to_the_human_data_schema_and_replay(tmp_path
     assert esr("plays", "--participant", "nobody", store=tmp_path, check=False).returncode == 1
 
 
+@pytest.mark.slow
 def test_plays_by_robot_averages_each_participant_first_and_writes_one_csv_row_per_episode(tmp_path):
     import csv
     import statistics

@@ -41,6 +41,7 @@ def built(tmp_path_factory):
     return store, proc
 
 
+@pytest.mark.slow
 def test_a_built_human_records_its_returns_and_curve_and_is_found_again(built):
     store, proc = built
     path = proc.stdout.strip().splitlines()[-1]
@@ -64,6 +65,7 @@ def test_the_chunk_size_is_not_part_of_the_key():
     assert key(spec_a) == key(spec_b) != key(spec_c)
 
 
+@pytest.mark.slow
 def test_a_stopped_build_resumes_bit_identically(built, tmp_path):
     store, proc = built
     reference = params_of(proc.stdout.strip().splitlines()[-1])
@@ -88,6 +90,7 @@ def test_a_stopped_build_resumes_bit_identically(built, tmp_path):
     assert all(np.array_equal(a, b) for a, b in zip(reference, again))
 
 
+@pytest.mark.slow
 def test_a_human_that_fails_its_checks_is_refused_with_one_line_and_leaves_nothing(tmp_path):
     demanding = tiny().replace("min_selfplay_return: 0", "min_selfplay_return: 1000")
     proc = esr("human", "build", SPEC, "-b", "smoke", "--set", demanding, store=tmp_path, check=False)
@@ -112,6 +115,7 @@ def test_a_random_partner_names_itself_in_the_key_and_reaches_the_trainer():
     assert ppo_humans.ppo_config(beside).random_partner == 1.0 and ppo_humans.ppo_config(plain).random_partner == 0.0
 
 
+@pytest.mark.slow
 def test_a_checkpoint_of_another_shape_is_refused(tmp_path):
     trainer = ppo_humans.ppo.overcooked_ppo(Overcooked("cramped_room", 400), ppo_humans.ppo_config(specs.load(SPEC, "smoke", [tiny()]).human))
     runner = trainer.init(jax.random.PRNGKey(0))
@@ -124,6 +128,7 @@ def test_a_checkpoint_of_another_shape_is_refused(tmp_path):
         ppo_humans.load_checkpoint(tmp_path, other)
 
 
+@pytest.mark.slow
 def test_a_robot_trains_with_the_ppo_human_and_its_key_names_the_human(built):
     store, proc = built
     run = esr("train", "experiments/cramped_room_random.yaml", "-b", "smoke", "--set", tiny(), store=store)
@@ -133,6 +138,7 @@ def test_a_robot_trains_with_the_ppo_human_and_its_key_names_the_human(built):
     assert manifest["key_components"]["dependencies"]["humans"] == human_key
 
 
+@pytest.mark.slow
 def test_calibration_rows_are_plain_evaluations_of_the_stored_humans(built):
     store, _ = built
     proc = esr("human", "calibrate", SPEC, "-b", "smoke", "--set", tiny(), "--human-seeds", "2", "--episodes", "3", "--json",
@@ -195,6 +201,7 @@ def test_bc_kl_keys_on_its_clone_and_requires_it():
     assert stored_humans.stored_key(plain.human, "cramped_room")[1]["dependencies"] == {}
 
 
+@pytest.mark.slow
 def test_the_calibration_command_refuses_a_human_that_is_not_stored(tmp_path):
     proc = esr("human", "calibrate", "experiments/grid_2.yaml", "-b", "smoke", store=tmp_path, check=False)
     assert proc.returncode == 2 and "not a stored human" in proc.stderr

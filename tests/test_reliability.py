@@ -50,6 +50,7 @@ def reference(smoke_run):
     return (path / "metrics.jsonl").read_text(), final_arrays(path)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("point", ["compile@1", "after_metrics@1", "after_checkpoint@1", "after_metrics@2", "before_rename"])
 def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path, reference, point):
     store = tmp_path / "store"
@@ -66,6 +67,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path, reference, poi
     assert_same_run(path, reference)
 
 
+@pytest.mark.slow
 def test_stop_after_ends_at_a_chunk_boundary_and_resumes_to_the_uninterrupted_result(tmp_path, reference):
     store = tmp_path / "store"
     # 0s: no second chunk fits, so the run stops after its first (one always runs)
@@ -103,6 +105,7 @@ def test_a_scheduled_job_stops_a_margin_before_its_time_limit():
     assert job_time_budget_s(1) == 0.0  # one chunk, then stop
 
 
+@pytest.mark.slow
 def test_two_trainers_of_one_spec_make_one_artifact(tmp_path):
     store = tmp_path / "store"
     args = [sys.executable, "-m", "esr_cli.cli", *SMOKE, "--set", "train.epochs=30"]
@@ -120,6 +123,7 @@ def test_two_trainers_of_one_spec_make_one_artifact(tmp_path):
     assert len(committed(store)) == 1 and partials(store) == []
 
 
+@pytest.mark.slow
 def test_divergence_stops_with_the_quantity_seed_and_epoch(tmp_path):
     store = tmp_path / "store"
     proc = esr(*SMOKE, "--set", "method.repr_lr=1e30", "--set", "learner.lr=1e30", store=store, check=False)
@@ -145,6 +149,7 @@ def test_verify_reports_a_flipped_byte_and_a_deleted_file(tmp_path, smoke_run):
     assert "changed file metrics.jsonl" in proc.stderr and "missing file" in proc.stderr
 
 
+@pytest.mark.slow
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
     store = tmp_path / "store"
     assert esr(*SMOKE, store=store, check=False, ESR_FAULT="after_checkpoint@1").returncode == -signal.SIGKILL
@@ -166,6 +171,7 @@ def rename_checkpoint(run_dir: Path, old: int, new: int) -> None:
     (run_dir / "checkpoint_digests.json").write_text(json.dumps({str(new): digests[str(old)]}))
 
 
+@pytest.mark.slow
 def test_a_checkpoint_folder_renamed_to_another_epoch_is_refused(tmp_path):
     """The folder's number must be the epoch the checkpoint's state holds, an epoch the metrics
     logged and one of the run's: an import and a resume refuse it, naming the epochs, and
@@ -224,6 +230,7 @@ def test_a_finished_run_keeps_only_its_newest_checkpoint(smoke_run):
     assert loop.verified_steps(path) == [epochs]
 
 
+@pytest.mark.slow
 def test_a_damaged_newest_checkpoint_falls_back_to_the_one_before(tmp_path, reference):
     store = tmp_path / "store"
     # Killed after the last chunk's checkpoint: training keeps the one before it until the end.
@@ -261,6 +268,7 @@ def test_bad_store_and_bad_keys_are_one_line_errors(tmp_path):
     assert proc.returncode != 0 and "Traceback" in proc.stderr
 
 
+@pytest.mark.slow
 def test_a_longer_run_continues_a_shorter_one_bit_for_bit(tmp_path, reference):
     """train.epochs grows: the longer run starts from the shorter run's last checkpoint and
     ends exactly where an uninterrupted run of the longer length ends."""
@@ -274,6 +282,7 @@ def test_a_longer_run_continues_a_shorter_one_bit_for_bit(tmp_path, reference):
     assert esr("verify", store=store).returncode == 0
 
 
+@pytest.mark.slow
 def test_an_unfinished_longer_run_gives_a_shorter_one_its_checkpoint(tmp_path, reference):
     store = tmp_path / "store"
     killed = esr(*SMOKE, "--set", "train.epochs=3", store=store, check=False, ESR_FAULT="after_checkpoint@2")

@@ -121,6 +121,7 @@ def test_mi_claim_needs_a_positive_end_and_a_positive_second_half():
     assert rep.judge(claim, fading).verdict == "indicative: does not hold (1 seed)"
 
 
+@pytest.mark.slow
 def test_cli_writes_the_report_from_a_store(tmp_path):
     """One-epoch runs of the paper's own grid_2 specs (only `train` shortened) are evidence for
     the N = 2 statements; smoke-budget runs change the learner and are not."""

@@ -3,11 +3,13 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from esr_cli import spec as specs
 from esr_cli.core.train import compiled_chunk, compiled_init, make_trainer
 
 
+@pytest.mark.slow
 def test_seeds_one_after_another_train_as_seeds_side_by_side():
     spec = specs.load("experiments/grid_2.yaml", "smoke", ["train.seeds=[3,4]"])
     trainer = make_trainer(spec)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+import pytest
 from rich.console import Console
 
 from conftest import ROOT, esr, esr_env
@@ -64,6 +65,7 @@ def partial_run(store: Path) -> Path:
     return part
 
 
+@pytest.mark.slow
 def test_ctrl_c_mid_chunk_stops_within_seconds_and_the_run_resumes_bit_identical(tmp_path):
     store = tmp_path / "store"
     code, took, err = stop_mid_chunk(store, signal.SIGINT)
@@ -80,6 +82,7 @@ def test_ctrl_c_mid_chunk_stops_within_seconds_and_the_run_resumes_bit_identical
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow
 def test_sigterm_in_a_chunk_of_minutes_stops_within_seconds_with_143(tmp_path):
     code, took, err = stop_mid_chunk(tmp_path / "store", signal.SIGTERM, VERY_LONG)
     assert code == 143 and took < 5, (took, err)
@@ -88,6 +91,7 @@ def test_sigterm_in_a_chunk_of_minutes_stops_within_seconds_with_143(tmp_path):
     assert len((partial_run(tmp_path / "store") / "metrics.jsonl").read_text().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_a_second_ctrl_c_exits_at_once_even_while_a_checkpoint_is_written(tmp_path):
     # The first checkpoint's save hangs (a stalled file system): the first Ctrl-C is acknowledged
     # and waits for it, as the checkpoint is what the run keeps; the second leaves at once.

@@ -147,6 +147,7 @@ def test_verify_checks_that_the_manifest_names_its_artifact(tmp_path):
         assert any(problem in p for p in store.verify(path)), (change, store.verify(path))
 
 
+@pytest.mark.slow
 def test_commands_report_a_damaged_manifest_in_one_line(tmp_path):
     store = Store(tmp_path)
     path = make_artifact(store)
@@ -174,6 +175,7 @@ def hold_lock(root, key, seconds: int = 3) -> subprocess.Popen:
     return holder
 
 
+@pytest.mark.slow
 def test_lock_excludes_a_second_process(tmp_path):
     store = Store(tmp_path)
     key = "cd" * 16
@@ -187,6 +189,7 @@ def test_lock_excludes_a_second_process(tmp_path):
     assert elapsed > 1.0
 
 
+@pytest.mark.slow
 def test_lock_without_waiting_reports_a_busy_artifact_at_once(tmp_path):
     from esr_cli.store import LockBusy
 

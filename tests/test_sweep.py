@@ -109,6 +109,7 @@ def test_a_grid_over_the_method_kind_starts_the_section_again(tmp_path):
     assert runs[1].spec.training_part() == specs.load(ROOT / "experiments/grid_2_random.yaml", "smoke").training_part()
 
 
+@pytest.mark.slow
 def test_bad_suite_exits_2_before_any_work(tmp_path):
     store = tmp_path / "store"
     path = write_suite(tmp_path, f"specs: [{GRID_2}]\ngrid: {{learner.gamma: [0.5, 2.0]}}\n")
@@ -120,6 +121,7 @@ def test_bad_suite_exits_2_before_any_work(tmp_path):
     assert proc.returncode == 2 and "unknown executor 'nope'" in proc.stderr and not store.exists()
 
 
+@pytest.mark.slow
 def test_a_local_sweep_checks_every_runs_memory_before_the_first_trains(tmp_path):
     """The second run would not fit: the sweep stops before the first one trains."""
     store = tmp_path / "store"
@@ -131,6 +133,7 @@ def test_a_local_sweep_checks_every_runs_memory_before_the_first_trains(tmp_path
     assert not list(store.rglob("*.partial")) and not list(store.rglob("manifest.json"))
 
 
+@pytest.mark.slow
 def test_sweep_through_submitit_local(smoke_run, tmp_path):
     # smoke_run compiled grid_2's smoke program into the session cache; the two jobs reuse it.
     store = tmp_path / "store"
@@ -324,6 +327,7 @@ def test_a_job_that_raises_records_its_error_for_status(tmp_path, monkeypatch):
     assert row.state == "failed" and row.note == f"job 4242 ERROR: SpecError: {tmp_path / 'gone.yaml'}: file not found"
 
 
+@pytest.mark.slow
 def test_a_job_that_reaches_its_time_budget_returns_stopped_and_the_next_finishes(smoke_run, tmp_path):
     # In-process, as submitit runs it; grid_2's smoke program is in the session's compile cache.
     store = tmp_path / "store"
@@ -405,6 +409,7 @@ def test_a_run_stopped_on_purpose_is_stopped_not_failed(tmp_path):
     assert rows[0].note == "stopped (interrupted) after epoch 3; sweep again (or esr train) to continue it"
 
 
+@pytest.mark.slow
 def test_curves_of_unfinished_runs_are_a_preview_marked_unfinished_outside_the_store(tmp_path):
     store, preview = tmp_path / "store", tmp_path / "preview"
     path = seeds_suite(tmp_path, 2)

@@ -36,6 +36,7 @@ COMPONENTS = {"kind": "runs", "spec": SPEC.training_part(), "budget": "smoke"}
 KEY = content_key(COMPONENTS)
 
 
+@pytest.mark.slow
 def test_a_finished_run_moves_to_another_store(smoke_run, tmp_path):
     store, path, _ = smoke_run
     archive = tmp_path / "run.tar.gz"
@@ -52,6 +53,7 @@ def test_a_finished_run_moves_to_another_store(smoke_run, tmp_path):
     assert "already in the store" in again.stderr and Path(again.stdout.strip()) == copy
 
 
+@pytest.mark.slow
 def test_a_finished_run_travels_as_metrics_only_and_says_what_it_cannot_do(smoke_run, tmp_path):
     """`export --without-checkpoint`: the manifest, spec and metrics, no checkpoint folder. It
     imports and verifies as a finished run and reports read it; evaluating it asks for the full
@@ -92,6 +94,7 @@ def test_a_finished_archive_replaces_an_idle_unfinished_run_of_the_same_key(smok
     assert esr("verify", store=tmp_path / "other").returncode == 0
 
 
+@pytest.mark.slow
 def test_an_unfinished_run_moves_and_resumes_to_the_uninterrupted_result(smoke_run, tmp_path):
     _, reference, _ = smoke_run
     here = tmp_path / "here"
@@ -401,6 +404,7 @@ def _zeros_gz(head: bytes, zeros: int) -> bytes:
     return b"".join(parts + [z.flush()])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("head, match", [
     (_block(f"{RUN_DIR}/metrics.jsonl".encode(), size=1 << 40), "unpacks to more than"),  # says 1 TiB
     (_block(f"{RUN_DIR}/metrics.jsonl".encode(), size=3) + b"{}\n".ljust(512, b"\0") + END, "data after the end"),
@@ -450,6 +454,7 @@ def test_a_fifo_given_as_an_archive_is_refused_without_waiting(tmp_path):
 
 
 # ---------------------------------------------------------------- staging folders of killed imports
+@pytest.mark.slow
 def test_what_a_killed_import_left_is_removed_by_the_next_command(smoke_run, tmp_path):
     store, path, _ = smoke_run
     archive = tmp_path / "run.tar.gz"
@@ -524,6 +529,7 @@ def _rewrite_metrics(run: Path) -> None:
     (run / "metrics.jsonl").write_text("".join(json.dumps({**r, "return": [99.0] * len(r["return"])}) + "\n" for r in rows))
 
 
+@pytest.mark.slow
 def test_a_signed_archive_imports_and_a_forged_or_unsigned_one_is_refused(smoke_run, tmp_path):
     """What digests cannot do, a signature does: `esr import --require-signature` takes only an
     archive whose ARCHIVE.sig matches it under the key in $ESR_ARCHIVE_KEY's file."""
@@ -644,6 +650,7 @@ def _write(path: Path, members: list) -> None:
                 tar.addfile(info, io.BytesIO(body))
 
 
+@pytest.mark.slow
 @settings(max_examples=ARCHIVE_FUZZ_CASES, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(data=st.data())
 def test_fuzzed_archives_are_imported_whole_and_intact_or_refused_in_one_line_leaving_nothing(exported, data):
