@@ -132,6 +132,164 @@ def test_keys_pressed_before_their_frame_are_dropped_and_counted_and_q_asks_firs
     assert steps[0].dropped_keys == 1 and [s.key for s in steps if s.key] == keys
 
 
+# ---------------------------------------------------------------- the Overcooked board
+# cramped_room (x, y): the pot at (2, 0), onion piles at (0, 1) and (4, 1), the plate pile at
+# (1, 3), the serving window at (3, 3); the robot (agent_0) starts at (1, 1), the human at (3, 1).
+POT, HUMAN_START, ROBOT_START = (2, 0), (3, 1), (1, 1)
+
+
+@pytest.fixture(scope="module")
+def cramped_board():
+    """(env, a start state) of cramped_room, the robot in agent_0's seat."""
+    env = make_env(specs.load(ROOT / COOK[0], "paper").env)
+    return env, jax.jit(env.reset)(jax.random.PRNGKey(0))  # compiled: a second, where op by op takes ten
+
+
+def board_cell(picture, x: int, y: int):
+    from esr_cli.play.overcooked_board import CELL_PX
+
+    return picture[y * CELL_PX:(y + 1) * CELL_PX, x * CELL_PX:(x + 1) * CELL_PX]
+
+
+def pixels_of(cell, colour) -> int:
+    """How many pixels of `cell` are exactly `colour` (the insides of a tile's shapes are)."""
+    import numpy as np
+
+    return int((cell == np.array(colour, np.uint8)).all(-1).sum())
+
+
+def all_different(pictures) -> bool:
+    pictures = list(pictures)
+    return all((a != b).any() for i, a in enumerate(pictures) for b in pictures[i + 1:])
+
+
+def with_cell(state, x: int, y: int, obj: int, status: int = 0):
+    """`state` with maze-map cell (x, y) set to `obj` (a JaxMARL object index) with `status`."""
+    pad = (state.maze_map.shape[0] - 4) // 2
+    cell = jax.numpy.array([obj, 0, status], "uint8")
+    return state.replace(maze_map=state.maze_map.at[pad + y, pad + x].set(cell))
+
+
+def test_overcooked_board_has_readable_cells_drawn_once_each(cramped_board):
+    import numpy as np
+
+    from esr_cli.play import overcooked_board as ob
+
+    env, state = cramped_board
+    picture = ob.draw_env(env, state)
+    assert ob.CELL_PX >= 48 and picture.shape == (4 * ob.CELL_PX, 5 * ob.CELL_PX, 3) and picture.dtype == np.uint8
+    # Every kind of cell is its own tile.
+    cells = {POT: ob.tile("pot", ob.POT_EMPTY), (0, 1): ob.tile("onion_pile"), (1, 3): ob.tile("plate_pile"),
+             (3, 3): ob.tile("serve"), (0, 0): ob.tile("counter"), (2, 2): ob.tile("floor")}
+    assert all((board_cell(picture, *at) == tile).all() for at, tile in cells.items()) and all_different(cells.values())
+    # Tiles are drawn once and reused (a frame is drawn every tick): drawing again draws none.
+    drawn = ob.tile.cache_info().misses
+    ob.draw_env(env, state)
+    assert ob.tile.cache_info().misses == drawn and ob.tile.cache_info().hits > 0
+
+
+def test_overcooked_board_shows_a_pots_onions_its_cooking_and_ready_soup(cramped_board):
+    from esr_cli.play import overcooked_board as ob
+
+    env, state = cramped_board
+    # JaxMARL's pot status: 23 empty, 22-20 one to three onions (20 starts cooking), 19-1
+    # cooking, 0 ready.
+    pots = {status: board_cell(ob.draw_env(env, with_cell(state, *POT, ob.POT, status)), *POT)
+            for status in (23, 22, 21, 20, 15, 5, 0)}
+    assert all_different(pots.values())
+    onions = [pixels_of(pots[s], ob.ONION_FILL) for s in (23, 22, 21)]
+    assert onions[0] == 0 < onions[1] < onions[2]  # a dot per onion
+    bar = [pixels_of(pots[s], ob.COOKING_BAR) for s in (20, 15, 5)]
+    assert 0 < bar[0] < bar[1] < bar[2] and pixels_of(pots[21], ob.COOKING_BAR) == 0  # fills while it cooks
+    assert pixels_of(pots[0], ob.READY) > 0 and pixels_of(pots[0], ob.COOKING_BAR) == 0  # a green bar and tick
+    assert pixels_of(pots[5], ob.READY) == 0
+    assert pixels_of(pots[15], ob.SOUP) > 0 and pixels_of(pots[21], ob.SOUP) == 0
+
+
+def test_overcooked_board_shows_loose_items_on_counters(cramped_board):
+    from esr_cli.play import overcooked_board as ob
+
+    env, state = cramped_board
+    for obj, item in ((ob.ONION, "onion"), (ob.PLATE, "plate"), (ob.DISH, "soup")):
+        cell = board_cell(ob.draw_env(env, with_cell(state, 0, 2, obj)), 0, 2)
+        assert (cell == ob.tile("counter", item)).all() and (cell != ob.tile("counter")).any()
+    onion, plate, soup = (ob.tile("counter", item) for item in ("onion", "plate", "soup"))
+    assert pixels_of(onion, ob.ONION_FILL) > 0 and pixels_of(plate, ob.ONION_FILL) == 0
+    assert pixels_of(plate, ob.PLATE_FILL) > 0 and pixels_of(plate, ob.SOUP) == 0 and pixels_of(soup, ob.SOUP) > 0
+
+
+def test_overcooked_board_shows_who_is_who_where_they_face_and_what_they_hold(cramped_board):
+    from esr_cli.envs.overcooked import Overcooked
+    from esr_cli.play import overcooked_board as ob
+
+    env, state = cramped_board
+    east = state.replace(agent_dir_idx=jax.numpy.array([3, 2], "int32"))  # the robot faces west, the human east
+    for held, colour in ((ob.EMPTY, None), (ob.ONION, ob.ONION_FILL), (ob.PLATE, ob.PLATE_FILL), (ob.DISH, ob.SOUP)):
+        picture = ob.draw_env(env, east.replace(agent_inv=jax.numpy.array([ob.EMPTY, held], "int32")))
+        human, robot = board_cell(picture, *HUMAN_START), board_cell(picture, *ROBOT_START)
+        assert pixels_of(human, ob.YOU) > 100 and pixels_of(human, ob.ROBOT) == 0
+        assert pixels_of(robot, ob.ROBOT) > 100 and pixels_of(robot, ob.YOU) == 0
+        if colour is not None:
+            assert pixels_of(human, colour) > 0 and pixels_of(robot, colour) == 0
+    assert pixels_of(board_cell(ob.draw_env(env, east), *HUMAN_START), ob.ONION_FILL) == 0  # empty hands
+    # An arrow in the agent's colour reaches the edge of its cell it faces, and only that edge.
+    edge = ob.CELL_PX // 6
+    human, robot = board_cell(ob.draw_env(env, east), *HUMAN_START), board_cell(ob.draw_env(env, east), *ROBOT_START)
+    assert pixels_of(human[:, -edge:], ob.YOU) > 0 and pixels_of(human[:, :edge], ob.YOU) == 0
+    assert pixels_of(robot[:, :edge], ob.ROBOT) > 0 and pixels_of(robot[:, -edge:], ob.ROBOT) == 0
+    assert pixels_of(human[:edge], ob.YOU) == pixels_of(human[-edge:], ob.YOU) == 0
+    facing = [state.replace(agent_dir_idx=jax.numpy.array([0, d], "int32")) for d in range(4)]
+    assert all_different(board_cell(ob.draw_env(env, s), *HUMAN_START) for s in facing)
+    # In the flipped seat the person plays agent_0: agent_0 is drawn as "you".
+    flipped = ob.draw_env(Overcooked(env.layout, env.episode_steps, robot_seat=1), state)
+    assert pixels_of(board_cell(flipped, *ROBOT_START), ob.YOU) > 100
+    assert pixels_of(board_cell(flipped, *HUMAN_START), ob.ROBOT) > 100
+
+
+def test_overcooked_legend_names_every_symbol_and_colour():
+    from types import SimpleNamespace
+
+    from esr_cli.play import overcooked_board as ob
+
+    for as_text in (True, False):  # both front ends draw Overcooked's picture
+        legend = Game.legend(SimpleNamespace(env_kind="overcooked"), as_text)
+        assert legend == ob.LEGEND
+        for words in ("blue: you", "red: the robot", "faces", "holds", "onion", "plate", "soup", "pot", "onions in it",
+                      "cooks", "ready", "onion pile", "plate pile", "serving window", "counter"):
+            assert words in legend, words
+    blue, red = ob.YOU, ob.ROBOT  # the colours the legend names
+    assert blue[2] > max(blue[:2]) and red[0] > max(red[1:])
+
+
+@pytest.mark.slow
+def test_overcooked_frames_are_the_board_as_the_human_plays(cramped_board):
+    """Played through the game: the human turns to the onion pile, takes an onion and puts it
+    in the pot; each frame is the board of the game's state."""
+    import numpy as np
+
+    from esr_cli.envs.overcooked import STAY
+    from esr_cli.play import overcooked_board as ob
+    from esr_cli.play.game import KeyPress
+
+    env, _ = cramped_board
+
+    class StayingRobot(Robot):  # stays put: the human's way to the pot is free
+        def act(self, state, key, prev_human_action):
+            return STAY
+
+    game = Game("overcooked", StayingRobot("stay", env), 0)
+    assert np.array_equal(game.frame(), ob.draw_env(env, game.state))
+    for key in ("right", "space"):
+        game.act(KeyPress(key))
+    human = board_cell(game.frame(), *HUMAN_START)
+    assert (human == ob.tile("you", (2, "onion"))).all() and pixels_of(human, ob.ONION_FILL) > 0
+    for key in ("left", "up", "space"):
+        game.act(KeyPress(key))
+    picture = game.frame()
+    assert (board_cell(picture, *POT) == ob.tile("pot", 22)).all()  # one onion in it
+    assert (board_cell(picture, 2, 1) == ob.tile("you", (0, None))).all()  # facing the pot, hands empty
+
+
 # ---------------------------------------------------------------- the terminal
 class Pty:
     def __init__(self, args, store):
@@ -221,6 +379,20 @@ def test_a_terminal_that_goes_away_ends_the_session_at_once():
         view = View("t", 0.0, 5, jax.numpy.zeros((8, 8, 3), "uint8"), ["..", ".."], seq=1)
         term.show(view)  # returns, having read the end of input
         assert term.key(None).name == CLOSED and term.key(0.01).name == CLOSED
+
+
+def test_the_terminal_draws_overcooked_as_large_as_its_width_allows():
+    import numpy as np
+
+    from esr_cli.play.terminal import picture_text
+
+    def columns(height, width, terminal):
+        return {len(line) for line in picture_text(np.zeros((height, width, 3), "uint8"), terminal).plain.split("\n")}
+
+    # 48-pixel cells: 12 characters a cell where that fits (cramped_room, 5 cells), 8 where it
+    # would not (asymm_advantages, 9 cells, on 80 columns).
+    assert columns(4 * 48, 5 * 48, 80) == {60} and columns(5 * 48, 9 * 48, 80) == {72}
+    assert columns(5 * 48, 9 * 48, 120) == {108} and columns(5 * 48, 9 * 48, None) == {108}
 
 
 @pytest.mark.slow

@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from esr_cli.envs import gridworld, overcooked
+from esr_cli.play import overcooked_board
 from esr_cli.play.log import state_record
 
 KEYS = ("up", "down", "left", "right", "space")
@@ -183,7 +184,10 @@ class Game:
         return state_record(self.state)
 
     def frame(self) -> np.ndarray:
-        """The current state as an RGB picture (the environment's own renderer)."""
+        """The current state as an RGB picture: Overcooked's board (esr_cli/play/overcooked_board.py),
+        the gridworld by its own renderer."""
+        if self.env_kind == "overcooked":
+            return overcooked_board.draw_env(self.env, self.state)
         return np.asarray(self.env.render(self.state))
 
     def legend(self, as_text: bool) -> str:
@@ -193,7 +197,7 @@ class Game:
                 return "@ you   G your goal (the robot does not know it)   # a block the robot can push   " \
                        "X you, trapped under a block   . floor"
             return "orange: you · green: your goal (the robot does not know it) · purple: blocks the robot can push"
-        return f"you play the {'blue' if self.env.robot_seat == 0 else 'red'} chef; the robot plays the other"
+        return overcooked_board.LEGEND  # both front ends draw Overcooked's picture
 
     def text(self) -> list[str] | None:
         """The gridworld as characters (the terminal draws these): @ you, G your goal, # a

@@ -26,7 +26,9 @@ from esr_cli.play.game import CLOSED, QUIT, KeyPress, View
 ARROWS = {"A": "up", "B": "down", "C": "right", "D": "left"}
 GRID_STYLE = {"@": "bold rgb(230,150,0)", "X": "bold red", "G": "bold rgb(120,215,10)", "#": "rgb(150,60,235)",
               ".": "rgb(110,110,110)"}
-PIXEL_STRIDE = 4  # Overcooked's 32-pixel tiles drawn 8 pixels wide
+# Overcooked's 48-pixel cells drawn 12 pixels (characters) wide, or 8 where 12 would not fit the
+# terminal's width (a wider layout on an 80-column terminal): one pixel in every 4 or 6.
+PIXEL_STRIDES = (4, 6)
 
 
 class NotATerminal(Exception):
@@ -124,7 +126,7 @@ class Terminal:
             pass
         header = Text.assemble((view.title, "bold"), "   score ", (f"{view.score:g}", "bold"),
                                "   steps left ", (str(view.steps_left), "bold"))
-        body = grid_text(view.text) if view.text is not None else picture_text(view.frame)
+        body = grid_text(view.text) if view.text is not None else picture_text(view.frame, self.console.width)
         legend = Text(view.legend, style="dim")
         message = Text(view.message, style="bold green" if view.over else "yellow")
         self.console.file.write("\x1b[H\x1b[2J")
@@ -143,9 +145,12 @@ def grid_text(rows: list[str]) -> Text:
     return out
 
 
-def picture_text(frame: np.ndarray) -> Text:
-    """An RGB picture as rows of '▀' whose foreground is the upper pixel, background the lower."""
-    img = np.asarray(frame)[::PIXEL_STRIDE, ::PIXEL_STRIDE, :3]
+def picture_text(frame: np.ndarray, columns: int | None = None) -> Text:
+    """An RGB picture as rows of '▀' whose foreground is the upper pixel, background the lower,
+    one pixel in every PIXEL_STRIDES[0], or in every next one where that is wider than `columns`."""
+    width = np.asarray(frame).shape[1]
+    stride = next((s for s in PIXEL_STRIDES if columns is None or -(-width // s) <= columns), PIXEL_STRIDES[-1])
+    img = np.asarray(frame)[::stride, ::stride, :3]
     if img.shape[0] % 2:
         img = np.concatenate([img, np.zeros_like(img[:1])], axis=0)
     out = Text()
