@@ -11,6 +11,7 @@ import pytest
 from conftest import esr
 
 
+@pytest.mark.slow  # trains the shared smoke run
 def test_train_commits_a_complete_artifact(smoke_run):
     store, path, proc = smoke_run
     assert path.is_dir() and path.parent.parent.name == "runs"
@@ -70,6 +71,7 @@ def test_ls_json_filters_and_piped_cells_in_full(smoke_run):
     assert esr("ls", "--kind", "bogus", store=store, check=False).returncode == 2
 
 
+@pytest.mark.slow  # trains the shared smoke run
 def test_unknown_key_is_a_one_line_error(smoke_run):
     store, _, _ = smoke_run
     proc = esr("show", "ffffffff", store=store, check=False)
@@ -104,6 +106,7 @@ def test_eval_writes_summary_gif_and_curve(smoke_run):
     assert "cache hit" in again.stderr and again.stdout.strip() == str(path)
 
 
+@pytest.mark.slow  # trains the shared smoke run
 def test_eval_of_an_untrained_spec_says_how_to_train(smoke_run):
     store, _, _ = smoke_run
     proc = esr("eval", "experiments/grid_2.yaml", "--budget", "smoke", "--set", "learner.gamma=0.5", store=store, check=False)

@@ -749,6 +749,7 @@ def test_small_slips_get_messages_that_point_at_them(tmp_path, capsys):
         assert problem in capsys.readouterr().err
 
 
+@pytest.mark.slow  # trains the shared smoke run
 def test_a_reference_that_names_no_finished_artifact_says_what_is_wrong(smoke_run, tmp_path, capsys):
     store, path, _ = smoke_run
     unfinished = tmp_path / "s" / "runs" / path.parent.name / f"{path.name}.partial"

@@ -133,6 +133,7 @@ def test_divergence_stops_with_the_quantity_seed_and_epoch(tmp_path):
     assert committed(store) == [] and len(partials(store)) == 1  # kept for inspection
 
 
+@pytest.mark.slow  # trains the shared smoke run
 def test_verify_reports_a_flipped_byte_and_a_deleted_file(tmp_path, smoke_run):
     _, path, _ = smoke_run
     store = tmp_path / "store"
@@ -201,6 +202,7 @@ def test_a_checkpoint_folder_renamed_to_another_epoch_is_refused(tmp_path):
     assert committed(store) == []
 
 
+@pytest.mark.slow  # trains the shared smoke run
 def test_verify_finds_a_finished_run_whose_epochs_disagree(tmp_path, smoke_run):
     """A committed run's length, newest checkpoint folder, digests, metrics and summary must
     agree: a renamed checkpoint folder fails `esr verify` even with a manifest rewritten to match."""
@@ -221,6 +223,7 @@ def test_verify_finds_a_finished_run_whose_epochs_disagree(tmp_path, smoke_run):
             in " ".join(proc.stderr.split())), proc.stderr
 
 
+@pytest.mark.slow  # trains the shared smoke run
 def test_a_finished_run_keeps_only_its_newest_checkpoint(smoke_run):
     from esr_cli.core import loop
 
@@ -371,6 +374,7 @@ def test_a_library_catching_exception_does_not_swallow_a_stop_signal(sig):
     assert not swallowed
 
 
+@pytest.mark.slow  # trains the shared smoke run
 @pytest.mark.parametrize("sig, code, line", [(signal.SIGTERM, 143, "terminated (SIGTERM)"),
                                              (signal.SIGINT, 130, "interrupted")], ids=["sigterm", "ctrl-c"])
 def test_an_evaluation_stopped_by_a_signal_says_so_and_leaves_nothing_half_made(smoke_run, tmp_path, sig, code, line):

@@ -153,6 +153,7 @@ def test_the_estimate_names_the_epoch_time_the_run_the_quick_budget_and_a_run_ov
     assert quick_estimate(coop, specs.load("experiments/cramped_room.yaml", "quick"), 1.0)[0] is None
 
 
+@pytest.mark.slow  # trains the shared smoke run
 def test_a_run_logged_to_a_file_says_when_it_compiled_and_how_long_it_takes(smoke_run):
     _, _, proc = smoke_run  # stderr was a pipe
     err = proc.stderr

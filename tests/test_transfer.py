@@ -79,6 +79,7 @@ def test_a_finished_run_travels_as_metrics_only_and_says_what_it_cannot_do(smoke
     assert broken.returncode == 1 and "metrics.jsonl" in broken.stderr
 
 
+@pytest.mark.slow  # trains the shared smoke run
 def test_a_finished_archive_replaces_an_idle_unfinished_run_of_the_same_key(smoke_run, tmp_path):
     """The same key is the same computation: the run finished elsewhere takes the place of the
     local copy that stopped part-way (an unfinished archive over it is still refused)."""
@@ -248,6 +249,7 @@ def test_an_empty_manifest_is_not_imported_as_an_artifact(tmp_path):
     assert not store.exists()  # nothing committed, no folder left behind
 
 
+@pytest.mark.slow  # trains the shared smoke run
 def test_a_tampered_finished_run_is_refused(smoke_run, tmp_path):
     store, path, _ = smoke_run
     copy = tmp_path / "copy" / "runs" / path.name[:2] / path.name
@@ -262,6 +264,7 @@ def test_a_tampered_finished_run_is_refused(smoke_run, tmp_path):
     assert not (tmp_path / "other" / "runs" / path.name[:2] / path.name).exists()
 
 
+@pytest.mark.slow  # trains the shared smoke run
 @pytest.mark.parametrize("content", [b"not an archive at all", None])
 def test_an_unreadable_archive_is_one_line(smoke_run, tmp_path, content):
     store, path, _ = smoke_run
@@ -284,6 +287,7 @@ def test_export_names_a_missing_artifact(tmp_path):
     assert proc.returncode == 2 and "no archive" in proc.stderr
 
 
+@pytest.mark.slow  # trains the shared smoke run
 def test_export_refuses_a_target_that_is_not_a_file_before_any_work(smoke_run, tmp_path):
     store, path, _ = smoke_run
     pipe = tmp_path / "pipe.tar.gz"
@@ -294,6 +298,7 @@ def test_export_refuses_a_target_that_is_not_a_file_before_any_work(smoke_run, t
     assert pipe.exists() and not pipe.is_file() and not (tmp_path / "no").exists()
 
 
+@pytest.mark.slow  # trains the shared smoke run
 def test_an_archive_larger_than_the_free_disk_is_refused_before_it_is_unpacked(smoke_run, tmp_path, monkeypatch):
     """The members' sizes in the tar headers are summed first: a small archive of zeros that
     would unpack past the free space writes nothing."""
@@ -309,6 +314,7 @@ def test_an_archive_larger_than_the_free_disk_is_refused_before_it_is_unpacked(s
     assert not [p for p in other.rglob("*") if p.is_file()]
 
 
+@pytest.mark.slow  # trains the shared smoke run
 def test_several_archives_are_all_checked_before_any_is_added(smoke_run, tmp_path):
     store, path, _ = smoke_run
     good, bad = tmp_path / "good.tar.gz", tmp_path / "bad.tar.gz"
@@ -509,6 +515,7 @@ def _reexported(tmp_path, src: Path, edit) -> Path:
     return archive
 
 
+@pytest.mark.slow  # trains the shared smoke run
 def test_a_spec_swapped_under_a_key_is_refused_but_digests_do_not_stop_a_forger(smoke_run, tmp_path):
     """The key is the digest of the spec it names: a spec.yaml that is another spec is refused
     even with its digest recomputed. Metrics rewritten with their digest recomputed still import
