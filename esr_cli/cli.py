@@ -647,7 +647,7 @@ def plot(
     out.print(str(png), highlight=False)
 
 
-def _draw_preview(recipe, out_dir: Path, print_path: bool = True) -> Path:
+def _draw_preview(recipe, out_dir: Path, print_path: bool = True) -> None:
     """A figure that reads unfinished runs, drawn into `out_dir` outside the store (it would
     change as they train, so it is never an artifact); its PNG is named on stderr (and printed
     on stdout with `print_path`)."""
@@ -662,7 +662,6 @@ def _draw_preview(recipe, out_dir: Path, print_path: bool = True) -> Path:
     err.print(tagged("drawn", "green", f": {png}", f"  (a preview of unfinished runs: {'; '.join(recipe.unfinished)})"))
     if print_path:
         out.print(str(png), highlight=False)
-    return out_dir
 
 
 def _plot_curve(ref: str, out_file: Optional[Path]) -> None:

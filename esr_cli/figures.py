@@ -77,6 +77,11 @@ class FigureResult:
     summary: dict = field(default_factory=dict)
 
 
+# Figures that restore a run's final state (its networks), not only its metrics: an unfinished
+# run has none, so they read finished runs only, with or without `unfinished`.
+NEEDS_FINAL_STATE = frozenset({"fig6_representations", "fig8_filmstrip"})
+
+
 def find_run(store: Store, run, unfinished: bool = False) -> tuple[Path | None, int | None]:
     """A suite run's committed artifact -> (path, None); with `unfinished`, else its partial
     directory once it has logged an epoch -> (path, epochs logged); (None, None): neither."""
@@ -105,11 +110,12 @@ class PaperInputs:
     def run(self, stem: str, sets: tuple[str, ...] = ()):
         return self._by_name[(stem, tuple(sets))]
 
-    def paths(self, figure: str, wanted: list[tuple[str, tuple[str, ...]]], finished_only: bool = False) -> list[Path]:
-        """The artifacts of `wanted` runs (committed, or with `unfinished` and not
-        `finished_only` partial), or MissingRuns naming the commands."""
+    def paths(self, figure: str, wanted: list[tuple[str, tuple[str, ...]]]) -> list[Path]:
+        """The artifacts of `wanted` runs (committed, or with `unfinished` partial, unless the
+        figure NEEDS_FINAL_STATE), or MissingRuns naming the commands."""
         runs = [self.run(stem, sets) for stem, sets in wanted]
-        found = [find_run(self.store, r, self.unfinished and not finished_only) for r in runs]
+        partial_ok = self.unfinished and figure not in NEEDS_FINAL_STATE
+        found = [find_run(self.store, r, partial_ok) for r in runs]
         missing = [r.command(self.budget, self.store.invocation()) for r, (p, _) in zip(runs, found) if p is None]
         if missing:
             raise MissingRuns(figure, missing)
@@ -415,7 +421,7 @@ def representations(inputs: PaperInputs, out_dir: Path) -> FigureResult:
     from esr_cli.targets import run_spec
 
     _style()
-    (path,) = inputs.paths("fig6_representations", WANTS["fig6_representations"](), finished_only=True)
+    (path,) = inputs.paths("fig6_representations", WANTS["fig6_representations"]())
     spec = run_spec(path)
     trainer = build_trainer(spec, inputs.store)
     state = loop.final_state(trainer, path)
@@ -460,7 +466,7 @@ def overcooked_filmstrip(inputs: PaperInputs, out_dir: Path, frames: int = 8) ->
     from esr_cli.targets import run_spec
 
     _style()
-    (path,) = inputs.paths("fig8_filmstrip", WANTS["fig8_filmstrip"](), finished_only=True)
+    (path,) = inputs.paths("fig8_filmstrip", WANTS["fig8_filmstrip"]())
     spec = run_spec(path)
     trainer = build_trainer(spec, inputs.store)
     state = loop.final_state(trainer, path)

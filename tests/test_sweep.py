@@ -460,6 +460,10 @@ def test_a_paper_figure_of_unfinished_runs_is_drawn_as_a_preview_and_never_store
     # the final return of the first line at N = 2: the last 10% of 3 epochs is the last one
     first = summary["final_return"]["N = 2 blocks"][figs.PAPER_LABELS["esr"]]
     assert first["per_seed"] == [3.0, 0.0]
-    # the figures that restore a run's final state still need it finished
+    # the figures that restore a run's final state still need it finished, partial or not
+    for stem, sets in figs.WANTS["fig6_representations"]():
+        part = store.partial_path("runs", inputs.run(stem, sets).key)
+        part.mkdir(parents=True)
+        (part / "metrics.jsonl").write_text(json.dumps({"epoch": 1, "return": [1.0]}) + "\n")
     with pytest.raises(figs.MissingRuns):
         paper.figure_recipe(store, "smoke", "representations", inputs)

@@ -19,11 +19,16 @@ from esr_cli.play.log import read_header, read_steps
 EPISODE_FIELDS = ("participant", "session", "episode", "robot", "robot_label", "seed", "front_end")
 
 
-def step_records(path: Path) -> list[dict]:
-    """One played episode's steps, each with its episode's fields and both actions in words."""
+def step_records(path: Path, envs: dict | None = None) -> list[dict]:
+    """One played episode's steps, each with its episode's fields and both actions in words.
+    envs: environments already made, by their spec (an export makes each one once)."""
     header = read_header(path)
     env_spec = TypeAdapter(specs.EnvSpec).validate_python(header["env"])  # the environment it was played on
-    env, label = make_env(env_spec), LABELS[env_spec.kind]
+    envs = {} if envs is None else envs
+    which = json.dumps(header["env"], sort_keys=True)
+    if which not in envs:
+        envs[which] = make_env(env_spec)
+    env, label = envs[which], LABELS[env_spec.kind]
     common = {"play_key": Path(path).name, **{f: header.get(f) for f in EPISODE_FIELDS},
               "env": env_spec.kind, "layout": getattr(env_spec, "layout", None)}
     out = []
@@ -36,5 +41,6 @@ def step_records(path: Path) -> list[dict]:
 
 def export_jsonl(paths: list[Path]) -> tuple[str, int]:
     """-> (the JSONL text, the number of steps)."""
-    lines = [json.dumps(r, separators=(",", ":")) for p in paths for r in step_records(p)]
+    envs: dict = {}
+    lines = [json.dumps(r, separators=(",", ":")) for p in paths for r in step_records(p, envs)]
     return "".join(line + "\n" for line in lines), len(lines)
