@@ -54,7 +54,7 @@ def epoch_flops(trainer) -> float:
     loop's body once, so each body is counted alone and multiplied by its trip count)."""
     import jax
 
-    from esr_cli import replay
+    from esr_cli.model import replay
 
     spec = trainer.spec
     state = trainer.init(0)
@@ -108,8 +108,8 @@ def measure(spec_path: str, seeds: int, epochs: int, seed_batch: int | None) -> 
     import jax
     import jax.numpy as jnp
 
-    from esr_cli import spec as specs
-    from esr_cli.core.train import compiled_chunk, compiled_init
+    from esr_cli import specs
+    from esr_cli.model.train import compiled_chunk, compiled_init
     from esr_cli.runs import build_trainer
     from esr_cli.provenance import apply_matmul_precision
     from esr_cli.store import Store
@@ -176,7 +176,7 @@ def _device_peak_mib():
 
 
 def _seed_batch(text: str):
-    from esr_cli.core.train import default_seed_batch
+    from esr_cli.model.train import default_seed_batch
 
     if text == "auto":
         return default_seed_batch()

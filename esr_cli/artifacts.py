@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Callable, NamedTuple
 
 from esr_cli import provenance
-from esr_cli.core.stops import Interrupted, TimeLimitReached
+from esr_cli.runner.stops import Interrupted, TimeLimitReached
 from esr_cli.store import KINDS, RUN_KIND, Store, atomic_write_text, content_key, read_pending
 
 SUMMARY_FILE = "summary.json"

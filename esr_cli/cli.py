@@ -19,7 +19,8 @@ import typer
 from rich.table import Table
 from rich.text import Text
 
-from esr_cli import spec as specs, targets
+from esr_cli import specs, targets
+from esr_cli.model import spec as spec_model
 from esr_cli.artifacts import ensure
 from esr_cli.failures import Failure
 from esr_cli.printing import plain_console, print_table, printable, tagged
@@ -284,8 +285,8 @@ def sweep(
 
 
 def _check_budget(budget: str) -> None:
-    if budget not in specs.BUDGETS:
-        raise Exit(2, f"--budget: unknown budget {budget!r}; known: {', '.join(specs.BUDGETS)}")
+    if budget not in spec_model.BUDGETS:
+        raise Exit(2, f"--budget: unknown budget {budget!r}; known: {', '.join(spec_model.BUDGETS)}")
 
 
 def _check_executor(executor: str, known: tuple[str, ...]) -> None:
@@ -310,7 +311,7 @@ def eval_(
     """Evaluate a trained robot with its human; writes an evaluation artifact, a GIF and a curve."""
     targets.check_partner_name(human)
     human = targets.complete_play_partner(STATE.store, human)
-    most = specs.MAX_EVAL_EPISODES
+    most = spec_model.MAX_EVAL_EPISODES
     if episodes is not None and not 1 <= episodes <= most:
         raise Exit(2, f"--episodes: between 1 and {most:,} (got {episodes:,})")
     spec_file = targets.is_spec_file(target)
@@ -894,8 +895,8 @@ def play(
         raise Exit(2, f"--countdown: between 0 and 30 seconds (got {countdown})")
     if not participant.strip() or len(participant) > 200:
         raise Exit(2, "--participant: a non-empty id of at most 200 characters")
-    if not 0 <= seed <= specs.MAX_SEED - (episodes - 1):  # episode i plays seed + i, an int32 PRNG seed
-        raise Exit(2, f"--seed: between 0 and {specs.MAX_SEED - (episodes - 1):,} for {episodes} episode(s) (got {seed})")
+    if not 0 <= seed <= spec_model.MAX_SEED - (episodes - 1):  # episode i plays seed + i, an int32 PRNG seed
+        raise Exit(2, f"--seed: between 0 and {spec_model.MAX_SEED - (episodes - 1):,} for {episodes} episode(s) (got {seed})")
     refs = [r.strip() for r in robots.split(",") if r.strip()] if robots else []
     if robots is not None and not refs:
         raise Exit(2, "--robots: name at least one robot (a run key, path or spec, or `random`)")
@@ -1235,7 +1236,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(argv: list[str], debug: bool, stops: StopSignals) -> int:
-    from esr_cli.core.stops import Interrupted
+    from esr_cli.runner.stops import Interrupted
 
     try:
         code = app(args=argv, standalone_mode=False)

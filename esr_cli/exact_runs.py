@@ -22,9 +22,9 @@ from scipy.stats import spearmanr
 from esr_cli import plots, provenance
 from esr_cli.analysis import exact, geometry
 from esr_cli.artifacts import Recipe
-from esr_cli.envs import make_env
-from esr_cli.envs.gridworld import GridState
-from esr_cli.humans.registry import make_human
+from esr_cli.model.envs import make_env
+from esr_cli.model.envs.gridworld import GridState
+from esr_cli.model.humans.registry import make_human
 from esr_cli.runs import load_run, seed_slice
 from esr_cli.store import EXACT_KIND, FIGURE_KIND, Store, StoreError
 from esr_cli.targets import exact_artifact, exact_target, geometry_options
@@ -35,7 +35,7 @@ from esr_cli.targets import exact_artifact, exact_target, geometry_options
 # checkpoint and figure plumbing it imports: those decide where numbers are read and written,
 # never what they are, and an edit there should not discard hours of exact computation.
 # (The robot's training code is pinned by its run's key, a component of its own.)
-EXACT_CODE = (provenance.EVAL_SOURCES + ("analysis",), ("exact_runs.py",))
+EXACT_CODE = (provenance.MODEL_SOURCES + ("analysis",), ("exact_runs.py",))
 
 
 def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | None, seed_index: int,

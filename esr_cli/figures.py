@@ -416,7 +416,7 @@ def representations(inputs: PaperInputs, out_dir: Path) -> FigureResult:
     states from the robot's own rollouts, coloured by how many cells the human can reach."""
     import jax
 
-    from esr_cli.core import loop
+    from esr_cli.runner import loop
     from esr_cli.runs import build_trainer
     from esr_cli.targets import run_spec
 
@@ -461,7 +461,7 @@ def overcooked_filmstrip(inputs: PaperInputs, out_dir: Path, frames: int = 8) ->
     """Figure 8: frames of one coordination-ring episode with the trained ESR robot."""
     import jax
 
-    from esr_cli.core import loop
+    from esr_cli.runner import loop
     from esr_cli.runs import build_trainer
     from esr_cli.targets import run_spec
 

@@ -25,10 +25,10 @@ from rich.console import Console
 
 from esr_cli import stored_humans
 from esr_cli.artifacts import ensure
-from esr_cli.envs.overcooked import Overcooked
+from esr_cli.model.envs.overcooked import Overcooked
 from esr_cli.figures import PAPER_OVERCOOKED
-from esr_cli.humans import human_eval
-from esr_cli.humans.registry import policy_logits
+from esr_cli.model.humans import human_eval
+from esr_cli.model.humans.registry import policy_logits
 from esr_cli.ppo_humans import EPISODE_STEPS
 from esr_cli.store import Store
 

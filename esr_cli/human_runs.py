@@ -25,13 +25,14 @@ from rich.console import Console
 
 from esr_cli import provenance
 from esr_cli.artifacts import Recipe
-from esr_cli.envs.overcooked import Overcooked
-from esr_cli.humans import bc, human_eval, overcooked_data as od, play_data
+from esr_cli.model.envs.overcooked import Overcooked
+from esr_cli.model.humans import bc, human_eval, overcooked_data as od
+from esr_cli import play_data
 from esr_cli.store import DATA_KIND, HUMAN_KIND, PLAY_KIND, Store, StoreError, atomic_write_text, content_key
 
-DATA_SOURCES = ("envs/overcooked.py", "humans/overcooked_data.py")
-BC_SOURCES = DATA_SOURCES + ("humans/bc.py", "humans/human_eval.py", "networks.py")
-PLAY_DATA_SOURCES = ("envs/overcooked.py", "humans/play_data.py")
+DATA_SOURCES = ("model/envs/overcooked.py", "model/humans/overcooked_data.py")
+BC_SOURCES = DATA_SOURCES + ("model/humans/bc.py", "model/humans/human_eval.py", "model/networks.py")
+PLAY_DATA_SOURCES = ("model/envs/overcooked.py", "play_data.py")
 # Rows checked by replaying the recorded joint action when the data artifact is built.
 REPLAY_SAMPLE = 1000
 PARAMS_FILE, POLICY_FILE, DATA_FILE = "params.msgpack", "policy.json", "data.npz"

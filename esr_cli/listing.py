@@ -47,7 +47,7 @@ def created_of(manifest: dict) -> str | None:
 
 def overrides_of(entry: Entry) -> list[str] | None:
     """The --set values that make this run from experiments/<name>.yaml at its budget."""
-    from esr_cli import spec as specs, yamlio
+    from esr_cli import specs, yamlio
     from esr_cli.reproduction import train_overrides
 
     spec_file = entry.path / "spec.yaml"

@@ -20,7 +20,7 @@ from typing import Optional
 from rich.console import Console
 
 from esr_cli import figures as figs
-from esr_cli import provenance, spec as specs, sweep
+from esr_cli import provenance, specs, sweep
 from esr_cli.artifacts import Recipe, ensure
 from esr_cli.printing import tagged
 from esr_cli.stats import format_summary
@@ -56,7 +56,7 @@ def figure_recipe(store: Store, budget: str, name: str, inputs: Optional[figs.Pa
 
 def ensure_report(store: Store, budget: str, console: Console) -> Path:
     """Every figure (artifacts), then the report artifact with them inline."""
-    from esr_cli.core.train import release_compiled  # some figures compile programs (jax)
+    from esr_cli.model.train import release_compiled  # some figures compile programs (jax)
 
     inputs = figs.PaperInputs(store, budget)
     made = {}
@@ -219,7 +219,7 @@ def ablate(spec_paths: list[str], names: list[str], custom: list[str], budget: s
             loaded.append((path, v, spec))
 
     from esr_cli import runs  # jax and the training core: after every spec is validated
-    from esr_cli.core.train import release_compiled
+    from esr_cli.model.train import release_compiled
     from esr_cli.resources import check_run_fits
 
     for path, v, spec in loaded:  # every run still to train fits, before the first trains for hours

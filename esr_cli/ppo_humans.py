@@ -1,11 +1,11 @@
 """The PPO human as a stored artifact of kind humans: the paper's convolutional actor-critic
-(humans/conv_actor_critic.py) trained by PPO in Overcooked self-play (humans/ppo.py).
+(model/humans/conv_actor_critic.py) trained by PPO in Overcooked self-play (model/humans/ppo.py).
 
 Training is long on a CPU (5e6 steps: hours), so the build resumes: every `chunk_updates`
 updates, the whole PPO state (parameters, optimiser, environments, key) and the metrics so far
 are written atomically to one file in the artifact's partial directory, and the next build of
 the same key continues from it, bit-identically. Ctrl-C or SIGTERM stops within a fraction of
-a second (core/stop_requests.py), keeping the last checkpoint.
+a second (runner/stop_requests.py), keeping the last checkpoint.
 
 When training ends the human is checked before it is stored: its parameters must be finite,
 and its self-play return at least `min_selfplay_return`; a human that fails is refused with
@@ -29,12 +29,12 @@ from rich.console import Console
 
 from esr_cli import human_runs, provenance
 from esr_cli.artifacts import Recipe
-from esr_cli.core.stop_requests import StopRequests
-from esr_cli.envs.overcooked import Overcooked
-from esr_cli.humans import bc, conv_actor_critic as cac, human_eval, ppo
+from esr_cli.runner.stop_requests import StopRequests
+from esr_cli.model.envs.overcooked import Overcooked
+from esr_cli.model.humans import bc, conv_actor_critic as cac, human_eval, ppo
 from esr_cli.store import HUMAN_KIND, Store, StoreError, atomic_write_bytes, atomic_write_text, content_key
 
-PPO_SOURCES = ("envs/overcooked.py", "humans/ppo.py", "humans/conv_actor_critic.py", "humans/human_eval.py")
+PPO_SOURCES = ("model/envs/overcooked.py", "model/humans/ppo.py", "model/humans/conv_actor_critic.py", "model/humans/human_eval.py")
 CHECKPOINT_FILE = "ppo_state.npz"
 METRICS_FILE = "metrics.jsonl"
 EPISODE_STEPS = 400  # the paper's Overcooked horizon, in training and in the recorded returns

@@ -31,14 +31,15 @@ def experiments_dir() -> Path:
     the one installed with esr (the checkout's, through esr_cli/experiments, or a wheel's copy)."""
     here = Path.cwd() / "experiments"
     return here if (here / "suites" / "paper.yaml").is_file() else PACKAGE_DIR / "experiments"
-# What a training run computes is decided by the runner and everything it imports: the code
-# digest covers the import closure of these roots (`module_closure`), found from the source, so
-# a module added to the training path re-keys runs without anyone listing it. The host loop
-# (chunking, checkpoints, progress), CLI, plotting and docs are outside that closure unless the
-# training path imports them: they do not change the numbers (resuming is bit-identical).
-# Evaluations add the evaluation code.
-TRAINING_SOURCES = ("core/train.py", "spec.py")
-EVAL_SOURCES = TRAINING_SOURCES + ("core/evaluate.py",)
+# What a run computes is the keyed package, esr_cli/model: the spec's models, the training core,
+# learner, replay, networks, environments, methods and human models. A run's code digest covers
+# every file in it, so editing any of them re-keys runs, and model imports nothing outside
+# itself (tests/test_layout.py), so nothing else can change a run's numbers unseen. The host
+# loop (chunking, checkpoints, progress), the store, the CLI, plotting and docs live outside it:
+# they do not change the numbers (resuming is bit-identical). Evaluations use the same digest.
+# Artifacts of other kinds digest their own roots' import closures (`module_closure`): a human
+# its trainer's files, a figure its drawing code.
+MODEL_SOURCES = ("model",)
 PACKAGES = ("jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy", "esr-cli")
 
 
@@ -73,7 +74,7 @@ def _imports(path: Path) -> set[Path]:
     found = set()
     for name in names:
         parts = name.split(".")
-        for i in range(1, len(parts) + 1):
+        for i in range(2, len(parts) + 1):  # from esr_cli.X on: the root __init__ is only a version
             f = _module_file(".".join(parts[:i]))
             if f is not None:
                 found.add(f)
@@ -98,7 +99,7 @@ def module_closure(roots: tuple[str, ...]) -> list[Path]:
 
 
 @cache
-def code_digest(roots: tuple[str, ...] = TRAINING_SOURCES, alone: tuple[str, ...] = ()) -> str:
+def code_digest(roots: tuple[str, ...] = MODEL_SOURCES, alone: tuple[str, ...] = ()) -> str:
     """blake2b over the path and bytes of every file in the import closure of `roots`, and of
     the files `alone` without what they import (host code such as an analysis's store and
     checkpoint plumbing, which decides where numbers are read from, never what they are)."""

@@ -19,7 +19,8 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from esr_cli import provenance, spec as specs, yamlio
+from esr_cli import provenance, specs, yamlio
+from esr_cli.model import spec as spec_model
 from esr_cli.artifacts import ensure
 from esr_cli.checkpoint_files import verified_steps
 from esr_cli.finals import FINAL_FRACTION, final_per_seed, read_rows, series
@@ -58,7 +59,7 @@ class Evidence:
     path: Path
     status: str  # complete | partial
     budget: str
-    spec: specs.Spec
+    spec: spec_model.Spec
     rows: list[dict]
     commit: Optional[str]  # the checkout it was started from
     device: Optional[str] = None  # where it ran, e.g. 'gpu:NVIDIA H200'; None: unknown
@@ -108,7 +109,7 @@ class Evidence:
         return f"{self.epochs_done:,} epochs{state}, {self.seeds} seed{'s' if self.seeds != 1 else ''}"
 
 
-def _without_train(spec: specs.Spec) -> str:
+def _without_train(spec: spec_model.Spec) -> str:
     part = spec.training_part()
     part.pop("train")
     return json.dumps(part, sort_keys=True)
@@ -148,7 +149,7 @@ def _rank(e: Evidence) -> tuple:
     return (e.epochs_done, e.seeds, e.status == "complete")
 
 
-def best(index: dict[str, list[Evidence]], spec: specs.Spec) -> Optional[Evidence]:
+def best(index: dict[str, list[Evidence]], spec: spec_model.Spec) -> Optional[Evidence]:
     return max(index.get(_without_train(spec), []), key=_rank, default=None)
 
 
@@ -164,7 +165,7 @@ def _join_rows(runs: list[Evidence]) -> list[dict]:
             for rows in zip(*(e.rows for e in runs))]
 
 
-def pooled(index: dict[str, list[Evidence]], spec: specs.Spec) -> Optional[Evidence]:
+def pooled(index: dict[str, list[Evidence]], spec: spec_model.Spec) -> Optional[Evidence]:
     """The evidence for `spec`: its longest run, or, where several finished runs share that
     length and differ only in their seeds (same commit, device and every other training
     field; no seed twice), all of them as one run of their joined seeds. Which of two
@@ -185,7 +186,7 @@ def pooled(index: dict[str, list[Evidence]], spec: specs.Spec) -> Optional[Evide
                    rows=_join_rows(mates), parts=tuple(mates), _finals={})
 
 
-def others(index: dict[str, list[Evidence]], spec: specs.Spec, chosen: Evidence) -> list[Evidence]:
+def others(index: dict[str, list[Evidence]], spec: spec_model.Spec, chosen: Evidence) -> list[Evidence]:
     """The runs of `spec` besides `chosen` (or the runs it pools), longest first."""
     used = {p.key for p in chosen.parts} | {chosen.key}
     return sorted((e for e in index.get(_without_train(spec), []) if e.key not in used), key=_rank, reverse=True)
@@ -263,7 +264,7 @@ def paper_claims() -> list[Claim]:
     return claims
 
 
-def claim_spec(ref: tuple[str, tuple[str, ...]]) -> specs.Spec:
+def claim_spec(ref: tuple[str, tuple[str, ...]]) -> spec_model.Spec:
     stem, sets = ref
     return specs.load(EXPERIMENTS / f"{stem}.yaml", "paper", list(sets))
 
@@ -303,20 +304,20 @@ def _paper_repr_lr(name: str) -> Optional[float]:
         base = specs.load(EXPERIMENTS / f"{name}.yaml", "paper")
     except (OSError, specs.SpecError, yamlio.YamlInputError):
         return None
-    return base.method.repr_lr if isinstance(base.method, specs.ESRMethodSpec) else None
+    return base.method.repr_lr if isinstance(base.method, spec_model.ESRMethodSpec) else None
 
 
-def run_label(spec: specs.Spec) -> str:
+def run_label(spec: spec_model.Spec) -> str:
     """The method of a run as a reader knows it, with what sets it apart from the paper's
     settings in brackets: 'ESR (warm-up 20, representation rate 0.001)', 'AvE (published)'."""
     from esr_cli.figures import PAPER_LABELS
 
     method, notes = spec.method, []
-    if isinstance(method, specs.AvEMethodSpec) and method.variant == "original":
+    if isinstance(method, spec_model.AvEMethodSpec) and method.variant == "original":
         notes.append("published")
-    if isinstance(method, specs.GoalInferenceMethodSpec):
+    if isinstance(method, spec_model.GoalInferenceMethodSpec):
         notes.append("published" if method.variant == "original" else "exact posterior")
-    if isinstance(method, specs.ESRMethodSpec):
+    if isinstance(method, spec_model.ESRMethodSpec):
         if not method.condition_on_robot_action:
             notes.append("without aR")
         if method.future == "human":
@@ -473,7 +474,7 @@ def _override_text(path: str, value) -> str:
     return f"{path}={text}"
 
 
-def train_overrides(spec: specs.Spec, budget: str, experiments: Path = EXPERIMENTS) -> Optional[tuple[Path, list[str]]]:
+def train_overrides(spec: spec_model.Spec, budget: str, experiments: Path = EXPERIMENTS) -> Optional[tuple[Path, list[str]]]:
     """The spec file in `experiments` and the `--set` values that, at `budget`, resolve to this
     spec's training part (the run's key), or None when no such file does. The result is checked
     by resolving it, so a command printed from it makes this very run."""

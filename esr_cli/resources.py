@@ -107,7 +107,7 @@ def observation(spec):
     import jax
     import numpy as np
 
-    from esr_cli.envs import make_env
+    from esr_cli.model.envs import make_env
 
     env = make_env(spec.env)
     shape = jax.eval_shape(lambda k: env.observe(env.reset(k)), jax.random.PRNGKey(0))
@@ -222,7 +222,7 @@ def check_run_fits(spec) -> Estimate:
     """Raise ResourceError when the run's estimate exceeds the memory that will hold it."""
     import jax
 
-    from esr_cli.core.train import default_seed_batch
+    from esr_cli.model.train import default_seed_batch
 
     on_cpu = jax.default_backend() == "cpu"
     seeds_at_once = default_seed_batch() or len(spec.train.seeds)

@@ -1,5 +1,5 @@
 """What a training run shows as it goes: the progress bar on a terminal, plain lines in a log
-file, the time an epoch and the run take, and the acknowledgement of a stop (core/loop.py calls
+file, the time an epoch and the run take, and the acknowledgement of a stop (runner/loop.py calls
 these as it trains)."""
 
 from __future__ import annotations

@@ -17,12 +17,13 @@ import jax
 import numpy as np
 from rich.console import Console
 
-from esr_cli import provenance, spec as specs, stored_humans
+from esr_cli import provenance, specs, stored_humans
 from esr_cli.artifacts import Recipe
 from esr_cli.checkpoint_files import run_length
-from esr_cli.core import evaluate as ev, loop
-from esr_cli.core.wandb_log import WandbLog, wandb_folder
-from esr_cli.core.train import make_trainer
+from esr_cli.model import evaluate as ev
+from esr_cli.runner import loop
+from esr_cli.runner.wandb_log import WandbLog, wandb_folder
+from esr_cli.model.train import make_trainer
 from esr_cli.finals import read_rows
 from esr_cli.printing import train_line
 from esr_cli.resources import check_run_fits
@@ -119,9 +120,9 @@ def _wandb_log(folder: Path, key: str, spec, run_dir: Path, seeds: list[int], ro
 def run_recipe(spec, console: Console, stop_at: float | None = None, quick=None, wandb: bool = False) -> Recipe:
     """The training run of `spec` as an artifact: trained, or resumed from its checkpoint, when
     the store lacks it; its BC humans (if any) are made first. stop_at (a time.monotonic()
-    value): stop at the last chunk boundary before it, resumable (loop.TimeLimitReached).
+    value): stop at the last chunk boundary before it, resumable (stops.TimeLimitReached).
     quick: the same spec at --budget quick, whose time the run estimates too. wandb: also log
-    to an offline wandb run in the store (esr_cli/core/wandb_log.py)."""
+    to an offline wandb run in the store (esr_cli/runner/wandb_log.py)."""
     key, components = run_key(spec)
 
     def check(store: Store):  # memory and disk, before anything is built or written
@@ -202,7 +203,7 @@ def eval_key(run_manifest: dict, episodes: int, partner_key: str | None = None, 
         "kind": "eval",
         "run": run_manifest["key"],
         "episodes": episodes,
-        "code": provenance.code_digest(provenance.EVAL_SOURCES),
+        "code": provenance.code_digest(provenance.MODEL_SOURCES),
         "toolchain": provenance.toolchain(),
     }
     if partner_key is not None:  # a human other than the one the robot trained with
@@ -236,7 +237,7 @@ def eval_recipe(run_path: Path, store: Store, episodes: int | None, console: Con
 
     def build(eval_dir: Path, store: Store) -> dict:
         from esr_cli import plots  # matplotlib: only where an evaluation is made
-        from esr_cli.envs.action_labels import action_labels
+        from esr_cli.model.envs.action_labels import action_labels
 
         enable_compile_cache()
         trainer = build_trainer(spec, store)

@@ -30,7 +30,8 @@ from typing import Any, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from esr_cli import spec as specs, yamlio
+from esr_cli import specs, yamlio
+from esr_cli.model import spec as spec_model
 from esr_cli.printing import train_line
 from esr_cli.store import content_key
 
@@ -74,11 +75,11 @@ class SlurmOptions(_Model):
     partition: Optional[str] = Field(None, min_length=1)
     account: Optional[str] = Field(None, min_length=1)
     qos: Optional[str] = Field(None, min_length=1)
-    time_min: specs.Int = Field(720, ge=1, le=366 * 24 * 60, description="wall-clock limit of one job, minutes")
-    gpus: specs.Int = Field(1, ge=0, le=64, description="GPUs per job")
-    cpus: specs.Int = Field(8, ge=1, le=4096, description="CPU cores per job")
-    mem_gb: specs.Float = Field(32, gt=0, le=65_536, description="memory per job, GB")
-    array_parallelism: specs.Int = Field(64, ge=1, le=MAX_RUNS, description="at most this many jobs of the array run at once")
+    time_min: spec_model.Int = Field(720, ge=1, le=366 * 24 * 60, description="wall-clock limit of one job, minutes")
+    gpus: spec_model.Int = Field(1, ge=0, le=64, description="GPUs per job")
+    cpus: spec_model.Int = Field(8, ge=1, le=4096, description="CPU cores per job")
+    mem_gb: spec_model.Float = Field(32, gt=0, le=65_536, description="memory per job, GB")
+    array_parallelism: spec_model.Int = Field(64, ge=1, le=MAX_RUNS, description="at most this many jobs of the array run at once")
     setup: tuple[str, ...] = Field((), description="shell lines run before each job (module load, ...)")
     additional: dict[str, Any] = Field(default_factory=dict, description="extra sbatch options, e.g. {constraint: a100}")
 
@@ -123,7 +124,7 @@ class Run:
 
     spec_path: Path  # absolute
     sets: tuple[str, ...]  # `--set` texts, in the order they apply
-    spec: specs.Spec  # validated, budget and sets applied
+    spec: spec_model.Spec  # validated, budget and sets applied
     key: str  # the training run's content key (runs.run_key)
 
     @property
@@ -211,8 +212,8 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
     """Read, validate and expand a suite: every run's spec is loaded and validated here."""
     p = specs.experiment_file(path)
     source = str(p)
-    if budget not in specs.BUDGETS:
-        raise SuiteError(source, "--budget", f"unknown budget {budget!r}; known: {', '.join(specs.BUDGETS)}")
+    if budget not in spec_model.BUDGETS:
+        raise SuiteError(source, "--budget", f"unknown budget {budget!r}; known: {', '.join(spec_model.BUDGETS)}")
     try:
         raw = yamlio.read(p)  # bounded: size limit, no aliases, no duplicate keys
     except yamlio.YamlInputError as e:

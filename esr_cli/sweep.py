@@ -37,7 +37,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from esr_cli import provenance, spec as specs
+from esr_cli import provenance, specs
 from esr_cli.artifacts import ensure
 from esr_cli.printing import plain_console, tagged
 from esr_cli.store import RUN_KIND, Store, atomic_write_text, read_pending
@@ -318,9 +318,9 @@ def known_metrics(suite: Suite, store: Store, rows: Optional[list[RunStatus]] = 
     """Every metric `--metric` may name for this suite: the trainer's own, those each registered
     method declares (ESR's with inferred human actions too), and whatever the suite's committed
     runs logged (a learning human's, for one)."""
-    from esr_cli.core.train import BASE_METRICS
+    from esr_cli.model.train import BASE_METRICS
     from esr_cli.finals import read_rows
-    from esr_cli.methods.registry import METHODS
+    from esr_cli.model.methods.registry import METHODS
 
     names = dict.fromkeys(BASE_METRICS)
     for cls in METHODS.values():
@@ -464,7 +464,7 @@ def _train(spec_path: str, budget: str, sets: list[str], store_root: str, stop_a
     import time
 
     from esr_cli import runs  # jax and the training core load only where a run is made here
-    from esr_cli.core.stops import TimeLimitReached
+    from esr_cli.runner.stops import TimeLimitReached
 
     stop_at = None if stop_after_s is None else time.monotonic() + stop_after_s
     spec = specs.load(spec_path, budget, sets)
@@ -571,8 +571,8 @@ def _check_local_runs_fit(todo: list[RunStatus]) -> None:
 
 def _run_local(todo: list[RunStatus], store: Store, console: Console, result: SweepResult) -> None:
     from esr_cli import runs  # jax and the training core load only where a run is made here
-    from esr_cli.core.stops import Interrupted
-    from esr_cli.core.train import release_compiled
+    from esr_cli.runner.stops import Interrupted
+    from esr_cli.model.train import release_compiled
 
     for i, s in enumerate(todo, 1):
         console.print(tagged(f"({i}/{len(todo)})", "bold", f" {s.run.label}"))

@@ -12,7 +12,8 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from esr_cli import spec as specs, yamlio
+from esr_cli import specs, yamlio
+from esr_cli.model import spec as spec_model
 from esr_cli.analysis.state_count import TooManyStates, check_size
 from esr_cli.store import EXACT_KIND, PLAY_KIND, RUN_KIND, Store, StoreError
 
@@ -139,7 +140,7 @@ def exact_target(spec, store: Store, goal, gamma: float | None, robot: str | Non
     robot_spec = run_spec(run_path)
     if robot_spec.env != spec.env:
         raise StoreError(f"robot {robot} was trained on another environment than {spec.name}")
-    if robot_spec.method.kind in specs.POLICY_FREE_METHODS:  # no Q-values behind its actions
+    if robot_spec.method.kind in spec_model.POLICY_FREE_METHODS:  # no Q-values behind its actions
         why = ("which acts uniformly at random: leave out --robot for the uniform robot" if robot_spec.method.kind == "random"
                else "which acts by a rule, not by a policy over Q-values")
         raise StoreError(f"robot {robot} is a {robot_spec.method.kind} run, {why}")
@@ -158,8 +159,8 @@ def geometry_options(gamma: float, state: int) -> None:
 
 def complete_play_key(store: Store, ref: str) -> str:
     """The whole key of the one played episode (`play` artifact) whose key starts with `ref`."""
-    if not specs.is_play_key_ref(ref):
-        raise StoreError(specs.not_a_play_key(ref))
+    if not spec_model.is_play_key_ref(ref):
+        raise StoreError(spec_model.not_a_play_key(ref))
     if len(ref) == 32:
         return ref
     hits = [e.key for e in store.entries() if e.kind == PLAY_KIND and e.status == "complete" and e.key.startswith(ref)]

@@ -5,14 +5,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esr_cli import spec as specs
-from esr_cli import replay
-from esr_cli.core.train import make_trainer
-from esr_cli.envs.gridworld import DOWN, RIGHT, STAY, Gridworld, GridState
-from esr_cli.humans.gridworld import NoisyGreedyHuman
-from esr_cli.methods.ave import AvE
-from esr_cli.methods.goal_inference import GoalInference
-from esr_cli.methods.iq_learn import IQLearn
+from esr_cli import specs
+from esr_cli.model import spec as spec_model
+from esr_cli.model import replay
+from esr_cli.model.train import make_trainer
+from esr_cli.model.envs.gridworld import DOWN, RIGHT, STAY, Gridworld, GridState
+from esr_cli.model.humans.gridworld import NoisyGreedyHuman
+from esr_cli.model.methods.ave import AvE
+from esr_cli.model.methods.goal_inference import GoalInference
+from esr_cli.model.methods.iq_learn import IQLearn
 
 STEPS = 800  # IQ-Learn updates in the fitted toy case
 KEY = jax.random.PRNGKey(0)
@@ -46,7 +47,7 @@ def test_ave_proxy_matches_numpy(variant):
     env = Gridworld(size=5, num_blocks=3, start="corner", episode_steps=50)
     human, blocks = [1, 1], [[1, 2], [0, 1], [3, 3]]
     obs = env.observe(grid_state(human, blocks, [4, 4]))
-    spec = specs.AvEMethodSpec(kind="ave", num_rollouts=20, rollout_length=5, variant=variant)
+    spec = spec_model.AvEMethodSpec(kind="ave", num_rollouts=20, rollout_length=5, variant=variant)
     ave = AvE(env=env, spec=spec)
     key = jax.random.PRNGKey(3)
     actions = np.asarray(ave.rollout_actions(key, 1))[0]  # the same draws as state_reward's
@@ -68,7 +69,7 @@ def test_published_overcooked_ave_is_one_step_and_one_variance_over_the_human_ob
     """variant: original on Overcooked, against JaxMARL stepped directly from the true state:
     each rollout is one uniform human action (the robot staying), the reward the log of one
     variance over every element of the rollouts' human observations."""
-    from esr_cli.envs.overcooked import STAY as OC_STAY, Overcooked
+    from esr_cli.model.envs.overcooked import STAY as OC_STAY, Overcooked
 
     env = Overcooked("cramped_room", 400)
     spec = specs.load("experiments/cramped_room_ave.yaml", "smoke", ["method.variant=original"])
@@ -88,7 +89,7 @@ def test_published_overcooked_ave_is_one_step_and_one_variance_over_the_human_ob
 
 def test_ave_proxy_is_lowest_for_a_trapped_human():
     env = Gridworld(size=5, num_blocks=2, start="corner", episode_steps=50)
-    ave = AvE(env=env, spec=specs.AvEMethodSpec(kind="ave"))
+    ave = AvE(env=env, spec=spec_model.AvEMethodSpec(kind="ave"))
     trapped = env.observe(grid_state([0, 0], [[0, 1], [1, 0]], [4, 4]))
     free = env.observe(grid_state([2, 2], [[0, 1], [1, 0]], [4, 4]))
     r = ave.state_reward(jnp.stack([trapped, free]), jax.random.PRNGKey(0))

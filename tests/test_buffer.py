@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from esr_cli import replay
+from esr_cli.model import replay
 
 T = 10
 

@@ -132,9 +132,9 @@ def test_random_robot_runs_on_the_same_runner(smoke_store):
 def test_interrupted_run_resumes_to_the_same_result(tmp_path):
     """SIGINT after the first chunk: saved, stopped; the second call resumes; the result equals
     an uninterrupted run's bit for bit."""
-    from esr_cli import spec as specs
-    from esr_cli.core import loop
-    from esr_cli.core.train import make_trainer
+    from esr_cli import specs
+    from esr_cli.runner import loop, stops
+    from esr_cli.model.train import make_trainer
 
     spec = specs.load("experiments/grid_2.yaml", "smoke")
     trainer = make_trainer(spec)
@@ -147,7 +147,7 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path):
     try:
         loop.train(trainer, cut, on_chunk=lambda *a: os.kill(os.getpid(), signal.SIGINT))
         raise AssertionError("the run did not stop")
-    except loop.Interrupted as e:
+    except stops.Interrupted as e:
         assert e.epoch == 1
     assert len(loop.read_rows(cut)) == 1
     loop.train(trainer, cut)

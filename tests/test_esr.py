@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esr_cli import spec as specs
-from esr_cli.envs.gridworld import Gridworld
-from esr_cli.methods.esr import (
+from esr_cli import specs
+from esr_cli.model.envs.gridworld import Gridworld
+from esr_cli.model.methods.esr import (
     ESR,
     contrastive_accuracy,
     contrastive_chance,
@@ -123,7 +123,7 @@ def test_no_robot_action_ablation_ignores_the_robot_action():
 
 
 def test_patch_conv_equals_a_real_convolution():
-    from esr_cli.networks import PatchConv
+    from esr_cli.model.networks import PatchConv
 
     x = jax.random.normal(jax.random.PRNGKey(0), (3, 5, 5, 4))
     layer = PatchConv(6)
@@ -136,8 +136,8 @@ def test_patch_conv_equals_a_real_convolution():
 
 def _filled_buffer(env, episodes=6, seed=0):
     """A replay buffer holding `episodes` random-play episodes of `env`."""
-    from esr_cli import replay
-    from esr_cli.humans.gridworld import NoisyGreedyHuman
+    from esr_cli.model import replay
+    from esr_cli.model.humans.gridworld import NoisyGreedyHuman
 
     human = NoisyGreedyHuman(env=env, noise=0.2)
     t_max = env.episode_steps
@@ -162,7 +162,7 @@ def _filled_buffer(env, episodes=6, seed=0):
 
 @pytest.mark.slow
 def test_reward_table_gives_the_rewards_of_direct_representation():
-    from esr_cli import replay
+    from esr_cli.model import replay
 
     esr, env = _esr()
     buf = _filled_buffer(env)
@@ -188,7 +188,7 @@ def test_same_future_packed_bytes_match_elementwise_comparison():
 
 def test_dense_layers_start_as_the_original_truncated_normals():
     """Haiku's Linear default: N(0, 1/fan_in) truncated at 2 deviations, not rescaled."""
-    from esr_cli.networks import ConvNet
+    from esr_cli.model.networks import ConvNet
 
     params = ConvNet((16, 32), 100, 32).init(jax.random.PRNGKey(0), jnp.zeros((1, 5, 5, 12)))
     w = np.asarray(params["params"]["Dense_0"]["kernel"])  # fan_in 800
@@ -197,7 +197,7 @@ def test_dense_layers_start_as_the_original_truncated_normals():
 
 
 def test_tables_are_used_only_when_the_buffer_is_smaller_than_a_phase_samples():
-    from esr_cli.core.train import make_trainer
+    from esr_cli.model.train import make_trainer
 
     paper = make_trainer(specs.load("experiments/grid_2.yaml", "paper"))  # 15,000 stored, 25,600 sampled
     assert paper.stored_transitions == 15000 and paper.reward_table_pays and paper.q_table_pays

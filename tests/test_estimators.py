@@ -8,10 +8,10 @@ import numpy as np
 import optax
 import pytest
 
-from esr_cli import replay
-from esr_cli import spec as specs
-from esr_cli.envs.gridworld import Gridworld, GridState
-from esr_cli.methods.esr import ESR, infonce_loss, mutual_information_estimate
+from esr_cli.model import replay
+from esr_cli import specs
+from esr_cli.model.envs.gridworld import Gridworld, GridState
+from esr_cli.model.methods.esr import ESR, infonce_loss, mutual_information_estimate
 
 
 def np_stacked_infonce(phi_s, phi_sa, psi):
@@ -216,7 +216,7 @@ def test_the_separate_loss_estimate_carries_an_arbitrary_offset_here():
 
 # ---------------------------------------------------------------- the simplified reward
 def test_simplified_reward_by_hand():
-    from esr_cli.methods.esr import simplified_reward
+    from esr_cli.model.methods.esr import simplified_reward
 
     phi_sa = np.array([[2.0, 0.0], [0.0, 0.0], [1.0, 1.0]], np.float32)
     phi_s = np.array([[0.0, 0.0], [1.0, 1.0], [1.0, 1.0]], np.float32)
@@ -230,7 +230,7 @@ def test_simplified_reward_by_hand():
 def test_simplified_reward_is_the_dot_reward_averaged_over_gaussian_futures():
     """With psi / sqrt(d) ~ N(0, I), E_{p(g)}[exp(phi . psi / d) (phi - phi')^T psi] equals the
     simplified reward: checked by Monte Carlo over a million Gaussian futures."""
-    from esr_cli.methods.esr import simplified_reward
+    from esr_cli.model.methods.esr import simplified_reward
 
     d = 4
     rng = np.random.default_rng(0)
@@ -251,7 +251,7 @@ def test_the_papers_simplified_reward_overflows_where_the_normalized_one_stays_s
     """Representations as long as a grid_2 run's become within two epochs (there the paper's
     reward averaged 2.5e13 after one epoch and 2.7e32 after two): the paper's factor
     exp(|phi|^2 / 2d) multiplies the normalized reward, and the critic's squared error overflows."""
-    from esr_cli.methods.esr import simplified_reward
+    from esr_cli.model.methods.esr import simplified_reward
 
     d = 32
     phi_sa = jnp.full((1, d), np.sqrt(90.0), jnp.float32)  # |phi|^2 / 2d = 45
@@ -281,7 +281,7 @@ def test_simplified_reward_needs_no_future_and_the_table_agrees(reward):
     a = esr.reward(state, batch(obs), jax.random.PRNGKey(1))
     b = esr.reward(state, batch(obs[::-1]), jax.random.PRNGKey(2))
     np.testing.assert_array_equal(a, b)  # the future state plays no part
-    from esr_cli.methods.esr import simplified_reward
+    from esr_cli.model.methods.esr import simplified_reward
 
     want = simplified_reward(*esr.represent_phi(state.params, obs, ar, ah), normalized=reward == "simplified_normalized")
     np.testing.assert_allclose(a, want, rtol=1e-6)
@@ -297,7 +297,7 @@ def test_simplified_reward_needs_no_future_and_the_table_agrees(reward):
 
 # ---------------------------------------------------------------- inferred human actions
 def test_code_action_agreement_by_hand():
-    from esr_cli.methods.latent_actions import code_action_agreement
+    from esr_cli.model.methods.latent_actions import code_action_agreement
 
     # codes 0,0,1,1 for actions 2,2,3,4: the best map 0->2, 1->3 (or 4) is right 3 times in 4.
     got = code_action_agreement(jnp.array([0, 0, 1, 1]), jnp.array([2, 2, 3, 4]), 3, 5)

@@ -1,4 +1,4 @@
-"""TensorBoard event files of a run (esr_cli/core/event_log.py), read back with TensorBoard's
+"""TensorBoard event files of a run (esr_cli/runner/event_log.py), read back with TensorBoard's
 own reader: the same values as metrics.jsonl, per seed and as the seeds' mean, and written
 afresh from the metrics kept when a run resumes."""
 
@@ -9,7 +9,7 @@ import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from conftest import esr
-from esr_cli.core.event_log import EVENTS_DIR, EventLog
+from esr_cli.runner.event_log import EVENTS_DIR, EventLog
 
 
 def scalars(path):
@@ -124,7 +124,7 @@ def test_a_run_trained_with_wandb_has_an_offline_record_of_its_metrics(tmp_path)
 
 @pytest.mark.slow
 def test_the_wandb_record_is_written_afresh_from_the_metrics_kept(tmp_path):
-    from esr_cli.core.wandb_log import WandbLog
+    from esr_cli.runner.wandb_log import WandbLog
 
     def row(epoch):
         return {"epoch": epoch, "env_steps": 10 * epoch, "return": [float(epoch), -1.0]}

@@ -9,9 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esr_cli.analysis import exact
-from esr_cli.envs.gridworld import Gridworld, GridState
-from esr_cli.humans.gridworld import NoisyGreedyHuman
+from esr_cli.analysis import exact, state_count
+from esr_cli.model.envs.gridworld import Gridworld, GridState
+from esr_cli.model.humans.gridworld import NoisyGreedyHuman
 
 GAMMA = 0.7
 GOAL = (2, 2)
@@ -293,18 +293,18 @@ def test_the_state_bound_holds_the_reachable_states(size, blocks, start):
     env = Gridworld(size=size, num_blocks=blocks, start=start, episode_steps=50)
     goal = (size // 2, size // 2)
     found = exact.enumerate_states(env, goal, exact.start_states(env, goal, 256)).size
-    assert found <= exact.state_bound(size, blocks) <= 1.3 * found
-    assert exact.state_bound(4, 3) == 8960 and exact.state_bound(16, 0) == 256
+    assert found <= state_count.state_bound(size, blocks) <= 1.3 * found
+    assert state_count.state_bound(4, 3) == 8960 and state_count.state_bound(16, 0) == 256
 
 
 def test_the_spec_alone_refuses_a_space_too_large():
-    assert exact.check_size(4, 3) == 8960  # the largest shipped spec for exact analysis
-    assert exact.check_size(4, 4) == 29120  # 28,604 reachable: the sparse series' range
+    assert state_count.check_size(4, 3) == 8960  # the largest shipped spec for exact analysis
+    assert state_count.check_size(4, 4) == 29120  # 28,604 reachable: the sparse series' range
     with pytest.raises(exact.TooManyStates, match=r"env.size=16, env.blocks=40: up to .* states, more than the 30,000 "
                                                   r"exact analysis handles: lower env.size or env.blocks"):
-        exact.check_size(16, 40)
+        state_count.check_size(16, 40)
     with pytest.raises(exact.TooManyStates, match="up to 57,500 states"):
-        exact.check_size(5, 3)
+        state_count.check_size(5, 3)
 
 
 @pytest.mark.slow
@@ -314,7 +314,7 @@ def test_exact_above_the_dense_limit_covers_the_visited_pairs(tmp_path, monkeypa
     the complete computation's."""
     from rich.console import Console
 
-    from esr_cli import exact_runs, spec as specs
+    from esr_cli import exact_runs, specs
     from esr_cli.artifacts import ensure
     from esr_cli.store import Store
 
@@ -339,7 +339,7 @@ def test_exact_above_the_dense_limit_covers_the_visited_pairs(tmp_path, monkeypa
 def test_a_failed_exact_build_leaves_no_lock_or_partial_artifact(tmp_path, monkeypatch):
     from rich.console import Console
 
-    from esr_cli import exact_runs, spec as specs
+    from esr_cli import exact_runs, specs
     from esr_cli.artifacts import ensure
     from esr_cli.store import EXACT_KIND, Store
 

@@ -7,10 +7,10 @@ import jax
 import numpy as np
 import pytest
 
-from esr_cli import spec as specs
-from esr_cli.core.train import make_trainer
-from esr_cli.interfaces import Method
-from esr_cli.methods import registry
+from esr_cli import specs
+from esr_cli.model.train import make_trainer
+from esr_cli.model.interfaces import Method
+from esr_cli.model.methods import registry
 
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 
@@ -24,7 +24,7 @@ def test_the_example_method_trains(monkeypatch):
     monkeypatch.setitem(registry.METHODS, "room_to_move", method_cls)
 
     base = specs.load("experiments/grid_5.yaml", "smoke")
-    # The page's spec model would be in spec.py's METHOD_SPECS; here it is built directly.
+    # The page's spec model would be in model/spec.py's METHOD_SPECS; here it is built directly.
     spec = base.model_copy(update={"method": spec_cls(kind="room_to_move")})
     trainer = make_trainer(spec)
     assert isinstance(trainer.method, method_cls) and isinstance(trainer.method, Method)

@@ -15,7 +15,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from conftest import ROOT, esr
-from esr_cli import resources, spec as specs, suite as suites, yamlio
+from esr_cli import resources, specs, suite as suites, yamlio
+from esr_cli.model import spec as spec_model
 from esr_cli.cli import main
 
 VALID = """name: t
@@ -322,9 +323,9 @@ def test_network_size_estimate_counts_the_real_parameters(kind, params):
     import jax
     import numpy as np
 
-    from esr_cli.networks import conv_net
+    from esr_cli.model.networks import conv_net
 
-    net_spec = specs.NetworkSpec(kind=kind, **params)
+    net_spec = spec_model.NetworkSpec(kind=kind, **params)
     obs = np.zeros((1, 5, 4, 3), np.uint8)
     shapes = jax.eval_shape(conv_net(net_spec, 32).init, jax.random.PRNGKey(0), obs)
     real = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(shapes))
@@ -431,7 +432,7 @@ def test_slurm_overrides_on_the_command_line_are_one_line_errors(tmp_path):
 
 
 def test_eval_episodes_are_bounded_like_the_spec(tmp_path):
-    field = specs.EvalSpec.model_fields["episodes"]
+    field = spec_model.EvalSpec.model_fields["episodes"]
     bound = f"{next(m.le for m in field.metadata if getattr(m, 'le', None) is not None):,}"  # the spec's own bound
     for n in ("0", "-3", "1000001", "10000000000000"):
         proc = esr("eval", str(GRID_2), "--episodes", n, store=tmp_path / "store", check=False)

@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esr_cli.envs.gridworld import DOWN, LEFT, RIGHT, STAY, UP, Gridworld, GridState
-from esr_cli.humans.gridworld import NoisyGreedyHuman
+from esr_cli.model.envs.gridworld import DOWN, LEFT, RIGHT, STAY, UP, Gridworld, GridState
+from esr_cli.model.humans.gridworld import NoisyGreedyHuman
 
 
 def setup(human, blocks, goal, noise=0.0):

@@ -1,11 +1,13 @@
-"""Every environment, human model and method meets its interface (esr_cli/interfaces.py), with
+"""Every environment, human model and method meets its interface (esr_cli/model/interfaces.py), with
 each optional capability declared and backed by the members it promises."""
 
 import pytest
 
 from conftest import ROOT
-from esr_cli import interfaces as api, spec as specs
-from esr_cli.core.train import make_trainer
+from esr_cli.model import interfaces as api
+from esr_cli import specs
+from esr_cli.model import spec as spec_model
+from esr_cli.model.train import make_trainer
 
 GRID_SPECS = ["grid_2", "grid_2_random", "grid_2_ave", "grid_2_goal_inference", "grid_2_iq_learn", "grid_2_oracle"]
 
@@ -30,9 +32,9 @@ def test_overcooked_environment_and_an_adapting_bc_human_meet_theirs():
     import jax
     import jax.numpy as jnp
 
-    from esr_cli.envs import make_env
-    from esr_cli.humans.bc import cloned_policy
-    from esr_cli.humans.policy_human import PolicyHuman
+    from esr_cli.model.envs import make_env
+    from esr_cli.model.humans.bc import cloned_policy
+    from esr_cli.model.humans.policy_human import PolicyHuman
 
     spec = specs.load(ROOT / "experiments/cramped_room.yaml", "smoke", ["human.adapt=true"])
     env = make_env(spec.env)
@@ -44,32 +46,10 @@ def test_overcooked_environment_and_an_adapting_bc_human_meet_theirs():
     assert isinstance(human, api.LearningHuman) and human.learns is True and human.metric_names
 
 
-def test_no_import_cycle_between_files():
-    """Every esr_cli import (module level or inside functions, with the __init__.py of the
-    packages it passes through) forms no cycle: the dependency graph reads top to bottom."""
-    from esr_cli import provenance
-
-    files = sorted(provenance.PACKAGE_DIR.rglob("*.py"))
-    graph = {f: provenance._imports(f) - {f} for f in files}
-    state: dict = {}
-
-    def visit(f, path):
-        if state.get(f) == "done":
-            return
-        assert state.get(f) != "open", "import cycle: " + " -> ".join(p.name for p in path + [f])
-        state[f] = "open"
-        for g in sorted(graph[f]):
-            visit(g, path + [f])
-        state[f] = "done"
-
-    for f in files:
-        visit(f, [])
-
-
 def test_registry_builds_every_method_kind_of_the_spec():
-    from esr_cli.methods.registry import METHODS, method_class
+    from esr_cli.model.methods.registry import METHODS, method_class
 
-    assert set(METHODS) == set(specs.KIND_MODELS["method"])
+    assert set(METHODS) == set(spec_model.KIND_MODELS["method"])
     for kind in METHODS:
         assert hasattr(method_class(kind), "from_spec")
     with pytest.raises(ValueError, match="unknown method kind 'nope'"):
@@ -77,12 +57,12 @@ def test_registry_builds_every_method_kind_of_the_spec():
 
 
 def test_the_specs_static_facts_agree_with_the_code():
-    """spec.py checks specs without importing JAX, so it keeps two facts of its own: which
+    """model/spec.py checks specs without importing JAX, so it keeps two facts of its own: which
     method kinds learn no policy, and each environment's robot action count."""
-    from esr_cli.envs import make_env
-    from esr_cli.methods.registry import METHODS
+    from esr_cli.model.envs import make_env
+    from esr_cli.model.methods.registry import METHODS
 
-    assert specs.POLICY_FREE_METHODS == {k for k, cls in METHODS.items() if not cls._field_defaults["learns_policy"]}
+    assert spec_model.POLICY_FREE_METHODS == {k for k, cls in METHODS.items() if not cls._field_defaults["learns_policy"]}
     for name in ("grid_2", "cramped_room"):
         spec = specs.load(ROOT / "experiments" / f"{name}.yaml", "smoke", ["env.size=6"] if name == "grid_2" else [])
         assert spec.env.robot_actions == make_env(spec.env).num_robot_actions

@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esr_cli.core.learner import BETA_MAX, BETA_MIN, dual_loss, entropy, policy_log_probs, td_loss
+from esr_cli.model.learner import BETA_MAX, BETA_MIN, dual_loss, entropy, policy_log_probs, td_loss
 
 
 def test_td_loss_by_hand():
@@ -30,8 +30,8 @@ def test_policy_is_a_distribution_and_beta_sharpens_it():
 
 @pytest.mark.slow
 def test_dual_step_moves_beta_toward_the_target_entropy():
-    from esr_cli import spec as specs
-    from esr_cli.core.learner import LearnerState, SoftQLearner
+    from esr_cli import specs
+    from esr_cli.model.learner import LearnerState, SoftQLearner
 
     spec = specs.load("experiments/grid_2.yaml", "smoke")
     learner = SoftQLearner(num_actions=125, network_spec=spec.network, spec=spec.learner)
@@ -54,8 +54,8 @@ def test_dual_loss_is_zero_at_the_target():
 def test_linear_dual_step_moves_log_beta_by_the_entropy_gap():
     import jax
 
-    from esr_cli import spec as specs
-    from esr_cli.core.learner import LearnerState, SoftQLearner
+    from esr_cli import specs
+    from esr_cli.model.learner import LearnerState, SoftQLearner
 
     spec = specs.load("experiments/grid_2.yaml", "smoke", ["learner.dual=linear", "learner.dual_lr=0.1"])
     learner = SoftQLearner(num_actions=125, network_spec=spec.network, spec=spec.learner)
@@ -82,8 +82,8 @@ def test_linear_dual_step_moves_log_beta_by_the_entropy_gap():
 def test_warmup_epochs_act_uniformly():
     import jax
 
-    from esr_cli import spec as specs
-    from esr_cli.core.train import make_trainer
+    from esr_cli import specs
+    from esr_cli.model.train import make_trainer
 
     spec = specs.load("experiments/grid_2.yaml", "smoke", ["train.num_envs=64"])
     trainer = make_trainer(spec)
@@ -104,8 +104,8 @@ def test_warmup_epochs_act_uniformly():
 def test_dual_step_on_a_q_table_equals_the_dual_step_on_states():
     import jax
 
-    from esr_cli import spec as specs
-    from esr_cli.core.learner import SoftQLearner
+    from esr_cli import specs
+    from esr_cli.model.learner import SoftQLearner
 
     spec = specs.load("experiments/grid_2.yaml", "smoke")
     learner = SoftQLearner(num_actions=125, network_spec=spec.network, spec=spec.learner)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from esr_cli import runs, spec as specs
+from esr_cli import runs, specs
 from esr_cli.artifacts import ensure
 from esr_cli.store import Store
 

@@ -6,9 +6,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esr_cli import replay
-from esr_cli import spec as specs
-from esr_cli.core.train import make_trainer
+from esr_cli.model import replay
+from esr_cli import specs
+from esr_cli.model.train import make_trainer
 
 
 def _buffer(episodes=3, steps=4):
@@ -57,8 +57,8 @@ def test_original_pairing_trains_and_leaves_the_stored_buffer_as_played():
 
 @pytest.mark.slow
 def test_append_puts_each_action_once_and_broadcast_everywhere():
-    from esr_cli.envs.overcooked import Overcooked
-    from esr_cli.methods.esr import ESR
+    from esr_cli.model.envs.overcooked import Overcooked
+    from esr_cli.model.methods.esr import ESR
 
     env = Overcooked("cramped_room", 400)
     obs = jax.jit(env.observe)(jax.jit(env.reset)(jax.random.PRNGKey(0)))

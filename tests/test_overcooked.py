@@ -6,11 +6,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esr_cli import spec as specs
-from esr_cli.envs.overcooked import INTERACT, LAYOUTS, NUM_ACTIONS, STAY, Overcooked
-from esr_cli.humans import bc
-from esr_cli.humans import overcooked_data as od
-from esr_cli.humans.policy_human import PolicyHuman
+from esr_cli import specs
+from esr_cli.model import spec as spec_model
+from esr_cli.model.envs.overcooked import INTERACT, LAYOUTS, NUM_ACTIONS, STAY, Overcooked
+from esr_cli.model.humans import bc
+from esr_cli.model.humans import overcooked_data as od
+from esr_cli.model.humans.policy_human import PolicyHuman
 
 
 @pytest.fixture(scope="module")
@@ -187,7 +188,7 @@ def cell_rule(n: int, moving_fraction: float, seed: int):
 @pytest.mark.slow
 def test_bc_learns_a_state_dependent_rule_and_reports_non_stay_accuracy():
     obs, action, moving = cell_rule(1000, 0.3, seed=0)  # stays dominate
-    spec = specs.BCHumanSpec(kind="bc", epochs=10, lr=5e-3, batch_size=100)
+    spec = spec_model.BCHumanSpec(kind="bc", epochs=10, lr=5e-3, batch_size=100)
     params, losses = bc.train_bc(obs, action, spec)
     assert losses[-1] < losses[0]
     acc = bc.accuracies(params, bc.cloned_policy(spec).logits, obs, action)
@@ -197,10 +198,10 @@ def test_bc_learns_a_state_dependent_rule_and_reports_non_stay_accuracy():
 
 @pytest.mark.slow
 def test_bc_with_the_papers_network_learns_the_rule_and_has_the_ppo_humans_parameters():
-    from esr_cli.humans import conv_actor_critic as cac
+    from esr_cli.model.humans import conv_actor_critic as cac
 
     obs, action, _ = cell_rule(600, 0.4, seed=1)
-    spec = specs.BCHumanSpec(kind="bc", network="conv", epochs=15, lr=3e-3, batch_size=50)
+    spec = spec_model.BCHumanSpec(kind="bc", network="conv", epochs=15, lr=3e-3, batch_size=50)
     params, losses = bc.train_bc(obs, action, spec)
     assert losses[-1] < 0.5 * losses[0]
     acc = bc.accuracies(params, bc.cloned_policy(spec).logits, obs, action)
@@ -219,11 +220,11 @@ def test_bc_with_the_papers_network_learns_the_rule_and_has_the_ppo_humans_param
 
 
 def test_a_bc_human_names_its_network_in_its_key_and_refuses_mlp_settings_with_the_conv():
-    mlp, conv = specs.BCHumanSpec(kind="bc"), specs.BCHumanSpec(kind="bc", network="conv")
+    mlp, conv = spec_model.BCHumanSpec(kind="bc"), spec_model.BCHumanSpec(kind="bc", network="conv")
     assert "network" not in mlp.cloning_part("cramped_room") and mlp.cloning_part("cramped_room")["hidden"] == [64, 64]
     assert conv.cloning_part("cramped_room")["network"] == "conv" and "hidden" not in conv.cloning_part("cramped_room")
     with pytest.raises(ValueError, match="hidden sizes the MLP"):
-        specs.BCHumanSpec(kind="bc", network="conv", hidden=(32,))
+        spec_model.BCHumanSpec(kind="bc", network="conv", hidden=(32,))
     with pytest.raises(specs.SpecError, match="names MLP settings"):
         specs.load("experiments/cramped_room.yaml", "smoke", ["human={kind: bc, network: conv, preset: paper_random}"])
 
@@ -343,7 +344,7 @@ def test_observation_decodes_back_to_the_state(seat):
 def test_per_seed_humans_are_one_clone_per_training_seed(cramped):
     """human.per_seed: the clones' specs (cloning seed = human.seed + training seed), and each
     seed's training state holding its own clone's parameters."""
-    from esr_cli.humans.registry import make_human
+    from esr_cli.model.humans.registry import make_human
 
     spec = specs.load("experiments/cramped_room.yaml", "smoke", ["human.per_seed=true", "human.seed=10", "train.seeds=[3,7]"])
     clones = spec.human.clones(spec.train.seeds)
@@ -370,7 +371,7 @@ def test_jaxmarl_import_banner_is_dropped_and_nothing_reaches_stdout():
     import subprocess
     import sys
 
-    code = ("from esr_cli.envs.overcooked import jaxmarl_env, quiet_jaxmarl\n"
+    code = ("from esr_cli.model.envs.overcooked import jaxmarl_env, quiet_jaxmarl\n"
             "jaxmarl_env('cramped_room', 400)\n"
             "with quiet_jaxmarl():\n"
             "    print('from jaxmarl')\n"

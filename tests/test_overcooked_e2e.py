@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from esr_cli import human_runs, runs, spec as specs, stored_humans
+from esr_cli import human_runs, runs, specs, stored_humans
+from esr_cli.model import spec as spec_model
 from esr_cli.artifacts import ensure
-from esr_cli.humans import overcooked_data as od
-from esr_cli.networks import MLP, conv_net, orthogonal
+from esr_cli.model.humans import overcooked_data as od
+from esr_cli.model.networks import MLP, conv_net, orthogonal
 from esr_cli.store import Store, StoreError
 from play_script import Scripted
 
@@ -106,7 +107,7 @@ def test_a_missing_human_is_a_clear_error(small_data, tmp_path):
 
 
 def test_co_adapting_human_learns_inside_the_runner(random_smoke, store):
-    from esr_cli.core import loop
+    from esr_cli.runner import loop
     from esr_cli.runs import build_trainer
 
     spec, path, _ = random_smoke
@@ -126,9 +127,9 @@ def test_co_adapting_human_learns_inside_the_runner(random_smoke, store):
 @pytest.mark.slow
 def test_esr_takes_overcooked_batches():
     """ESR's input construction (observation + broadcast action planes) on Overcooked, MLP nets."""
-    from esr_cli.replay import Batch
-    from esr_cli.envs.overcooked import Overcooked
-    from esr_cli.methods.esr import ESR
+    from esr_cli.model.replay import Batch
+    from esr_cli.model.envs.overcooked import Overcooked
+    from esr_cli.model.methods.esr import ESR
 
     spec = specs.load("experiments/cramped_room.yaml", "smoke")
     env = Overcooked("cramped_room", 400)
@@ -181,7 +182,7 @@ def test_all_overcooked_specs_load():
 
 @pytest.mark.slow
 def test_mlp_network_flattens_the_grid():
-    net_spec = specs.NetworkSpec(kind="mlp", mlp_layers=(8, 8))
+    net_spec = spec_model.NetworkSpec(kind="mlp", mlp_layers=(8, 8))
     net = conv_net(net_spec, 3)
     x = jnp.ones((2, 4, 5, 7))
     params = net.init(jax.random.PRNGKey(0), x)
@@ -225,7 +226,7 @@ def per_seed_run(small_data, store, console):
 def test_a_run_with_per_seed_humans(per_seed_run, store):
     """Two seeds, two clones: both built as artifacts, both in the run's key, each seed playing
     with its own (the first clone is the module's usual human: cloning seed 0)."""
-    from esr_cli.core import loop
+    from esr_cli.runner import loop
     from esr_cli.runs import build_trainer
 
     spec, path = per_seed_run
@@ -265,7 +266,7 @@ def test_eval_with_the_proxy_human_and_in_the_flipped_seat(per_seed_run, store, 
 def test_a_human_cloned_from_played_episodes_partners_a_robot(per_seed_run, store, console):
     """The loop closed: episodes played on coord_ring become a BC human's data (its last
     quarter held out), and `esr eval --human play:...` pairs the robot with that clone."""
-    from esr_cli.envs import make_env
+    from esr_cli.model.envs import make_env
     from esr_cli.play import session as ps
     from esr_cli.play.game import Robot
 

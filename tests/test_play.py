@@ -24,8 +24,8 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 from conftest import ROOT, esr, esr_env
 
-from esr_cli import spec as specs
-from esr_cli.envs import make_env
+from esr_cli import specs
+from esr_cli.model.envs import make_env
 from esr_cli.play import session as ps
 from esr_cli.play.game import CLOSED, KEYMAP, QUIT, Game, Robot
 from esr_cli.play.log import state_from_record
@@ -219,7 +219,7 @@ def test_overcooked_board_shows_loose_items_on_counters(cramped_board):
 
 
 def test_overcooked_board_shows_who_is_who_where_they_face_and_what_they_hold(cramped_board):
-    from esr_cli.envs.overcooked import Overcooked
+    from esr_cli.model.envs.overcooked import Overcooked
     from esr_cli.play import overcooked_board as ob
 
     env, state = cramped_board
@@ -267,7 +267,7 @@ def test_overcooked_frames_are_the_board_as_the_human_plays(cramped_board):
     in the pot; each frame is the board of the game's state."""
     import numpy as np
 
-    from esr_cli.envs.overcooked import STAY
+    from esr_cli.model.envs.overcooked import STAY
     from esr_cli.play import overcooked_board as ob
     from esr_cli.play.game import KeyPress
 
@@ -900,7 +900,7 @@ def test_overcooked_episodes_export_to_the_human_data_schema_and_replay(tmp_path
     import numpy as np
 
     from esr_cli.artifacts import ensure
-    from esr_cli.humans import overcooked_data as od
+    from esr_cli.model.humans import overcooked_data as od
     from esr_cli.play import export
 
     spec = specs.load(ROOT / COOK[0], "paper", ["env.episode_steps=40"])
@@ -937,7 +937,7 @@ def test_overcooked_episodes_export_to_the_human_data_schema_and_replay(tmp_path
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["p9.csv", "p9.pickle"]  # no temporary file left
     # As a human's data: the person's view of each logged state and their action, on this
     # layout only; one episode leaves no test split.
-    from esr_cli.humans import play_data
+    from esr_cli import play_data
 
     data = play_data.convert([built.path], "cramped_room")
     np.testing.assert_array_equal(data["action"], [s["human_action"] for s in logged_steps(built.path)])

@@ -22,7 +22,7 @@ def test_learning_curve_shades_the_warm_up_epochs(tmp_path):
 def test_suite_panels_group_runs_by_environment_and_name_lines_by_method(tmp_path):
     from types import SimpleNamespace
 
-    from esr_cli import figures, spec as specs
+    from esr_cli import figures, specs
 
     root = figures.PAPER_SUITE.parents[2]
     runs = []
@@ -50,8 +50,8 @@ def test_frame_captions_name_the_step_its_actions_reward_and_return():
 
 
 def test_gridworld_and_overcooked_name_their_actions():
-    from esr_cli.envs.action_labels import action_labels
-    from esr_cli.envs.gridworld import DIRECTIONS, Gridworld
+    from esr_cli.model.envs.action_labels import action_labels
+    from esr_cli.model.envs.gridworld import DIRECTIONS, Gridworld
 
     grid = Gridworld(size=5, num_blocks=2, start="corner", episode_steps=50)
     assert action_labels("gridworld", grid, 4 * 5 + 3, 0) == ("push (0,4) up", "left")

@@ -16,9 +16,9 @@ import pytest
 from rich.console import Console
 
 from conftest import ROOT, esr, esr_env
-from esr_cli import human_calibration as hc, human_runs, ppo_humans, spec as specs, stored_humans
-from esr_cli.envs.overcooked import Overcooked
-from esr_cli.humans import conv_actor_critic as cac, human_eval
+from esr_cli import human_calibration as hc, human_runs, ppo_humans, specs, stored_humans
+from esr_cli.model.envs.overcooked import Overcooked
+from esr_cli.model.humans import conv_actor_critic as cac, human_eval
 from esr_cli.store import Store, StoreError
 
 # 4 environments x 32 steps: 128 environment steps an update.

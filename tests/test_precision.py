@@ -16,7 +16,7 @@ def test_default_is_exact_float32_and_leaves_keys_as_they_were(monkeypatch):
 
 
 def test_an_opt_in_precision_changes_the_run_key(monkeypatch):
-    from esr_cli import runs, spec as specs
+    from esr_cli import runs, specs
 
     spec = specs.load("experiments/grid_2.yaml", "smoke")
     monkeypatch.delenv(provenance.PRECISION_ENV, raising=False)

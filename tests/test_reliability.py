@@ -27,9 +27,9 @@ def partials(store):
 
 
 def final_arrays(run_dir):
-    from esr_cli import spec as specs
-    from esr_cli.core import loop
-    from esr_cli.core.train import make_trainer
+    from esr_cli import specs
+    from esr_cli.runner import loop
+    from esr_cli.model.train import make_trainer
 
     trainer = make_trainer(specs.load("experiments/grid_2.yaml", "smoke"))
     return [np.asarray(x) for x in jax.tree.leaves(loop.final_state(trainer, run_dir))]
@@ -89,7 +89,7 @@ def test_stop_after_ends_at_a_chunk_boundary_and_resumes_to_the_uninterrupted_re
 
 
 def test_next_chunk_fits_by_its_estimated_duration():
-    from esr_cli.core.loop import next_chunk_fits
+    from esr_cli.runner.loop import next_chunk_fits
 
     assert next_chunk_fits(100.0, None, 1e9)  # no limit
     assert next_chunk_fits(100.0, 130.0, 30.0)  # ends exactly at the limit
@@ -225,7 +225,7 @@ def test_verify_finds_a_finished_run_whose_epochs_disagree(tmp_path, smoke_run):
 
 @pytest.mark.slow  # trains the shared smoke run
 def test_a_finished_run_keeps_only_its_newest_checkpoint(smoke_run):
-    from esr_cli.core import loop
+    from esr_cli.runner import loop
 
     _, path, _ = smoke_run
     epochs = max(r["epoch"] for r in loop.read_rows(path))
@@ -302,7 +302,7 @@ def test_a_human_cloned_from_episodes_the_store_lacks_is_refused_before_anything
     human or the run is left half-made (no partial, no lock) by a mistyped key."""
     from rich.console import Console
 
-    from esr_cli import spec as specs
+    from esr_cli import specs
     from esr_cli.artifacts import ensure
     from esr_cli.human_runs import human_recipe
     from esr_cli.store import Store, StoreError

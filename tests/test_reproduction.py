@@ -234,7 +234,7 @@ def test_finished_runs_that_differ_only_in_their_seeds_are_pooled():
 def test_a_run_resumed_elsewhere_names_where_it_started_and_every_device(tmp_path):
     """The commit is the one it started from (flagged when that checkout's esr_cli/ had edits);
     the devices are every one it ran on, in order."""
-    from esr_cli import spec as specs
+    from esr_cli import specs
     from esr_cli.store import Store
 
     spec = rep.claim_spec(("grid_10", ()))
@@ -365,7 +365,7 @@ def test_the_report_figure_colours_by_method_and_dashes_esrs_variants():
 
 
 def test_a_run_with_another_kind_of_human_is_made_again_by_a_whole_section_override():
-    from esr_cli import spec as specs
+    from esr_cli import specs
     from esr_cli.reproduction import train_overrides
 
     spec = specs.load("experiments/cramped_room.yaml", "smoke", ["human={kind: ppo, total_steps: 4096}", "train.seeds=2"])

@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esr_cli import spec as specs
-from esr_cli.core.train import compiled_chunk, compiled_init, make_trainer
+from esr_cli import specs
+from esr_cli.model.train import compiled_chunk, compiled_init, make_trainer
 
 
 @pytest.mark.slow

@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 
 from conftest import ROOT
-from esr_cli import spec as specs
+from esr_cli import specs
+from esr_cli.model import spec as spec_model
 from esr_cli.cli import main
 
 EXPERIMENTS = sorted(Path("experiments").glob("*.yaml"))
@@ -20,7 +21,7 @@ method: {kind: esr}
 
 
 @pytest.mark.parametrize("path", EXPERIMENTS, ids=lambda p: p.stem)
-@pytest.mark.parametrize("budget", specs.BUDGETS)
+@pytest.mark.parametrize("budget", spec_model.BUDGETS)
 def test_every_experiment_loads_at_every_budget(path, budget):
     spec = specs.load(path, budget)
     assert spec.budget == budget
@@ -258,7 +259,7 @@ def test_a_bad_value_names_the_set_or_budget_that_gave_it(tmp_path):
 def test_setting_a_kind_starts_that_section_again_as_extends_does():
     """--set method.kind=random on an ESR spec is the Random spec (ESR's fields would be unknown
     keys of the new kind), at every budget; a kind --set leaves unchanged keeps the section."""
-    for budget in specs.BUDGETS:
+    for budget in spec_model.BUDGETS:
         switched = specs.load("experiments/grid_2.yaml", budget, ["method.kind=random"])
         assert switched.training_part() == specs.load("experiments/grid_2_random.yaml", budget).training_part()
     # a spec's own budget entries written for ESR do not apply to the new kind

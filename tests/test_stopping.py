@@ -28,9 +28,9 @@ VERY_LONG = ("train", "experiments/grid_2.yaml", "--budget", "smoke", "--set", "
 
 
 def final_arrays(run_dir):
-    from esr_cli import spec as specs
-    from esr_cli.core import loop
-    from esr_cli.core.train import make_trainer
+    from esr_cli import specs
+    from esr_cli.runner import loop
+    from esr_cli.model.train import make_trainer
 
     trainer = make_trainer(specs.load("experiments/grid_2.yaml", "smoke", list(LONG_SETS[1::2])))
     return [np.asarray(x) for x in jax.tree.leaves(loop.final_state(trainer, run_dir))]
@@ -124,7 +124,7 @@ def test_a_second_ctrl_c_exits_at_once_even_while_a_checkpoint_is_written(tmp_pa
 
 
 def test_chunks_are_timed_by_a_one_epoch_warm_up_then_bounded_by_the_checkpoint_interval():
-    from esr_cli.core.loop import CHECKPOINT_EVERY_S, chunk_length
+    from esr_cli.runner.loop import CHECKPOINT_EVERY_S, chunk_length
 
     assert chunk_length(50, None, 10_000) == 1  # not timed yet: the warm-up
     assert chunk_length(50, 1.0, 10_000) == 50
@@ -134,8 +134,8 @@ def test_chunks_are_timed_by_a_one_epoch_warm_up_then_bounded_by_the_checkpoint_
 
 
 def test_the_estimate_names_the_epoch_time_the_run_the_quick_budget_and_a_run_over_a_day():
-    from esr_cli import spec as specs
-    from esr_cli.core.train import make_trainer
+    from esr_cli import specs
+    from esr_cli.model.train import make_trainer
     from esr_cli.run_progress import TrainingReport, progress_bar, quick_estimate
 
     spec, quick = (specs.load("experiments/grid_2.yaml", b) for b in ("paper", "quick"))

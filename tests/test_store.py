@@ -217,9 +217,10 @@ def test_lock_of_a_dead_process_is_free(tmp_path):
         pass
 
 
-def test_code_digest_follows_what_the_training_path_imports(tmp_path, monkeypatch):
-    """A module that the runner starts importing re-keys runs without being listed anywhere; a
-    module nothing on the training path imports does not."""
+def test_a_runs_code_digest_is_the_model_package(tmp_path, monkeypatch):
+    """A run's key digests every file under esr_cli/model, imported or not, and nothing else:
+    host code (the store, the runner loop, the CLI, spec-file reading) can change without
+    re-keying a run; an edit to a model file, or a new one, re-keys it."""
     import shutil
 
     from esr_cli import provenance
@@ -227,25 +228,19 @@ def test_code_digest_follows_what_the_training_path_imports(tmp_path, monkeypatc
     copy = tmp_path / "esr_cli"
     shutil.copytree(provenance.PACKAGE_DIR, copy, ignore=shutil.ignore_patterns("__pycache__"))
     monkeypatch.setattr(provenance, "PACKAGE_DIR", copy)
-    digest = provenance.code_digest.__wrapped__  # uncached
-    before = digest(provenance.TRAINING_SOURCES)
-    closure = {f.relative_to(copy).as_posix() for f in provenance.module_closure(provenance.TRAINING_SOURCES)}
-    assert {"core/train.py", "replay.py", "methods/esr.py", "envs/gridworld.py", "networks.py", "spec.py"} <= closure
-    assert not closure & {"store.py", "runs.py", "core/loop.py", "cli.py", "human_runs.py"}  # the core never reads the store
-    methods = {f.relative_to(copy).as_posix() for f in (copy / "methods").glob("*.py")}
-    assert methods <= closure  # every method, however the runner reaches it
+    digest = lambda: provenance.code_digest.__wrapped__(provenance.MODEL_SOURCES)  # noqa: E731 (uncached)
+    before = digest()
+    for host in ("store.py", "runs.py", "runner/loop.py", "cli.py", "human_runs.py", "specs.py"):
+        (copy / host).write_text((copy / host).read_text() + "\n# an edit\n")
     (copy / "unrelated.py").write_text("X = 1\n")
-    assert digest(provenance.TRAINING_SOURCES) == before
-    (copy / "core" / "extra.py").write_text("SCALE = 2.0\n")
-    assert digest(provenance.TRAINING_SOURCES) == before  # not imported yet
-    train = copy / "core" / "train.py"
-    train.write_text(train.read_text().replace("from esr_cli import replay\n",
-                                               "from esr_cli import replay\nfrom esr_cli.core import extra  # noqa: F401\n"))
-    changed = digest(provenance.TRAINING_SOURCES)
-    assert changed != before
-    (copy / "core" / "extra.py").write_text("SCALE = 3.0\n")
-    assert digest(provenance.TRAINING_SOURCES) != changed  # the new module's own edits count now
-
+    assert digest() == before
+    (copy / "model" / "extra.py").write_text("SCALE = 2.0\n")
+    assert digest() != before  # in the keyed package, imported or not
+    before = digest()
+    for computing in ("model/methods/esr.py", "model/spec.py", "model/envs/gridworld.py"):
+        (copy / computing).write_text((copy / computing).read_text() + "\n# an edit\n")
+        assert digest() != before, computing
+        before = digest()
 
 
 def test_the_exact_analysis_digest_leaves_out_host_plumbing(tmp_path, monkeypatch):
@@ -263,7 +258,7 @@ def test_the_exact_analysis_digest_leaves_out_host_plumbing(tmp_path, monkeypatc
     for host in ("store.py", "runs.py", "transfer.py", "artifacts.py", "cli.py"):
         (copy / host).write_text((copy / host).read_text() + "\n# an edit\n")
     assert digest() == before
-    for computing in ("exact_runs.py", "analysis/exact.py", "envs/gridworld.py"):
+    for computing in ("exact_runs.py", "analysis/exact.py", "model/envs/gridworld.py"):
         (copy / computing).write_text((copy / computing).read_text() + "\n# an edit\n")
         assert digest() != before, computing
         before = digest()

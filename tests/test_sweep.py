@@ -12,7 +12,7 @@ import pytest
 from rich.console import Console
 
 from conftest import ROOT, esr
-from esr_cli import provenance, spec as specs, sweep
+from esr_cli import provenance, specs, sweep
 from esr_cli.store import Store
 from esr_cli.suite import SuiteError
 

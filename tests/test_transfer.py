@@ -24,7 +24,7 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from conftest import ROOT, esr
-from esr_cli import signing, spec as specs, tar_reader
+from esr_cli import signing, specs, tar_reader
 from esr_cli.checkpoint_files import verify_artifact
 from esr_cli.store import STAGING_PREFIX, STAGING_RE, Store, StoreError, _host, content_key, digest_bytes, digest_file
 from esr_cli.transfer import import_archive

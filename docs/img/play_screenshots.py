@@ -14,8 +14,8 @@ from pathlib import Path
 
 from rich.console import Console
 
-from esr_cli import spec as specs
-from esr_cli.envs import make_env
+from esr_cli import specs
+from esr_cli.model.envs import make_env
 from esr_cli.play.game import Game, KeyPress, Robot, View
 from esr_cli.play.terminal import Terminal
 

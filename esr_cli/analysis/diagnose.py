@@ -19,8 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from esr_cli import replay
-from esr_cli.methods.esr import contrastive_accuracy, mutual_information_estimate, same_future
+from esr_cli.model import replay
+from esr_cli.model.methods.esr import contrastive_accuracy, mutual_information_estimate, same_future
 
 SITUATIONS = ("trapped", "free", "at_goal", "dead")
 EFFECTS = ("trapped", "free", "dead")

@@ -38,8 +38,8 @@ import numpy as np
 from scipy import sparse
 from scipy.linalg import lu_factor, lu_solve
 
-from esr_cli.analysis.state_count import MAX_STATES, TooManyStates, check_size, state_bound  # noqa: F401 (read from the spec, JAX-free)
-from esr_cli.envs.gridworld import GridState, Gridworld
+from esr_cli.analysis.state_count import MAX_STATES, TooManyStates
+from esr_cli.model.envs.gridworld import GridState, Gridworld
 
 
 @dataclass(frozen=True)

@@ -20,8 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from esr_cli import replay
-from esr_cli.methods.esr import mutual_information_estimate
+from esr_cli.model import replay
+from esr_cli.model.methods.esr import mutual_information_estimate
 
 PLAYERS = ("robot", "uniform")
 

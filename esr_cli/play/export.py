@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from esr_cli import spec as specs
-from esr_cli.envs import make_env
-from esr_cli.envs.overcooked import INTERACT, Overcooked
-from esr_cli.humans import overcooked_data as od
+from esr_cli.model import spec as spec_model
+from esr_cli.model.envs import make_env
+from esr_cli.model.envs.overcooked import INTERACT, Overcooked
+from esr_cli.model.humans import overcooked_data as od
 from esr_cli.play.log import read_header, read_states, read_steps
 from esr_cli.store import PLAY_KIND
 
@@ -114,7 +114,7 @@ def export_overcooked(store, keys: list[str]):
         header = read_header(path)
         if header["env"]["kind"] != "overcooked":
             continue
-        env = make_env(specs.OvercookedEnvSpec.model_validate(header["env"]))
+        env = make_env(spec_model.OvercookedEnvSpec.model_validate(header["env"]))
         frames.append(trajectory_frame([path], env))
         count += 1
     return (pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=list(COLUMNS))), count

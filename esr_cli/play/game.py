@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from esr_cli.envs import gridworld, overcooked
+from esr_cli.model.envs import gridworld, overcooked
 from esr_cli.play import overcooked_board
 from esr_cli.play.log import state_record
 

@@ -2,7 +2,7 @@
 them apart at a glance (JaxMARL's debug renderer draws onions, plates, soups and pots as small
 look-alike shapes).
 
-The picture is read from the JaxMARL state (esr_cli/envs/overcooked.py wraps it):
+The picture is read from the JaxMARL state (esr_cli/model/envs/overcooked.py wraps it):
 `maze_map[y, x] = (object, colour, status)` inside a padding of walls, with agents, loose items
 on counters and pots (their status: 23 empty, 22-20 one to three onions, 19-1 cooking steps
 left, 0 ready) in it, and each agent's cell, facing and held item in `agent_pos`,

@@ -20,9 +20,9 @@ from pathlib import Path
 
 from rich.console import Console
 
-from esr_cli import spec as specs
+from esr_cli import specs
 from esr_cli.artifacts import Recipe, ensure
-from esr_cli.envs import make_env
+from esr_cli.model.envs import make_env
 from esr_cli.play.game import RANDOM_ROBOT, Game, Robot, play_episode
 from esr_cli.play.log import EPISODE_FILE, FINAL_STATE_FILE, STEPS_FILE, read_steps
 from esr_cli.runs import find_run, load_run, seed_slice

@@ -10,9 +10,9 @@ from pathlib import Path
 
 from pydantic import TypeAdapter
 
-from esr_cli import spec as specs
-from esr_cli.envs import make_env
-from esr_cli.envs.action_labels import LABELS
+from esr_cli.model import spec as spec_model
+from esr_cli.model.envs import make_env
+from esr_cli.model.envs.action_labels import LABELS
 from esr_cli.play.log import read_header, read_steps
 
 # Copied from the episode's header onto each of its steps.
@@ -23,7 +23,7 @@ def step_records(path: Path, envs: dict | None = None) -> list[dict]:
     """One played episode's steps, each with its episode's fields and both actions in words.
     envs: environments already made, by their spec (an export makes each one once)."""
     header = read_header(path)
-    env_spec = TypeAdapter(specs.EnvSpec).validate_python(header["env"])  # the environment it was played on
+    env_spec = TypeAdapter(spec_model.EnvSpec).validate_python(header["env"])  # the environment it was played on
     envs = {} if envs is None else envs
     which = json.dumps(header["env"], sort_keys=True)
     if which not in envs:

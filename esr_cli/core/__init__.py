@@ -1,1 +1,0 @@
-"""The shared training core: replay buffer, soft-Q learner, runner, evaluation."""
