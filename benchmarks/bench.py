@@ -34,7 +34,7 @@ def matmul_peak_gflops(n: int = 2048, reps: int = 10) -> float:
     import jax
     import jax.numpy as jnp
 
-    from esr_cli.provenance import apply_matmul_precision
+    from esr_cli.storage.provenance import apply_matmul_precision
 
     # At the precision the measured programs use: JAX's own default would let a GPU use TF32,
     # a peak several times the float32 one the programs are held to.
@@ -108,19 +108,19 @@ def measure(spec_path: str, seeds: int, epochs: int, seed_batch: int | None) -> 
     import jax
     import jax.numpy as jnp
 
-    from esr_cli import specs
+    from esr_cli.common import specs
     from esr_cli.model.train import compiled_chunk, compiled_init
-    from esr_cli.runs import build_trainer
-    from esr_cli.provenance import apply_matmul_precision
-    from esr_cli.store import Store
+    from esr_cli.recipes.runs import build_trainer
+    from esr_cli.storage.provenance import apply_matmul_precision
+    from esr_cli.storage.store import Store
 
     apply_matmul_precision()  # as training does (ESR_MATMUL_PRECISION)
     spec = specs.load(ROOT / spec_path, "paper", [f"train.seeds={seeds}", f"train.chunk_epochs={epochs}"])
     store = Store(os.environ.get("ESR_STORE") or ROOT / "artifacts")
     if spec.human.kind == "bc":  # the BC human of an Overcooked spec: built once, then stored
-        from esr_cli.artifacts import ensure
-        from esr_cli.human_runs import human_recipe
-        from esr_cli.printing import plain_console
+        from esr_cli.common.printing import plain_console
+        from esr_cli.recipes.human_runs import human_recipe
+        from esr_cli.storage.artifacts import ensure
 
         ensure(human_recipe(spec.human, spec.env.layout, plain_console(stderr=True)), store)
     trainer = build_trainer(spec, store)
@@ -161,7 +161,7 @@ def measure(spec_path: str, seeds: int, epochs: int, seed_batch: int | None) -> 
 
 def device_name() -> str:
     """The device the programs ran on, by kind (e.g. 'gpu:NVIDIA H100 80GB HBM3', 'cpu:cpu')."""
-    from esr_cli.provenance import device
+    from esr_cli.storage.provenance import device
 
     return device()
 

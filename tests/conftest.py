@@ -39,7 +39,7 @@ def esr(*args, store, check=True, timeout=600, **extra_env):
     """Run the real CLI in a subprocess; -> CompletedProcess."""
     env = esr_env(store, **extra_env)
     proc = subprocess.run(
-        [sys.executable, "-m", "esr_cli.cli", *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout
+        [sys.executable, "-m", "esr_cli.cli.main", *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout
     )
     if check and proc.returncode != 0:
         raise AssertionError(f"esr {' '.join(args)} exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}")

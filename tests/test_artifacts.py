@@ -1,4 +1,4 @@
-"""The artifact lifecycle (esr_cli/artifacts.py): one `ensure` for every kind."""
+"""The artifact lifecycle (esr_cli/storage/artifacts.py): one `ensure` for every kind."""
 
 import ast
 import json
@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from esr_cli import artifacts
-from esr_cli.artifacts import Recipe, ensure
-from esr_cli.stop_signals import Terminated
-from esr_cli.store import FIGURE_KIND, MANIFEST, PLAY_KIND, RUN_KIND, Store, StoreError
+from esr_cli.runner.stop_signals import Terminated
+from esr_cli.storage import artifacts
+from esr_cli.storage.artifacts import Recipe, ensure
+from esr_cli.storage.store import FIGURE_KIND, MANIFEST, PLAY_KIND, RUN_KIND, Store, StoreError
 
 PACKAGE = Path(artifacts.__file__).parent
 
@@ -127,7 +127,7 @@ def test_the_lifecycle_is_written_once():
 def test_every_start_and_resume_is_a_session_and_the_first_names_the_artifact(tmp_path, monkeypatch):
     """A run resumed from another checkout (same training code: the key holds its digest) or on
     another device keeps where it was made and adds where it went on, in order."""
-    from esr_cli import provenance
+    from esr_cli.storage import provenance
 
     store, calls = Store(tmp_path / "store"), []
     components = {"n": "long run"}
@@ -156,7 +156,7 @@ def test_every_start_and_resume_is_a_session_and_the_first_names_the_artifact(tm
 
 
 def test_a_pending_record_from_before_sessions_counts_as_the_last_session(tmp_path, monkeypatch):
-    from esr_cli import provenance
+    from esr_cli.storage import provenance
 
     monkeypatch.setattr(provenance, "git_state", lambda: {"commit": "c" * 40, "dirty": False})
     store = Store(tmp_path / "store")
@@ -171,7 +171,7 @@ def test_a_pending_record_from_before_sessions_counts_as_the_last_session(tmp_pa
 
 
 def test_a_run_resumed_by_many_jobs_keeps_its_first_and_latest_sessions():
-    from esr_cli import provenance
+    from esr_cli.storage import provenance
 
     sessions = []
     for i in range(250):

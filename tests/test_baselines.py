@@ -5,15 +5,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esr_cli import specs
-from esr_cli.model import spec as spec_model
-from esr_cli.model import replay
-from esr_cli.model.train import make_trainer
-from esr_cli.model.envs.gridworld import DOWN, RIGHT, STAY, Gridworld, GridState
+from esr_cli.common import specs
+from esr_cli.model import replay, spec as spec_model
+from esr_cli.model.envs.gridworld import DOWN, RIGHT, STAY, GridState, Gridworld
 from esr_cli.model.humans.gridworld import NoisyGreedyHuman
 from esr_cli.model.methods.ave import AvE
 from esr_cli.model.methods.goal_inference import GoalInference
 from esr_cli.model.methods.iq_learn import IQLearn
+from esr_cli.model.train import make_trainer
 
 STEPS = 800  # IQ-Learn updates in the fitted toy case
 KEY = jax.random.PRNGKey(0)

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import esr
 
 
@@ -132,9 +131,9 @@ def test_random_robot_runs_on_the_same_runner(smoke_store):
 def test_interrupted_run_resumes_to_the_same_result(tmp_path):
     """SIGINT after the first chunk: saved, stopped; the second call resumes; the result equals
     an uninterrupted run's bit for bit."""
-    from esr_cli import specs
-    from esr_cli.runner import loop, stops
+    from esr_cli.common import specs, stops
     from esr_cli.model.train import make_trainer
+    from esr_cli.runner import loop
 
     spec = specs.load("experiments/grid_2.yaml", "smoke")
     trainer = make_trainer(spec)
@@ -162,7 +161,7 @@ def test_runs_can_share_a_gpu_unless_the_user_says_otherwise(tmp_path, monkeypat
     (so runs side by side fit), and leave a value the user set alone."""
     import os
 
-    from esr_cli.cli import main
+    from esr_cli.cli.main import main
 
     monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE", raising=False)
     assert main(["--store", str(tmp_path), "ls"]) == 0

@@ -4,8 +4,8 @@ import json
 
 import numpy as np
 import pytest
-
 from conftest import esr
+
 from esr_cli.analysis.diagnose import SITUATIONS, free_trapped_contrast, situation, stored_effects
 
 
@@ -86,8 +86,8 @@ def test_diagnose_reads_an_unfinished_run_without_touching_it(tmp_path):
 
 def test_human_moves_counts_steps_that_change_the_humans_own_part():
     from esr_cli.analysis.play_check import human_moves
+    from esr_cli.common import specs
     from esr_cli.model.envs import gridworld
-    from esr_cli import specs
 
     env = gridworld.make(specs.load("experiments/grid_2.yaml", "smoke").env)
     obs = np.zeros((2, 4, 5, 5, 2), np.uint8)
@@ -103,8 +103,8 @@ def test_play_check_needs_a_robot_that_learns_a_policy():
     import jax
     import pytest
 
-    from esr_cli import specs
     from esr_cli.analysis.play_check import play_check
+    from esr_cli.common import specs
     from esr_cli.model.train import make_trainer
 
     trainer = make_trainer(specs.load("experiments/grid_2_random.yaml", "smoke"))
@@ -163,9 +163,9 @@ def test_refit_recovers_log_4_when_the_next_state_names_one_of_4_human_actions()
     import jax
     import jax.numpy as jnp
 
-    from esr_cli.model import replay
-    from esr_cli import specs
     from esr_cli.analysis.play_check import refit_mi_estimate
+    from esr_cli.common import specs
+    from esr_cli.model import replay
     from esr_cli.model.train import make_trainer
 
     trainer = make_trainer(specs.load("experiments/grid_2.yaml", "smoke", ["method.future_gamma=0.01", "learner.batch_size=64"]))

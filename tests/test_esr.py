@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esr_cli import specs
+from esr_cli.common import specs
 from esr_cli.model.envs.gridworld import Gridworld
 from esr_cli.model.methods.esr import (
     ESR,

@@ -8,9 +8,9 @@ import numpy as np
 import optax
 import pytest
 
+from esr_cli.common import specs
 from esr_cli.model import replay
-from esr_cli import specs
-from esr_cli.model.envs.gridworld import Gridworld, GridState
+from esr_cli.model.envs.gridworld import GridState, Gridworld
 from esr_cli.model.methods.esr import ESR, infonce_loss, mutual_information_estimate
 
 

@@ -4,10 +4,10 @@
 import numpy as np
 import pytest
 
-from esr_cli import specs
+from esr_cli.common import specs
 from esr_cli.model import evaluate as ev
-from esr_cli.runner import loop
 from esr_cli.model.train import make_trainer
+from esr_cli.runner import loop
 
 
 @pytest.mark.slow

@@ -6,9 +6,9 @@ import json
 import math
 
 import pytest
+from conftest import esr
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from conftest import esr
 from esr_cli.runner.event_log import EVENTS_DIR, EventLog
 
 
@@ -143,7 +143,7 @@ def test_the_wandb_record_is_written_afresh_from_the_metrics_kept(tmp_path):
 def test_wandb_without_the_package_is_one_line_before_any_work(tmp_path, monkeypatch, capsys):
     import importlib.util
 
-    from esr_cli.cli import main
+    from esr_cli.cli.main import main
 
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "wandb" else real(name, *a))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from esr_cli.analysis import exact, state_count
-from esr_cli.model.envs.gridworld import Gridworld, GridState
+from esr_cli.model.envs.gridworld import GridState, Gridworld
 from esr_cli.model.humans.gridworld import NoisyGreedyHuman
 
 GAMMA = 0.7
@@ -314,9 +314,10 @@ def test_exact_above_the_dense_limit_covers_the_visited_pairs(tmp_path, monkeypa
     the complete computation's."""
     from rich.console import Console
 
-    from esr_cli import exact_runs, specs
-    from esr_cli.artifacts import ensure
-    from esr_cli.store import Store
+    from esr_cli.common import specs
+    from esr_cli.recipes import exact_runs
+    from esr_cli.storage.artifacts import ensure
+    from esr_cli.storage.store import Store
 
     spec_path = tmp_path / "tiny.yaml"
     spec_path.write_text(TINY_SPEC)
@@ -339,9 +340,10 @@ def test_exact_above_the_dense_limit_covers_the_visited_pairs(tmp_path, monkeypa
 def test_a_failed_exact_build_leaves_no_lock_or_partial_artifact(tmp_path, monkeypatch):
     from rich.console import Console
 
-    from esr_cli import exact_runs, specs
-    from esr_cli.artifacts import ensure
-    from esr_cli.store import EXACT_KIND, Store
+    from esr_cli.common import specs
+    from esr_cli.recipes import exact_runs
+    from esr_cli.storage.artifacts import ensure
+    from esr_cli.storage.store import EXACT_KIND, Store
 
     spec_path = tmp_path / "tiny.yaml"
     spec_path.write_text(TINY_SPEC)

@@ -7,10 +7,10 @@ import jax
 import numpy as np
 import pytest
 
-from esr_cli import specs
-from esr_cli.model.train import make_trainer
+from esr_cli.common import specs
 from esr_cli.model.interfaces import Method
 from esr_cli.model.methods import registry
+from esr_cli.model.train import make_trainer
 
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 

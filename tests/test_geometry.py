@@ -38,7 +38,7 @@ def test_identical_actions_give_no_information():
 def test_plot_geometry_cli(tmp_path, capsys):
     from pathlib import Path
 
-    from esr_cli.cli import main
+    from esr_cli.cli.main import main
 
     store = tmp_path / "store"
     assert main(["--store", str(store), "plot", "geometry", "--gamma", "0.5"]) == 0

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esr_cli.model.envs.gridworld import DOWN, LEFT, RIGHT, STAY, UP, Gridworld, GridState
+from esr_cli.model.envs.gridworld import DOWN, LEFT, RIGHT, STAY, UP, GridState, Gridworld
 
 
 def env(blocks=2, size=5, start="corner"):

@@ -11,13 +11,14 @@ from pathlib import Path
 
 import pytest
 import yaml
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-
 from conftest import ROOT, esr
-from esr_cli import resources, specs, suite as suites, yamlio
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+from esr_cli.cli.main import main
+from esr_cli.common import specs, yamlio
 from esr_cli.model import spec as spec_model
-from esr_cli.cli import main
+from esr_cli.recipes import suite as suites
+from esr_cli.runner import resources
 
 VALID = """name: t
 env: {kind: gridworld, blocks: 2}
@@ -154,7 +155,7 @@ def test_huge_buffer_is_refused_before_anything_is_compiled_or_written(tmp_path)
 
 
 def test_global_options_after_the_command(tmp_path):
-    from esr_cli.cli import global_options_first
+    from esr_cli.cli.main import global_options_first
 
     assert global_options_first(["exact", "s.yaml", "--store", "D", "--debug"]) == ["--store", "D", "--debug", "exact", "s.yaml"]
     assert global_options_first(["ls", "--store=D"]) == ["--store=D", "ls"]
@@ -416,7 +417,7 @@ def test_slurm_options_refuse_non_finite_and_absurd_values(tmp_path, slurm, prob
 
 
 def test_slurm_overrides_on_the_command_line_are_one_line_errors(tmp_path):
-    from esr_cli import sweep
+    from esr_cli.recipes import sweep
 
     p = write(tmp_path, f"specs: [{GRID_2}]\n", "suite.yaml")
     with pytest.raises(suites.SuiteError) as e:
@@ -478,7 +479,7 @@ def test_a_bad_stop_after_is_a_usage_error_before_any_work(tmp_path, value):
 
 
 def test_durations_by_hand():
-    from esr_cli.cli import Exit, parse_duration
+    from esr_cli.cli.main import Exit, parse_duration
 
     assert parse_duration("90", "--x") == 90.0
     assert parse_duration("90s", "--x") == 90.0
@@ -539,7 +540,7 @@ def test_rich_markup_in_user_text_is_printed_as_text(tmp_path, capsys):
 def test_a_store_path_that_looks_like_markup_is_printed_as_written(tmp_path, capsys):
     """Paths printed for scripts to read are the paths: `[bold]` is not styled away, `[/x]` is
     not a crash after the work is done."""
-    from esr_cli.store import Store, content_key
+    from esr_cli.storage.store import Store, content_key
 
     components = {"kind": "runs", "spec": {"name": "x"}}
     key = content_key(components)
@@ -560,7 +561,7 @@ def test_a_store_path_that_looks_like_markup_is_printed_as_written(tmp_path, cap
 
 
 def test_only_the_printing_module_makes_consoles():
-    """Every console reads no markup (esr_cli/printing.py), so user text is safe at any print site;
+    """Every console reads no markup (esr_cli/common/printing.py), so user text is safe at any print site;
     a console made elsewhere would read `[/x]` in a path as a closing tag again."""
     import ast
 
@@ -570,7 +571,7 @@ def test_only_the_printing_module_makes_consoles():
         for node in ast.walk(ast.parse(f.read_text())):
             if isinstance(node, ast.Call) and str(getattr(node.func, "id", getattr(node.func, "attr", None))).endswith("Console"):
                 makers.add(f.relative_to(package).as_posix())
-    assert makers == {"printing.py"}
+    assert makers == {"common/printing.py"}
 
 
 def test_an_empty_store_path_is_refused_rather_than_read_as_the_current_directory(capsys):
@@ -665,7 +666,7 @@ def test_options_that_the_command_would_ignore_or_cannot_use_are_named(tmp_path,
 def test_ablate_finds_its_default_specs_from_any_directory(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert main(["--store", str(tmp_path / "store"), "ablate", "--greedy", "--budget", "bogus"]) == 2
-    from esr_cli import paper
+    from esr_cli.report import paper
 
     assert all(Path(p).is_file() for p in paper.DEFAULT_ABLATION_SPECS)
 
@@ -693,7 +694,7 @@ def _assert_refused_without_jax(args, store, code):
     import subprocess
     import sys
 
-    probe = ("import sys; from esr_cli.cli import main; code = main(sys.argv[1:]); "
+    probe = ("import sys; from esr_cli.cli.main import main; code = main(sys.argv[1:]); "
              "print(code, 'jax' in sys.modules, 'orbax.checkpoint' in sys.modules)")
     proc = subprocess.run([sys.executable, "-c", probe, "--store", str(store), *args],
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
@@ -786,8 +787,8 @@ HOSTILE = "a\x1b[2J\u202eb"  # clears the screen; turns the rest of the line aro
 def _hostile_store(root: Path) -> tuple[str, str]:
     """A store holding a run and a played episode whose name, participant, manifest fields and
     a file name hold HOSTILE; -> (run key, played key)."""
-    from esr_cli.play.log import EPISODE_FILE
-    from esr_cli.store import Store, content_key
+    from esr_cli.storage.play_log import EPISODE_FILE
+    from esr_cli.storage.store import Store, content_key
 
     store = Store(root)
     keys = []
@@ -887,7 +888,7 @@ def test_the_memory_check_respects_cgroup_and_address_space_limits(tmp_path, mon
 
 
 def test_an_archive_written_into_the_store_s_artifacts_is_refused(tmp_path, capsys):
-    from esr_cli.store import Store, content_key
+    from esr_cli.storage.store import Store, content_key
 
     components = {"kind": "runs", "spec": {"name": "x"}}
     key = content_key(components)

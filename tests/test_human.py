@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esr_cli.model.envs.gridworld import DOWN, LEFT, RIGHT, STAY, UP, Gridworld, GridState
+from esr_cli.model.envs.gridworld import DOWN, LEFT, RIGHT, STAY, UP, GridState, Gridworld
 from esr_cli.model.humans.gridworld import NoisyGreedyHuman
 
 

@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 
 from esr_cli.model.envs.overcooked import STAY, Overcooked
-from esr_cli.model.humans import conv_actor_critic as cac
-from esr_cli.model.humans import human_eval
+from esr_cli.model.humans import conv_actor_critic as cac, human_eval
 from esr_cli.model.humans.ppo import PPO, Agent, PPOConfig, SelfPlayEnv, mode_config, overcooked_ppo
 
 

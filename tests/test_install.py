@@ -8,7 +8,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from conftest import ROOT, esr_env
 
 pytestmark = pytest.mark.slow  # a package build and a training run
@@ -36,7 +35,7 @@ def test_a_non_editable_install_trains_a_readme_spec_from_another_directory(tmp_
     where = subprocess.run([sys.executable, "-c", "import esr_cli; print(esr_cli.__file__)"], cwd=elsewhere, env=env,
                            capture_output=True, text=True, check=True)
     assert Path(where.stdout.strip()).is_relative_to(site)  # the installed copy, not this checkout
-    proc = subprocess.run([sys.executable, "-m", "esr_cli.cli", "train", "experiments/grid_2.yaml", "--budget", "smoke"],
+    proc = subprocess.run([sys.executable, "-m", "esr_cli.cli.main", "train", "experiments/grid_2.yaml", "--budget", "smoke"],
                           cwd=elsewhere, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     run = Path(proc.stdout.strip().splitlines()[-1])
@@ -44,7 +43,7 @@ def test_a_non_editable_install_trains_a_readme_spec_from_another_directory(tmp_
     # a spec of the user's own, in this directory, is read from here, not from the installed copy
     (elsewhere / "experiments").mkdir()
     (elsewhere / "experiments" / "grid_2.yaml").write_text("extends: " + str(carried / "grid_2.yaml") + "\nname: mine\n")
-    mine = subprocess.run([sys.executable, "-m", "esr_cli.cli", "train", "experiments/grid_2.yaml", "--budget", "smoke",
+    mine = subprocess.run([sys.executable, "-m", "esr_cli.cli.main", "train", "experiments/grid_2.yaml", "--budget", "smoke",
                            "--set", "train.epochs=1"], cwd=elsewhere, env=env, capture_output=True, text=True, timeout=600)
     assert mine.returncode == 0, mine.stderr
     assert json.loads((Path(mine.stdout.strip().splitlines()[-1]) / "manifest.json").read_text())["name"] == "mine"

@@ -2,11 +2,10 @@
 each optional capability declared and backed by the members it promises."""
 
 import pytest
-
 from conftest import ROOT
-from esr_cli.model import interfaces as api
-from esr_cli import specs
-from esr_cli.model import spec as spec_model
+
+from esr_cli.common import specs
+from esr_cli.model import interfaces as api, spec as spec_model
 from esr_cli.model.train import make_trainer
 
 GRID_SPECS = ["grid_2", "grid_2_random", "grid_2_ave", "grid_2_goal_inference", "grid_2_iq_learn", "grid_2_oracle"]

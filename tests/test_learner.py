@@ -30,7 +30,7 @@ def test_policy_is_a_distribution_and_beta_sharpens_it():
 
 @pytest.mark.slow
 def test_dual_step_moves_beta_toward_the_target_entropy():
-    from esr_cli import specs
+    from esr_cli.common import specs
     from esr_cli.model.learner import LearnerState, SoftQLearner
 
     spec = specs.load("experiments/grid_2.yaml", "smoke")
@@ -54,7 +54,7 @@ def test_dual_loss_is_zero_at_the_target():
 def test_linear_dual_step_moves_log_beta_by_the_entropy_gap():
     import jax
 
-    from esr_cli import specs
+    from esr_cli.common import specs
     from esr_cli.model.learner import LearnerState, SoftQLearner
 
     spec = specs.load("experiments/grid_2.yaml", "smoke", ["learner.dual=linear", "learner.dual_lr=0.1"])
@@ -82,7 +82,7 @@ def test_linear_dual_step_moves_log_beta_by_the_entropy_gap():
 def test_warmup_epochs_act_uniformly():
     import jax
 
-    from esr_cli import specs
+    from esr_cli.common import specs
     from esr_cli.model.train import make_trainer
 
     spec = specs.load("experiments/grid_2.yaml", "smoke", ["train.num_envs=64"])
@@ -104,7 +104,7 @@ def test_warmup_epochs_act_uniformly():
 def test_dual_step_on_a_q_table_equals_the_dual_step_on_states():
     import jax
 
-    from esr_cli import specs
+    from esr_cli.common import specs
     from esr_cli.model.learner import SoftQLearner
 
     spec = specs.load("experiments/grid_2.yaml", "smoke")

@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from esr_cli import runs, specs
-from esr_cli.artifacts import ensure
-from esr_cli.store import Store
+from esr_cli.common import specs
+from esr_cli.recipes import runs
+from esr_cli.storage.artifacts import ensure
+from esr_cli.storage.store import Store
 
 METHODS = ("esr", "random", "ave", "goal_inference", "iq_learn", "oracle")
 SPECS = [

@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from esr_cli.common import specs
 from esr_cli.model import replay
-from esr_cli import specs
 from esr_cli.model.train import make_trainer
 
 

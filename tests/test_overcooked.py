@@ -6,11 +6,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esr_cli import specs
+from esr_cli.common import specs
 from esr_cli.model import spec as spec_model
 from esr_cli.model.envs.overcooked import INTERACT, LAYOUTS, NUM_ACTIONS, STAY, Overcooked
-from esr_cli.model.humans import bc
-from esr_cli.model.humans import overcooked_data as od
+from esr_cli.model.humans import bc, overcooked_data as od
 from esr_cli.model.humans.policy_human import PolicyHuman
 
 

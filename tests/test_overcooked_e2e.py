@@ -8,15 +8,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from play_script import Scripted
 from rich.console import Console
 
-from esr_cli import human_runs, runs, specs, stored_humans
+from esr_cli.common import specs
 from esr_cli.model import spec as spec_model
-from esr_cli.artifacts import ensure
 from esr_cli.model.humans import overcooked_data as od
 from esr_cli.model.networks import MLP, conv_net, orthogonal
-from esr_cli.store import Store, StoreError
-from play_script import Scripted
+from esr_cli.recipes import human_runs, runs, stored_humans
+from esr_cli.storage.artifacts import ensure
+from esr_cli.storage.store import Store, StoreError
 
 ROWS = 150  # rows per split: enough to exercise every step, small enough to be quick
 SMALL_HUMAN = ["human.epochs=2", "human.selfplay_episodes=2"]
@@ -107,8 +108,8 @@ def test_a_missing_human_is_a_clear_error(small_data, tmp_path):
 
 
 def test_co_adapting_human_learns_inside_the_runner(random_smoke, store):
+    from esr_cli.recipes.runs import build_trainer
     from esr_cli.runner import loop
-    from esr_cli.runs import build_trainer
 
     spec, path, _ = random_smoke
     trainer = build_trainer(spec, store)
@@ -127,9 +128,9 @@ def test_co_adapting_human_learns_inside_the_runner(random_smoke, store):
 @pytest.mark.slow
 def test_esr_takes_overcooked_batches():
     """ESR's input construction (observation + broadcast action planes) on Overcooked, MLP nets."""
-    from esr_cli.model.replay import Batch
     from esr_cli.model.envs.overcooked import Overcooked
     from esr_cli.model.methods.esr import ESR
+    from esr_cli.model.replay import Batch
 
     spec = specs.load("experiments/cramped_room.yaml", "smoke")
     env = Overcooked("cramped_room", 400)
@@ -226,8 +227,8 @@ def per_seed_run(small_data, store, console):
 def test_a_run_with_per_seed_humans(per_seed_run, store):
     """Two seeds, two clones: both built as artifacts, both in the run's key, each seed playing
     with its own (the first clone is the module's usual human: cloning seed 0)."""
+    from esr_cli.recipes.runs import build_trainer
     from esr_cli.runner import loop
-    from esr_cli.runs import build_trainer
 
     spec, path = per_seed_run
     keys = [human_runs.human_key(h, "coord_ring")[0] for h in spec.human.clones(spec.train.seeds)]
@@ -298,7 +299,7 @@ def test_a_human_cloned_from_played_episodes_partners_a_robot(per_seed_run, stor
     with pytest.raises(StoreError, match="is a key prefix"):  # only a command completes a prefix, from its store
         _evaluate(path, store, 2, console, "play:beef")
     # Any unique prefix names an episode, as `esr plays` prints the keys: completed from the store.
-    from esr_cli import targets
+    from esr_cli.recipes import targets
 
     prefixes = [k[:8] for k in keys]
     short = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN + [f"human.data={json.dumps(prefixes)}"])

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import esr
-from esr_cli import figures as figs
-from esr_cli.stats import describe
+
+from esr_cli.common.stats import describe
+from esr_cli.report import figures as figs
 
 
 def rows_of(returns_by_epoch):
@@ -57,7 +57,7 @@ def test_panels_figure_tables_every_line(tmp_path):
 
 
 def test_one_seed_figures_say_so_instead_of_showing_a_zero_standard_error():
-    from esr_cli.paper import _final_table
+    from esr_cli.report.paper import _final_table
 
     assert figs.seeds_phrase([1, 1]) == "1 seed, no SE"
     assert figs.seeds_phrase([5, 5]) == "mean ± 1 SE over 5 seeds"
@@ -70,7 +70,7 @@ def test_one_seed_figures_say_so_instead_of_showing_a_zero_standard_error():
 
 def test_every_figure_reads_runs_of_the_paper_suite():
     """Each figure's inputs exist in experiments/suites/paper.yaml (at any budget)."""
-    from esr_cli.store import Store
+    from esr_cli.storage.store import Store
 
     inputs = figs.PaperInputs(Store("/nonexistent-store"), "smoke")
     for figure, wants in figs.WANTS.items():
@@ -109,7 +109,7 @@ def test_ablate_reuses_trained_runs_and_writes_a_comparison(smoke_run):
 
 
 def test_the_paper_specs_are_read_from_the_current_directory_when_it_has_them(tmp_path, monkeypatch):
-    from esr_cli.provenance import PACKAGE_DIR, experiments_dir
+    from esr_cli.storage.provenance import PACKAGE_DIR, experiments_dir
 
     monkeypatch.chdir(tmp_path)
     # none here: the one installed with esr, in a checkout a link to the checkout's own

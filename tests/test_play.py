@@ -20,17 +20,16 @@ from pathlib import Path
 
 import jax
 import pytest
-from hypothesis import HealthCheck, event, given, settings
-from hypothesis import strategies as st
 from conftest import ROOT, esr, esr_env
+from hypothesis import HealthCheck, event, given, settings, strategies as st
+from play_script import STALE, Scripted
 
-from esr_cli import specs
+from esr_cli.common import specs
 from esr_cli.model.envs import make_env
 from esr_cli.play import session as ps
 from esr_cli.play.game import CLOSED, KEYMAP, QUIT, Game, Robot
-from esr_cli.play.log import state_from_record
-from esr_cli.store import PLAY_KIND, Store
-from play_script import STALE, Scripted
+from esr_cli.storage.play_log import state_from_record
+from esr_cli.storage.store import PLAY_KIND, Store
 
 # An open 5 x 5 grid (no blocks) with the random robot: the way to the goal is known in advance.
 GRID = ["experiments/grid_2.yaml", "--set", "env.blocks=0", "--set", "env.start=random", "--robots", "random",
@@ -294,7 +293,7 @@ def test_overcooked_frames_are_the_board_as_the_human_plays(cramped_board):
 class Pty:
     def __init__(self, args, store):
         self.fd, child = pty.openpty()  # the real CLI with a pseudo-terminal as its terminal
-        self.proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli", *args], cwd=ROOT, stdin=child, stdout=child,
+        self.proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli.main", *args], cwd=ROOT, stdin=child, stdout=child,
                                      stderr=child, env=esr_env(store, COLUMNS="100", LINES="40"), start_new_session=True)
         os.close(child)
         self.pid, self.screen = self.proc.pid, b""
@@ -537,7 +536,7 @@ def free_port() -> int:
 
 def serve(args, store, port):
     """`esr play --web` started -> (the process, the address it printed for the participant)."""
-    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli", "play", *args, "--web", "--port", str(port)], cwd=ROOT,
+    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli.main", "play", *args, "--web", "--port", str(port)], cwd=ROOT,
                             env=esr_env(store), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline, printed = time.time() + 240, b""
     # Read the raw pipe (no buffer of its own) so that communicate() later reads the rest.
@@ -899,9 +898,9 @@ def test_overcooked_episodes_export_to_the_human_data_schema_and_replay(tmp_path
     JaxMARL states, and each row's joint action steps its state to its next state."""
     import numpy as np
 
-    from esr_cli.artifacts import ensure
     from esr_cli.model.humans import overcooked_data as od
     from esr_cli.play import export
+    from esr_cli.storage.artifacts import ensure
 
     spec = specs.load(ROOT / COOK[0], "paper", ["env.episode_steps=40"])
     env = make_env(spec.env)
@@ -937,7 +936,7 @@ def test_overcooked_episodes_export_to_the_human_data_schema_and_replay(tmp_path
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["p9.csv", "p9.pickle"]  # no temporary file left
     # As a human's data: the person's view of each logged state and their action, on this
     # layout only; one episode leaves no test split.
-    from esr_cli import play_data
+    from esr_cli.recipes import play_data
 
     data = play_data.convert([built.path], "cramped_room")
     np.testing.assert_array_equal(data["action"], [s["human_action"] for s in logged_steps(built.path)])
@@ -954,7 +953,7 @@ def test_plays_by_robot_averages_each_participant_first_and_writes_one_csv_row_p
     import csv
     import statistics
 
-    from esr_cli.artifacts import ensure
+    from esr_cli.storage.artifacts import ensure
 
     spec = specs.load(ROOT / GRID[0], "paper", [GRID[2], GRID[4]])
     env = make_env(spec.env)

@@ -3,7 +3,7 @@
 import numpy as np
 from PIL import Image
 
-from esr_cli import plots
+from esr_cli.common import plots
 
 
 def test_learning_curve_shades_the_warm_up_epochs(tmp_path):
@@ -22,7 +22,8 @@ def test_learning_curve_shades_the_warm_up_epochs(tmp_path):
 def test_suite_panels_group_runs_by_environment_and_name_lines_by_method(tmp_path):
     from types import SimpleNamespace
 
-    from esr_cli import figures, specs
+    from esr_cli.common import specs
+    from esr_cli.report import figures
 
     root = figures.PAPER_SUITE.parents[2]
     runs = []
@@ -42,7 +43,7 @@ def test_suite_panels_group_runs_by_environment_and_name_lines_by_method(tmp_pat
 
 
 def test_frame_captions_name_the_step_its_actions_reward_and_return():
-    from esr_cli.plots import frame_caption
+    from esr_cli.common.plots import frame_caption
 
     assert frame_caption(0, 50, None, None, 0.0).startswith("step 0/50: the start")
     text = frame_caption(3, 50, ("push (4,1) up", "right"), 1.0, 2.0)

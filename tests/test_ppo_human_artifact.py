@@ -1,5 +1,5 @@
-"""The PPO human as a stored artifact (esr_cli/ppo_humans.py) and the calibration command
-(esr_cli/human_calibration.py), on budgets of seconds: built once then found, resumed
+"""The PPO human as a stored artifact (esr_cli/recipes/ppo_humans.py) and the calibration command
+(esr_cli/report/human_calibration.py), on budgets of seconds: built once then found, resumed
 bit-identically after a stop, refused when it fails its checks, used by a training run, and
 calibrated with returns a plain evaluation of the same human reproduces."""
 
@@ -13,13 +13,15 @@ import time
 import jax
 import numpy as np
 import pytest
+from conftest import ROOT, esr, esr_env
 from rich.console import Console
 
-from conftest import ROOT, esr, esr_env
-from esr_cli import human_calibration as hc, human_runs, ppo_humans, specs, stored_humans
+from esr_cli.common import specs
 from esr_cli.model.envs.overcooked import Overcooked
 from esr_cli.model.humans import conv_actor_critic as cac, human_eval
-from esr_cli.store import Store, StoreError
+from esr_cli.recipes import human_runs, ppo_humans, stored_humans
+from esr_cli.report import human_calibration as hc
+from esr_cli.storage.store import Store, StoreError
 
 # 4 environments x 32 steps: 128 environment steps an update.
 TINY = "human={kind: ppo, total_steps: %d, num_envs: 4, rollout_steps: 32, min_selfplay_return: 0, eval_episodes: 4, chunk_updates: %d}"
@@ -70,7 +72,7 @@ def test_a_stopped_build_resumes_bit_identically(built, tmp_path):
     store, proc = built
     reference = params_of(proc.stdout.strip().splitlines()[-1])
     mine = tmp_path / "store"
-    cmd = [sys.executable, "-m", "esr_cli.cli", "human", "build", SPEC, "-b", "smoke", "--set", tiny(8, 1)]
+    cmd = [sys.executable, "-m", "esr_cli.cli.main", "human", "build", SPEC, "-b", "smoke", "--set", tiny(8, 1)]
     run = subprocess.Popen(cmd, cwd=ROOT, env=esr_env(mine), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.time() + 300

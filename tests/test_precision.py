@@ -3,9 +3,9 @@ that becomes part of the run key, and a bad value refused before any work."""
 
 import jax
 import numpy as np
-
 from conftest import esr
-from esr_cli import provenance
+
+from esr_cli.storage import provenance
 
 
 def test_default_is_exact_float32_and_leaves_keys_as_they_were(monkeypatch):
@@ -16,7 +16,8 @@ def test_default_is_exact_float32_and_leaves_keys_as_they_were(monkeypatch):
 
 
 def test_an_opt_in_precision_changes_the_run_key(monkeypatch):
-    from esr_cli import runs, specs
+    from esr_cli.common import specs
+    from esr_cli.recipes import runs
 
     spec = specs.load("experiments/grid_2.yaml", "smoke")
     monkeypatch.delenv(provenance.PRECISION_ENV, raising=False)

@@ -12,7 +12,6 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-
 from conftest import ROOT, esr, esr_env
 
 SMOKE = ("train", "experiments/grid_2.yaml", "--budget", "smoke")
@@ -27,9 +26,9 @@ def partials(store):
 
 
 def final_arrays(run_dir):
-    from esr_cli import specs
-    from esr_cli.runner import loop
+    from esr_cli.common import specs
     from esr_cli.model.train import make_trainer
+    from esr_cli.runner import loop
 
     trainer = make_trainer(specs.load("experiments/grid_2.yaml", "smoke"))
     return [np.asarray(x) for x in jax.tree.leaves(loop.final_state(trainer, run_dir))]
@@ -98,7 +97,7 @@ def test_next_chunk_fits_by_its_estimated_duration():
 
 
 def test_a_scheduled_job_stops_a_margin_before_its_time_limit():
-    from esr_cli.sweep import job_time_budget_s
+    from esr_cli.recipes.sweep import job_time_budget_s
 
     assert job_time_budget_s(720) == 720 * 60 * 0.95  # 5% of 12 hours: 36 minutes
     assert job_time_budget_s(10) == 600 - 60  # at least a minute
@@ -108,7 +107,7 @@ def test_a_scheduled_job_stops_a_margin_before_its_time_limit():
 @pytest.mark.slow
 def test_two_trainers_of_one_spec_make_one_artifact(tmp_path):
     store = tmp_path / "store"
-    args = [sys.executable, "-m", "esr_cli.cli", *SMOKE, "--set", "train.epochs=30"]
+    args = [sys.executable, "-m", "esr_cli.cli.main", *SMOKE, "--set", "train.epochs=30"]
     first = subprocess.Popen(args, cwd=ROOT, env=esr_env(store), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 300
     while not partials(store) and time.time() < deadline:
@@ -206,7 +205,7 @@ def test_a_checkpoint_folder_renamed_to_another_epoch_is_refused(tmp_path):
 def test_verify_finds_a_finished_run_whose_epochs_disagree(tmp_path, smoke_run):
     """A committed run's length, newest checkpoint folder, digests, metrics and summary must
     agree: a renamed checkpoint folder fails `esr verify` even with a manifest rewritten to match."""
-    from esr_cli.store import digest_file
+    from esr_cli.storage.store import digest_file
 
     _, path, _ = smoke_run
     store = tmp_path / "store"
@@ -250,8 +249,8 @@ def test_a_damaged_newest_checkpoint_falls_back_to_the_one_before(tmp_path, refe
 
 
 def test_not_enough_disk_fails_before_any_work(tmp_path, monkeypatch, capsys):
-    from esr_cli import runs
-    from esr_cli.cli import main
+    from esr_cli.cli.main import main
+    from esr_cli.recipes import runs
 
     monkeypatch.setattr(runs.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(10**9, 10**9, 1 << 20))
     store = tmp_path / "store"
@@ -302,10 +301,10 @@ def test_a_human_cloned_from_episodes_the_store_lacks_is_refused_before_anything
     human or the run is left half-made (no partial, no lock) by a mistyped key."""
     from rich.console import Console
 
-    from esr_cli import specs
-    from esr_cli.artifacts import ensure
-    from esr_cli.human_runs import human_recipe
-    from esr_cli.store import Store, StoreError
+    from esr_cli.common import specs
+    from esr_cli.recipes.human_runs import human_recipe
+    from esr_cli.storage.artifacts import ensure
+    from esr_cli.storage.store import Store, StoreError
 
     spec = specs.load(ROOT / "experiments/cramped_room.yaml", "smoke", ["human.data=[0123456789abcdef0123456789abcdef]"])
     store = Store(tmp_path / "store")
@@ -323,7 +322,7 @@ def test_a_stop_signal_where_python_ignores_exceptions_is_not_lost(sig, where):
     import gc
     import os
 
-    from esr_cli.stop_signals import Terminated, stop_signals_raise
+    from esr_cli.runner.stop_signals import Terminated, stop_signals_raise
 
     sent = []
 
@@ -362,7 +361,7 @@ def test_a_library_catching_exception_does_not_swallow_a_stop_signal(sig):
     raised in there must still end the command, not become a warning or a 'corrupt checkpoint'."""
     import os
 
-    from esr_cli.stop_signals import Terminated, stop_signals_raise
+    from esr_cli.runner.stop_signals import Terminated, stop_signals_raise
 
     swallowed = []
     with pytest.raises(KeyboardInterrupt if sig == signal.SIGINT else Terminated), stop_signals_raise():
@@ -383,7 +382,7 @@ def test_an_evaluation_stopped_by_a_signal_says_so_and_leaves_nothing_half_made(
     store, path, _ = smoke_run
     mine = tmp_path / "store"
     shutil.copytree(path, mine / "runs" / path.parent.name / path.name)
-    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli", "eval", path.name[:8], "--episodes", "1000000"],
+    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli.main", "eval", path.name[:8], "--episodes", "1000000"],
                             cwd=ROOT, env=esr_env(mine), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:  # a failure must not leave a million-episode evaluation running
         deadline = time.time() + 300
@@ -404,7 +403,7 @@ def test_a_stop_signal_a_library_wraps_in_its_own_error_still_ends_the_command_a
     `ImportError: initialization failed`: the command still reports the signal and its code."""
     import os
 
-    from esr_cli import cli
+    from esr_cli.cli import main as cli
 
     def importing(args, standalone_mode):
         try:
@@ -419,7 +418,7 @@ def test_a_stop_signal_a_library_wraps_in_its_own_error_still_ends_the_command_a
 
 
 def test_a_misspelt_fault_point_is_an_error_not_a_fault_that_never_fires(monkeypatch):
-    from esr_cli import faults
+    from esr_cli.common import faults
 
     assert faults.parse("after_metrics@2") == ("after_metrics", 2, "kill") and faults.parse("compile") == ("compile", 1, "kill")
     assert faults.parse("during_save@3:hang") == ("during_save", 3, "hang")

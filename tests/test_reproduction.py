@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import esr
-from esr_cli import reproduction as rep
-from esr_cli.printing import train_line
+
+from esr_cli.common.printing import train_line
+from esr_cli.report import reproduction as rep
 
 
 def _evidence(stem, sets=(), finals=(10.0,), epochs=3000, status="complete", mi=None):
@@ -234,8 +234,8 @@ def test_finished_runs_that_differ_only_in_their_seeds_are_pooled():
 def test_a_run_resumed_elsewhere_names_where_it_started_and_every_device(tmp_path):
     """The commit is the one it started from (flagged when that checkout's esr_cli/ had edits);
     the devices are every one it ran on, in order."""
-    from esr_cli import specs
-    from esr_cli.store import Store
+    from esr_cli.common import specs
+    from esr_cli.storage.store import Store
 
     spec = rep.claim_spec(("grid_10", ()))
     key = "ab" * 16
@@ -304,7 +304,7 @@ def test_similar_is_an_equivalence_test_with_a_stated_margin():
 
 
 def test_the_mean_difference_interval_matches_a_hand_computed_case():
-    from esr_cli.stats import mean_difference_ci
+    from esr_cli.common.stats import mean_difference_ci
 
     # one seed each: no interval; a constant sample resampled gives a point interval
     assert mean_difference_ci([5.0], [3.0]) == (2.0, None, None)
@@ -345,8 +345,8 @@ def test_the_summary_counts_each_tier():
 
 
 def test_the_report_figure_colours_by_method_and_dashes_esrs_variants():
-    from esr_cli.figures import METHOD_COLORS
-    from esr_cli.reproduction_figure import iqm_band, line_style
+    from esr_cli.report.figures import METHOD_COLORS
+    from esr_cli.report.reproduction_figure import iqm_band, line_style
 
     style = lambda stem, sets=(): line_style(rep.claim_spec((stem, sets)))  # noqa: E731
     assert style("grid_5") == (METHOD_COLORS["esr"], "-")
@@ -365,8 +365,8 @@ def test_the_report_figure_colours_by_method_and_dashes_esrs_variants():
 
 
 def test_a_run_with_another_kind_of_human_is_made_again_by_a_whole_section_override():
-    from esr_cli import specs
-    from esr_cli.reproduction import train_overrides
+    from esr_cli.common import specs
+    from esr_cli.report.reproduction import train_overrides
 
     spec = specs.load("experiments/cramped_room.yaml", "smoke", ["human={kind: ppo, total_steps: 4096}", "train.seeds=2"])
     file, sets = train_overrides(spec, "smoke")

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from esr_cli import specs
+from esr_cli.common import specs
 from esr_cli.model.train import compiled_chunk, compiled_init, make_trainer
 
 

@@ -5,11 +5,11 @@ import re
 from pathlib import Path
 
 import pytest
-
 from conftest import ROOT
-from esr_cli import specs
+
+from esr_cli.cli.main import main
+from esr_cli.common import specs
 from esr_cli.model import spec as spec_model
-from esr_cli.cli import main
 
 EXPERIMENTS = sorted(Path("experiments").glob("*.yaml"))
 GOOD = """

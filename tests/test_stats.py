@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.stats import mannwhitneyu
 
-from esr_cli import stats
+from esr_cli.common import stats
 
 
 def test_iqm_is_the_mean_of_the_middle_half():

@@ -13,9 +13,8 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from rich.console import Console
-
 from conftest import ROOT, esr, esr_env
+from rich.console import Console
 
 # A smoke run whose second chunk (400 epochs, after the 1-epoch warm-up) takes 10-20 s here.
 # 402 epochs: stopped after the first, it resumes with a warm-up epoch and a 400-epoch chunk,
@@ -28,9 +27,9 @@ VERY_LONG = ("train", "experiments/grid_2.yaml", "--budget", "smoke", "--set", "
 
 
 def final_arrays(run_dir):
-    from esr_cli import specs
-    from esr_cli.runner import loop
+    from esr_cli.common import specs
     from esr_cli.model.train import make_trainer
+    from esr_cli.runner import loop
 
     trainer = make_trainer(specs.load("experiments/grid_2.yaml", "smoke", list(LONG_SETS[1::2])))
     return [np.asarray(x) for x in jax.tree.leaves(loop.final_state(trainer, run_dir))]
@@ -39,7 +38,7 @@ def final_arrays(run_dir):
 def stop_mid_chunk(store: Path, sig, args=LONG) -> tuple[int, float, str]:
     """Start `args`, send `sig` a second into its long chunk; -> (exit code, seconds from the
     signal to the exit, stderr)."""
-    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli", *args], cwd=ROOT, env=esr_env(store),
+    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli.main", *args], cwd=ROOT, env=esr_env(store),
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)
@@ -95,7 +94,7 @@ def test_sigterm_in_a_chunk_of_minutes_stops_within_seconds_with_143(tmp_path):
 def test_a_second_ctrl_c_exits_at_once_even_while_a_checkpoint_is_written(tmp_path):
     # The first checkpoint's save hangs (a stalled file system): the first Ctrl-C is acknowledged
     # and waits for it, as the checkpoint is what the run keeps; the second leaves at once.
-    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli", *LONG], cwd=ROOT,
+    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli.main", *LONG], cwd=ROOT,
                             env=esr_env(tmp_path / "store", ESR_FAULT="during_save@1:hang"),
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     lines: list[str] = []
@@ -134,9 +133,9 @@ def test_chunks_are_timed_by_a_one_epoch_warm_up_then_bounded_by_the_checkpoint_
 
 
 def test_the_estimate_names_the_epoch_time_the_run_the_quick_budget_and_a_run_over_a_day():
-    from esr_cli import specs
+    from esr_cli.common import specs
     from esr_cli.model.train import make_trainer
-    from esr_cli.run_progress import TrainingReport, progress_bar, quick_estimate
+    from esr_cli.runner.run_progress import TrainingReport, progress_bar, quick_estimate
 
     spec, quick = (specs.load("experiments/grid_2.yaml", b) for b in ("paper", "quick"))
     console = Console(file=io.StringIO(), width=400)

@@ -6,9 +6,9 @@ import sys
 import time
 
 import pytest
-
 from conftest import esr
-from esr_cli.store import Store, StoreError, content_key
+
+from esr_cli.storage.store import Store, StoreError, content_key
 
 
 def test_content_key_is_canonical():
@@ -166,7 +166,7 @@ def hold_lock(root, key, seconds: int = 3) -> subprocess.Popen:
     """Another process holding `key`'s lock for `seconds`; returns once it holds it."""
     holder = subprocess.Popen(
         [sys.executable, "-c", (
-            "import sys, time; from esr_cli.store import Store; s = Store(sys.argv[1]);\n"
+            "import sys, time; from esr_cli.storage.store import Store; s = Store(sys.argv[1]);\n"
             f"with s.lock('runs', sys.argv[2]):\n    print('held', flush=True); time.sleep({seconds})"
         ), str(root), key],
         stdout=subprocess.PIPE, text=True,
@@ -191,7 +191,7 @@ def test_lock_excludes_a_second_process(tmp_path):
 
 @pytest.mark.slow
 def test_lock_without_waiting_reports_a_busy_artifact_at_once(tmp_path):
-    from esr_cli.store import LockBusy
+    from esr_cli.storage.store import LockBusy
 
     store = Store(tmp_path)
     key = "ab" * 16
@@ -208,7 +208,7 @@ def test_lock_of_a_dead_process_is_free(tmp_path):
     store = Store(tmp_path)
     key = "ef" * 16
     p = subprocess.Popen([sys.executable, "-c", (
-        "import os, sys; from esr_cli.store import Store; s = Store(sys.argv[1]);\n"
+        "import os, sys; from esr_cli.storage.store import Store; s = Store(sys.argv[1]);\n"
         "with s.lock('runs', sys.argv[2]):\n    os.kill(os.getpid(), 9)"
     ), str(tmp_path), key])
     p.wait()
@@ -223,14 +223,14 @@ def test_a_runs_code_digest_is_the_model_package(tmp_path, monkeypatch):
     re-keying a run; an edit to a model file, or a new one, re-keys it."""
     import shutil
 
-    from esr_cli import provenance
+    from esr_cli.storage import provenance
 
     copy = tmp_path / "esr_cli"
     shutil.copytree(provenance.PACKAGE_DIR, copy, ignore=shutil.ignore_patterns("__pycache__"))
     monkeypatch.setattr(provenance, "PACKAGE_DIR", copy)
     digest = lambda: provenance.code_digest.__wrapped__(provenance.MODEL_SOURCES)  # noqa: E731 (uncached)
     before = digest()
-    for host in ("store.py", "runs.py", "runner/loop.py", "cli.py", "human_runs.py", "specs.py"):
+    for host in ("storage/store.py", "recipes/runs.py", "runner/loop.py", "cli/main.py", "recipes/human_runs.py", "common/specs.py"):
         (copy / host).write_text((copy / host).read_text() + "\n# an edit\n")
     (copy / "unrelated.py").write_text("X = 1\n")
     assert digest() == before
@@ -248,17 +248,18 @@ def test_the_exact_analysis_digest_leaves_out_host_plumbing(tmp_path, monkeypatc
     not by the store or checkpoint code that its module imports (`alone`: not followed)."""
     import shutil
 
-    from esr_cli import exact_runs, provenance
+    from esr_cli.recipes import exact_runs
+    from esr_cli.storage import provenance
 
     copy = tmp_path / "esr_cli"
     shutil.copytree(provenance.PACKAGE_DIR, copy, ignore=shutil.ignore_patterns("__pycache__"))
     monkeypatch.setattr(provenance, "PACKAGE_DIR", copy)
     digest = lambda: provenance.code_digest.__wrapped__(*exact_runs.EXACT_CODE)  # noqa: E731 (uncached)
     before = digest()
-    for host in ("store.py", "runs.py", "transfer.py", "artifacts.py", "cli.py"):
+    for host in ("storage/store.py", "recipes/runs.py", "storage/transfer.py", "storage/artifacts.py", "cli/main.py"):
         (copy / host).write_text((copy / host).read_text() + "\n# an edit\n")
     assert digest() == before
-    for computing in ("exact_runs.py", "analysis/exact.py", "model/envs/gridworld.py"):
+    for computing in ("recipes/exact_runs.py", "analysis/exact.py", "model/envs/gridworld.py"):
         (copy / computing).write_text((copy / computing).read_text() + "\n# an edit\n")
         assert digest() != before, computing
         before = digest()
@@ -297,8 +298,8 @@ def test_a_printed_command_names_the_store_unless_it_is_the_default(tmp_path, mo
 def test_verify_checks_every_artifact_and_reports_every_problem(tmp_path, monkeypatch, capsys):
     """A file that cannot be read, or a link (here to an endless device), is a problem of its
     artifact: the artifacts after it are still checked, and the exit says some failed."""
-    from esr_cli import store as store_module
-    from esr_cli.cli import main
+    from esr_cli.cli.main import main
+    from esr_cli.storage import store as store_module
 
     unreadable, linked, good = make_artifacts(Store(tmp_path), ["a", "b", "c"]).values()
     digest = store_module.digest_file
@@ -320,7 +321,7 @@ def test_verify_checks_every_artifact_and_reports_every_problem(tmp_path, monkey
 
 def test_one_bad_manifest_never_breaks_listing_the_others(tmp_path):
     """A manifest that is garbage, 100 MB or nested 10,000 deep is refused with bounded work
-    (esr_cli/jsonl.py): `esr ls` lists every other artifact and names each bad one in one line."""
+    (esr_cli/common/jsonl.py): `esr ls` lists every other artifact and names each bad one in one line."""
     made = make_artifacts(Store(tmp_path), ["good", "garbage", "huge", "deep"])
     good, garbage, huge, deep = (made[n] for n in ("good", "garbage", "huge", "deep"))
     (garbage / "manifest.json").write_bytes(b"\x00garbage{")
@@ -343,7 +344,7 @@ def test_one_bad_manifest_never_breaks_listing_the_others(tmp_path):
                                  b"[" * 10_000, b"3", b'{"epoch": 2'])
 def test_a_metrics_line_too_long_too_deep_or_not_an_object_ends_the_reading(tmp_path, bad):
     """As a line cut short by a kill: it and everything after it are untrusted, never a crash."""
-    from esr_cli.jsonl import read_jsonl
+    from esr_cli.common.jsonl import read_jsonl
 
     (tmp_path / "metrics.jsonl").write_bytes(b'{"epoch": 1}\n' + bad + b'\n{"epoch": 3}\n')
     assert read_jsonl(tmp_path / "metrics.jsonl") == [{"epoch": 1}]

@@ -9,12 +9,14 @@ import shlex
 from pathlib import Path
 
 import pytest
+from conftest import ROOT, esr
 from rich.console import Console
 
-from conftest import ROOT, esr
-from esr_cli import provenance, specs, sweep
-from esr_cli.store import Store
-from esr_cli.suite import SuiteError
+from esr_cli.common import specs
+from esr_cli.recipes import sweep
+from esr_cli.recipes.suite import SuiteError
+from esr_cli.storage import provenance
+from esr_cli.storage.store import Store
 
 GRID_2 = ROOT / "experiments" / "grid_2.yaml"
 WIDE = {"COLUMNS": "400"}  # rich wraps at 80 columns when not on a terminal
@@ -379,7 +381,7 @@ def test_slurm_submission_builds_one_job_array(tmp_path, monkeypatch):
 
 
 def test_a_sweep_whose_jobs_stopped_at_their_time_budget_exits_75(tmp_path, monkeypatch, capsys):
-    from esr_cli.cli import main
+    from esr_cli.cli.main import main
 
     path = seeds_suite(tmp_path, 2)
     suite = sweep.load_suite(path, "smoke")
@@ -436,8 +438,8 @@ def test_curves_of_unfinished_runs_are_a_preview_marked_unfinished_outside_the_s
 
 
 def test_a_paper_figure_of_unfinished_runs_is_drawn_as_a_preview_and_never_stored(tmp_path):
-    from esr_cli import figures as figs, paper
-    from esr_cli.artifacts import ensure, preview
+    from esr_cli.report import figures as figs, paper
+    from esr_cli.storage.artifacts import ensure, preview
 
     store = Store(tmp_path / "store")
     inputs = figs.PaperInputs(store, "smoke", unfinished=True)

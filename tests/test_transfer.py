@@ -1,5 +1,5 @@
 """`esr export` / `esr import`: an artifact, finished or not, moves between stores as one file,
-and a hostile archive changes nothing (esr_cli/transfer.py)."""
+and a hostile archive changes nothing (esr_cli/storage/transfer.py)."""
 
 import bz2
 import copy
@@ -20,15 +20,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, event, given, settings
-from hypothesis import strategies as st
-
 from conftest import ROOT, esr
-from esr_cli import signing, specs, tar_reader
-from esr_cli.checkpoint_files import verify_artifact
-from esr_cli.store import STAGING_PREFIX, STAGING_RE, Store, StoreError, _host, content_key, digest_bytes, digest_file
-from esr_cli.transfer import import_archive
+from hypothesis import HealthCheck, event, given, settings, strategies as st
 from test_reliability import SMOKE, final_arrays, partials
+
+from esr_cli.common import specs, tar_reader
+from esr_cli.storage import signing
+from esr_cli.storage.checkpoint_files import verify_artifact
+from esr_cli.storage.store import STAGING_PREFIX, STAGING_RE, Store, StoreError, _host, content_key, digest_bytes, digest_file
+from esr_cli.storage.transfer import import_archive
 
 SPEC = specs.load(ROOT / "experiments/grid_2.yaml", "smoke")
 SPEC_YAML = specs.to_yaml(SPEC).encode()  # a run's spec.yaml, as training writes it
@@ -302,7 +302,7 @@ def test_export_refuses_a_target_that_is_not_a_file_before_any_work(smoke_run, t
 def test_an_archive_larger_than_the_free_disk_is_refused_before_it_is_unpacked(smoke_run, tmp_path, monkeypatch):
     """The members' sizes in the tar headers are summed first: a small archive of zeros that
     would unpack past the free space writes nothing."""
-    import esr_cli.transfer as transfer
+    import esr_cli.storage.transfer as transfer
 
     store, path, _ = smoke_run
     archive = tmp_path / "run.tar.gz"

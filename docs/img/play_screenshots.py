@@ -14,7 +14,7 @@ from pathlib import Path
 
 from rich.console import Console
 
-from esr_cli import specs
+from esr_cli.common import specs
 from esr_cli.model.envs import make_env
 from esr_cli.play.game import Game, KeyPress, Robot, View
 from esr_cli.play.terminal import Terminal
@@ -47,7 +47,7 @@ def web_png(spec_path: str, name: str, keys: list[str], wait_s: float) -> None:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     store = tempfile.mkdtemp()
-    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli", "--store", store, "play", spec_path, "--robots", "random",
+    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli.main", "--store", store, "play", spec_path, "--robots", "random",
                              "--web", "--port", str(port), "--seed", "3", "--countdown", "0"], cwd=ROOT,
                             stderr=subprocess.PIPE, text=True)
     # The address esr prints once it serves, with the session's token.

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from esr_cli.model.train import TrainState, Trainer
+from esr_cli.model.train import Trainer, TrainState
 
 EVAL_KEY_SALT = 2**20  # evaluation keys never coincide with training keys
 

@@ -19,8 +19,8 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from esr_cli.model.replay import map_episodes
 from esr_cli.model.networks import conv_net
+from esr_cli.model.replay import map_episodes
 
 BETA_MIN, BETA_MAX = 1e-3, 100.0
 

@@ -1,7 +1,7 @@
 """The spec's models: what an experiment is, as frozen pydantic models with their defaults,
 ranges and cross-field rules. This is keyed code (esr_cli/model): a run's key digests these
 defaults and rules beside the spec's values. Reading spec files (budgets, `extends:`, `--set`)
-is esr_cli/specs.py. Nothing here imports JAX, so a bad spec is refused in a fraction of a second.
+is esr_cli/common/specs.py. Nothing here imports JAX, so a bad spec is refused in a fraction of a second.
 """
 
 from __future__ import annotations

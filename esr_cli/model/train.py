@@ -22,9 +22,9 @@ import jax
 import jax.numpy as jnp
 
 from esr_cli.model import replay
-from esr_cli.model.learner import LearnerState, SoftQLearner, entropy
 from esr_cli.model.envs import make_env
 from esr_cli.model.humans.registry import make_human
+from esr_cli.model.learner import LearnerState, SoftQLearner, entropy
 from esr_cli.model.methods.registry import make_method
 
 BASE_METRICS = (

@@ -21,8 +21,8 @@ from esr_cli.model import spec as spec_model
 from esr_cli.model.envs import make_env
 from esr_cli.model.envs.overcooked import INTERACT, Overcooked
 from esr_cli.model.humans import overcooked_data as od
-from esr_cli.play.log import read_header, read_states, read_steps
-from esr_cli.store import PLAY_KIND
+from esr_cli.storage.play_log import read_header, read_states, read_steps
+from esr_cli.storage.store import PLAY_KIND
 
 NAME = {od.ONION: "onion", od.PLATE: "dish", od.DISH: "soup"}  # JaxMARL object -> overcooked-ai name
 ORIENTATION = {v: list(k) for k, v in od.ORIENTATION.items()}

@@ -29,7 +29,7 @@ import numpy as np
 
 from esr_cli.model.envs import gridworld, overcooked
 from esr_cli.play import overcooked_board
-from esr_cli.play.log import state_record
+from esr_cli.storage.play_log import state_record
 
 KEYS = ("up", "down", "left", "right", "space")
 QUIT = "quit"  # the person asks to end the session (confirmed before it ends)

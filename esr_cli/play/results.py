@@ -3,7 +3,7 @@
 
 A participant is the unit: each participant's completed episodes with a robot are averaged
 first, then the table gives the mean ± SE and the interquartile mean with its bootstrap
-interval across participants (esr_cli.stats), as a study's analysis would. Episodes a person
+interval across participants (esr_cli.common.stats), as a study's analysis would. Episodes a person
 ended early are counted but never scored.
 """
 
@@ -13,7 +13,7 @@ import csv
 import io
 from collections import defaultdict
 
-from esr_cli.stats import describe
+from esr_cli.common.stats import describe
 
 # One row per played episode (`--csv`), in this order.
 EPISODE_FIELDS = ("key", "participant", "session", "episode", "robot", "robot_label", "env", "completed", "steps",

@@ -20,14 +20,14 @@ from pathlib import Path
 
 from rich.console import Console
 
-from esr_cli import specs
-from esr_cli.artifacts import Recipe, ensure
+from esr_cli.common import specs
 from esr_cli.model.envs import make_env
 from esr_cli.play.game import RANDOM_ROBOT, Game, Robot, play_episode
-from esr_cli.play.log import EPISODE_FILE, FINAL_STATE_FILE, STEPS_FILE, read_steps
-from esr_cli.runs import find_run, load_run, seed_slice
-from esr_cli.targets import run_spec
-from esr_cli.store import PLAY_KIND, LockBusy, Store, StoreError, atomic_write_text, digest_bytes
+from esr_cli.recipes.runs import find_run, load_run, seed_slice
+from esr_cli.recipes.targets import run_spec
+from esr_cli.storage.artifacts import Recipe, ensure
+from esr_cli.storage.play_log import EPISODE_FILE, FINAL_STATE_FILE, STEPS_FILE, read_steps
+from esr_cli.storage.store import PLAY_KIND, LockBusy, Store, StoreError, atomic_write_text, digest_bytes
 
 
 # ---------------------------------------------------------------- the plan

@@ -13,7 +13,7 @@ from pydantic import TypeAdapter
 from esr_cli.model import spec as spec_model
 from esr_cli.model.envs import make_env
 from esr_cli.model.envs.action_labels import LABELS
-from esr_cli.play.log import read_header, read_steps
+from esr_cli.storage.play_log import read_header, read_steps
 
 # Copied from the episode's header onto each of its steps.
 EPISODE_FIELDS = ("participant", "session", "episode", "robot", "robot_label", "seed", "front_end")

@@ -29,16 +29,22 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
-from esr_cli import faults
+from esr_cli.common import faults
+from esr_cli.common.stops import CorruptCheckpoint, Diverged, TimeLimitReached
+from esr_cli.model.train import Trainer, TrainState, compiled_chunk, compiled_init
 from esr_cli.runner.event_log import EventLog
-from esr_cli.finals import read_rows
-from esr_cli.checkpoint_files import (
-    CHECKPOINT_DIGESTS, CHECKPOINT_DIR, epochs_problem, read_digests, record_digests, step_intact, verified_steps,
-)
-from esr_cli.store import StoreError, atomic_write_text, without_checkpoint
 from esr_cli.runner.stop_requests import StopRequests
-from esr_cli.runner.stops import CorruptCheckpoint, Diverged, TimeLimitReached
-from esr_cli.model.train import TrainState, Trainer, compiled_chunk, compiled_init
+from esr_cli.storage.checkpoint_files import (
+    CHECKPOINT_DIGESTS,
+    CHECKPOINT_DIR,
+    epochs_problem,
+    read_digests,
+    record_digests,
+    step_intact,
+    verified_steps,
+)
+from esr_cli.storage.finals import read_rows
+from esr_cli.storage.store import StoreError, atomic_write_text, without_checkpoint
 
 METRICS_FILE = "metrics.jsonl"
 

@@ -6,7 +6,7 @@ Compiling a program and running a chunk hold a thread in XLA's C++ for as long a
 the main thread, between two bytecodes. So the long steps run in a worker thread while the
 main thread waits in short slices and looks for a request between them. A chunk in flight is
 then abandoned: its epochs are lost, the checkpoint before it is intact, and the process
-leaves with `os._exit` (esr_cli/cli.py), which ends the worker too. A checkpoint being
+leaves with `os._exit` (esr_cli/cli/main.py), which ends the worker too. A checkpoint being
 written is waited for, as it is what the run keeps.
 """
 
@@ -18,7 +18,7 @@ import signal
 import threading
 from typing import Callable, TypeVar
 
-from esr_cli.runner.stops import Interrupted, exit_code
+from esr_cli.common.stops import Interrupted, exit_code
 
 # The signals that stop a run: Ctrl-C, and the SIGTERM of `kill`, `timeout` or a scheduler.
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)

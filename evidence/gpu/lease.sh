@@ -56,7 +56,7 @@ if compgen -G ".whl/*.whl" >/dev/null; then
 else
     export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 fi
-esr() { python3 -c 'import sys; from esr_cli.cli import main; sys.exit(main(sys.argv[1:]))' "$@"; }
+esr() { python3 -c 'import sys; from esr_cli.cli.main import main; sys.exit(main(sys.argv[1:]))' "$@"; }
 STORE=${STORE:-/tmp/esr_store}
 
 {

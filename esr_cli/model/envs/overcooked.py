@@ -99,8 +99,7 @@ def jaxmarl_env(layout: str, max_steps: int):
     with quiet_jaxmarl(), warnings.catch_warnings(), jax.ensure_compile_time_eval():
         warnings.simplefilter("ignore", DeprecationWarning)
         from flax.core.frozen_dict import FrozenDict
-        from jaxmarl.environments.overcooked import Overcooked as JaxmarlOvercooked
-        from jaxmarl.environments.overcooked import overcooked_layouts
+        from jaxmarl.environments.overcooked import Overcooked as JaxmarlOvercooked, overcooked_layouts
 
         if layout not in overcooked_layouts:
             raise ValueError(f"unknown Overcooked layout {layout!r}; known: {', '.join(LAYOUTS)}")

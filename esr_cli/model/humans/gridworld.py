@@ -13,7 +13,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from esr_cli.model.envs.gridworld import NUM_HUMAN_ACTIONS, STAY, Gridworld, GridState
+from esr_cli.model.envs.gridworld import NUM_HUMAN_ACTIONS, STAY, GridState, Gridworld
 
 STAY_BONUS = 0.1
 

@@ -1,0 +1,499 @@
+"""Experiment specs: YAML -> validated, frozen pydantic models.
+
+Order of operations (see docs/specs.md):
+  1. read the YAML file (unreadable or missing files are spec errors);
+  2. apply the chosen budget's overrides (`budgets:` in the file, else the defaults below);
+  3. apply `--set key.path=value` overrides from the command line;
+  4. validate the result (unknown keys, types, ranges, cross-field rules).
+Every failure raises `SpecError` naming the file, the key path and the problem.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import re
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import ValidationError
+
+from esr_cli.common import yamlio
+from esr_cli.common.failures import Failure
+from esr_cli.model.spec import BUDGETS, KIND_MODELS, Spec
+
+# Budget overrides used when a spec does not define its own `budgets:` entry for that budget.
+# `paper` is the spec as written. `quick` shows learning in minutes on a laptop CPU; `smoke`
+# exercises every code path in seconds (tests).
+# In 150 epochs the paper's settings never learn (docs/results.md): at the paper's
+# representation rate (1e-4) the representations carry no information yet when the dual step
+# has already made the robot's policy near-deterministic, and a policy that leaves the cornered
+# human trapped produces no data that could teach otherwise. `quick` therefore starts with 20
+# epochs of a uniformly acting robot (every update runs; SAC's start steps) and learns the
+# representations 10x faster. Both apply only to kinds that have those fields.
+DEFAULT_BUDGETS: dict[str, dict[str, Any]] = {
+    "paper": {},
+    "quick": {
+        "train.epochs": 150,
+        "train.seeds": 1,
+        "train.chunk_epochs": 10,
+        "learner.warmup_epochs": 20,
+        "method.repr_lr": 1e-3,
+    },
+    "smoke": {
+        "train.epochs": 2,
+        "train.num_envs": 4,
+        "train.seeds": 1,
+        "train.chunk_epochs": 1,
+        "learner.updates_per_epoch": 3,
+        "learner.dual_updates_per_epoch": 3,
+        "learner.batch_size": 16,
+        "method.repr_updates_per_epoch": 3,
+        "method.updates_per_epoch": 3,
+        "eval.episodes": 2,
+    },
+}
+
+
+
+class SpecError(Failure):
+    """A spec that cannot be used. `str()` is one line naming file, key path and problem."""
+
+    exit_code = 2
+
+    def one_line(self) -> str:
+        return f"bad spec: {self}"
+
+    def __init__(self, source: str, path: str, problem: str):
+        self.source, self.path, self.problem = source, path, problem
+        where = f"{source}: " if source else ""
+        key = f"{path}: " if path else ""
+        super().__init__(f"{where}{key}{problem}")
+
+
+
+# ---------------------------------------------------------------- loading
+def _set_path(tree: dict, dotted: str, value: Any, source: str) -> None:
+    parts = dotted.split(".")
+    if not all(parts):
+        raise SpecError(source, dotted, "malformed key path")
+    node = tree
+    for i, p in enumerate(parts[:-1]):
+        nxt = node.get(p)
+        if nxt is None:
+            nxt = node[p] = {}
+        if not isinstance(nxt, dict):
+            raise SpecError(source, ".".join(parts[: i + 1]), "is not a section, cannot set a key inside it")
+        node = nxt
+    old = node.get(parts[-1])
+    if isinstance(value, dict) and isinstance(old, dict):
+        # `train={epochs: 5}` means `train.epochs=5`: a mapping sets the keys it names and keeps
+        # the section's others, as a YAML file's own section would not
+        for key, item in value.items():
+            _set_path(old, str(key), item, source)
+        return
+    node[parts[-1]] = value
+
+
+def _kind_has_field(tree: dict, dotted: str) -> bool:
+    section, _, field = dotted.partition(".")
+    if section not in KIND_MODELS:
+        return True
+    kind = (tree.get(section) or {}).get("kind") if isinstance(tree.get(section), dict) else None
+    model = KIND_MODELS[section].get(kind)
+    return model is None or field.split(".")[0] in model.model_fields
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """`key.path=value` -> (path, YAML-parsed value)."""
+    if "=" not in text:
+        raise SpecError("--set", text, "expected key.path=value")
+    path, raw = text.split("=", 1)
+    if not path.strip():
+        raise SpecError("--set", text[:60], "no key path before '=': expected key.path=value")
+    if "[" in path:
+        name = path.split("[")[0].strip()
+        raise SpecError("--set", path.strip(), f"a list is set whole, not item by item: --set {name}=[...]")
+    if len(raw) > MAX_OVERRIDE_CHARS:
+        raise SpecError("--set", path, f"value is {len(raw):,} characters long; at most {MAX_OVERRIDE_CHARS:,}")
+    try:
+        value = yamlio.parse(raw) if raw.strip() else ""
+    except yamlio.YamlInputError as e:
+        raise SpecError("--set", path, f"value is not valid YAML: {e}") from None
+    return path.strip(), value
+
+
+MAX_OVERRIDE_CHARS = 10_000
+
+
+def _format_loc(loc: tuple) -> str:
+    out = []
+    for i, part in enumerate(loc):
+        if isinstance(part, int):
+            out.append(f"[{part}]")
+        elif (i == 1 and loc[0] in KIND_MODELS and part in KIND_MODELS[loc[0]]) or "[" in str(part):
+            continue  # pydantic's discriminated-union tags (`method.esr.x`) are not user key paths
+        else:
+            out.append(("." if out else "") + str(part))
+    return "".join(out)
+
+
+SECTIONS_WITHOUT_KINDS = ("network", "learner", "train", "eval")
+
+
+def _valid_names(loc: tuple) -> list[str]:
+    """The field names valid where an unknown key `loc[-1]` was found."""
+    parent = loc[:-1]
+    if not parent:
+        return list(Spec.model_fields)
+    section = parent[0]
+    if section in KIND_MODELS and len(parent) >= 2:
+        model = KIND_MODELS[section].get(parent[1])
+        return list(model.model_fields) if model else []
+    if section in SECTIONS_WITHOUT_KINDS and len(parent) == 1:
+        return list(Spec.model_fields[section].annotation.model_fields)
+    return []
+
+
+def first_problem(e: ValidationError) -> tuple[dict, str]:
+    """The mistake to name first and its message in plain words (no pydantic prefix or URL):
+    an unknown key first (a typo usually also makes a required key 'missing', which is its
+    consequence), then anything else in pydantic's order. Specs, suites and slurm options share it."""
+    errors = e.errors()
+    err = ([x for x in errors if x["type"] == "extra_forbidden"] or errors)[0]
+    msg = err["msg"]
+    if err["type"] == "extra_forbidden":
+        msg = "unknown key"
+    elif err["type"] == "missing":
+        msg = "missing: this key is required"
+    elif msg.startswith("Value error, "):
+        msg = msg[len("Value error, ") :]
+    elif err["type"] in ("model_attributes_type", "dict_type", "model_type"):
+        msg = f"expected a section (a mapping of keys), got {type(err['input']).__name__} {str(err['input'])[:40]!r}"
+    elif err["type"] == "bool_type":
+        msg = "expected true or false"
+    elif err["type"] == "string_type" and isinstance(err["input"], (int, float)) and not isinstance(err["input"], bool):
+        msg = f"expected text, got the number {err['input']!r:.40}: write it in quotes to mean the text"
+    elif err.get("input", ...) is None and err["type"].endswith("_type"):
+        msg = "the value is empty (null): write one, or leave the key out for its default"
+    elif err["type"] in ("tuple_type", "list_type"):
+        msg = f"expected a list, e.g. [a, b], got {_described(err['input'])}"
+    elif err["type"] == "int_parsing_size" or (err["type"] in ("float_type", "float_parsing")
+                                               and isinstance(err.get("input"), int) and not isinstance(err["input"], bool)):
+        msg = "the number is far too large for this setting"
+    return err, msg
+
+
+def _described(value: Any) -> str:
+    if isinstance(value, bool):
+        return f"the boolean {str(value).lower()}"
+    if isinstance(value, (int, float)):
+        return f"the number {value!r:.40}"
+    if isinstance(value, str):
+        return f"the text {value[:40]!r}"
+    return f"a {'mapping' if isinstance(value, dict) else type(value).__name__}"
+
+
+def other_problems(e: ValidationError) -> str:
+    """' (and N more problem(s))' after the first problem's message, or nothing."""
+    n = len(e.errors()) - 1
+    return f" (and {n} more problem(s))" if n else ""
+
+
+def validate(raw: dict, source: str = "") -> Spec:
+    try:
+        return Spec.model_validate(raw)
+    except ValidationError as e:
+        err, msg = first_problem(e)
+        loc = tuple(err["loc"])
+        if err["type"] == "extra_forbidden":
+            close = difflib.get_close_matches(str(loc[-1]), _valid_names(loc), n=1, cutoff=0.6)
+            head, _, rest = str(loc[-1]).partition(".")
+            if rest and head:  # `train.epochs: 5` written in a file, as --set and budgets write it
+                msg += (f": a dotted key path is for --set and budgets; in a file, nest it: "
+                        f"`{head}: {{{rest}: ...}}`")
+            elif close:
+                msg += f"; did you mean `{close[0]}`?"
+        section = KIND_MODELS.get(str(loc[0]) if loc else "", {})
+        if err["type"] == "union_tag_not_found":
+            msg = f"needs a `kind`: one of {', '.join(section)}"
+            given = err.get("input") if isinstance(err.get("input"), dict) else {}
+            typo = difflib.get_close_matches("kind", [str(k) for k in given], n=1, cutoff=0.6)
+            if typo:
+                loc, msg = loc + (typo[0],), f"unknown key; did you mean `kind`? (the section {msg})"
+        elif err["type"] == "union_tag_invalid":
+            msg = f"kind {err.get('ctx', {}).get('tag')!r} is not one of {', '.join(section)}"
+        raise SpecError(source, _format_loc(loc), msg + other_problems(e)) from None
+
+
+def _merge(base: dict, child: dict) -> dict:
+    """`child` over `base`, section by section. A child section naming a different `kind`
+    replaces the base section (its fields belong to another model); otherwise keys merge."""
+    out = copy.deepcopy(base)
+    for key, value in child.items():
+        old = out.get(key)
+        if isinstance(old, dict) and isinstance(value, dict) and not _replaces(old, value):
+            out[key] = _merge(old, value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def load_raw(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict:
+    """The YAML tree of a spec file. `extends: other.yaml` (relative to this file) starts from
+    that spec and applies this file's keys over it (see `_merge`)."""
+    raw = _read_extended(path) if _seen else _read_yaml(path)
+    if "extends" not in raw:
+        return raw
+    parent = raw.pop("extends")
+    if not isinstance(parent, str) or not parent:
+        raise SpecError(str(path), "extends", "must be the path of another spec file")
+    if len(_seen) + 1 >= MAX_EXTENDS:
+        raise SpecError(str(_seen[0]), "extends", f"a chain of more than {MAX_EXTENDS} files extending one another "
+                        f"(file {MAX_EXTENDS} of it is {path}); shorten it")
+    try:
+        base_path = (Path(path).parent / parent).resolve()
+        here = Path(path).resolve()
+    except (OSError, RuntimeError, ValueError) as e:  # a symlink loop, a NUL in the name
+        raise SpecError(str(path), "extends", f"cannot follow {parent[:60]!r}: {e}") from None
+    if base_path in _seen or base_path == here:
+        raise SpecError(str(path), "extends", f"circular: {parent} extends this file again")
+    if not base_path.exists():
+        raise SpecError(str(path), "extends", f"file not found: {parent}")
+    if not base_path.is_file():
+        raise SpecError(str(path), "extends", f"{parent} is not a file")
+    return _merge(_budgets_for(load_raw(base_path, _seen + (here,)), raw), raw)
+
+
+def _replaces(old: Any, new: Any) -> bool:
+    """A child section naming another kind than its base's replaces it (`_merge`)."""
+    return isinstance(old, dict) and isinstance(new, dict) and new.get("kind", old.get("kind")) != old.get("kind")
+
+
+def _budgets_for(base: dict, child: dict) -> dict:
+    """`base` without its budget entries for the sections that `child` replaces by another kind:
+    they were written for the base's kind (as a budget's entries do not apply to a section whose
+    kind --set changed). The child's own budgets may set the new kind's fields."""
+    replaced = [key for key, value in child.items() if _replaces(base.get(key), value)]
+    budgets = base.get("budgets")
+    if not replaced or not isinstance(budgets, dict):
+        return base
+    kept = {name: {k: v for k, v in entries.items() if not any(_within(str(k), r) for r in replaced)}
+            if isinstance(entries, dict) else entries for name, entries in budgets.items()}
+    return {**base, "budgets": kept}
+
+
+MAX_EXTENDS = 32  # files in one `extends:` chain: far above any real layering
+SPEC_FILE_KEYS = set(Spec.model_fields) | {"extends"}  # `budget` too: refused later, with its own message
+
+
+def _read_extended(path: Path) -> dict:
+    """A file that `extends:` names, read only if it is a spec: its top level a mapping of spec
+    sections. It may be any file the user can read (a spec from elsewhere could name
+    ~/.aws/credentials), so where it is not, the error names it and at most a line number,
+    never its content, which would reach a terminal or a job's log."""
+    try:
+        raw = yamlio.read(path)
+    except yamlio.YamlInputError as e:
+        line = re.search(r"\bline ([0-9]+)", str(e))
+        raise SpecError(str(path), "", "not a spec file esr can read" + (f" (line {line[1]})" if line else "")
+                        + "; `extends:` must name a spec file") from None
+    if not isinstance(raw, dict) or not set(raw) <= SPEC_FILE_KEYS:
+        raise SpecError(str(path), "", "not a spec file (its top level is not a mapping of spec sections); "
+                        "`extends:` must name a spec file")
+    return raw
+
+
+def _read_yaml(path: str | Path) -> dict:
+    source = str(path)
+    try:
+        raw = yamlio.read(path)  # bounded: size limit, no aliases, no duplicate keys
+    except yamlio.YamlInputError as e:
+        raise SpecError(source, "", str(e)) from None
+    if not isinstance(raw, dict):
+        raise SpecError(source, "", "the top level must be a mapping of sections")
+    return raw
+
+
+def resolve(raw: dict, budget: str = "paper", overrides: list[str] | tuple[str, ...] = (), source: str = "") -> Spec:
+    """Apply budget then overrides to a raw spec tree and validate it. A value that fails names
+    where it came from: the `--set` that gave it, or the budget that set it."""
+    if budget not in BUDGETS:
+        raise SpecError(source, "--budget", f"unknown budget {budget!r}; known: {', '.join(BUDGETS)}")
+    if "budget" in raw:
+        raise SpecError(source, "budget", "a run's budget is chosen with --budget, not in the spec file "
+                        "(the file's `budgets:` section says what each budget changes)")
+    # The file as written must be valid on its own: a budget must not hide a bad value.
+    validate({**copy.deepcopy(raw), "budget": "paper"}, source)
+    budgets = raw.get("budgets") or {}
+    if not isinstance(budgets, dict):
+        raise SpecError(source, "budgets", "must be a mapping of budget name to overrides")
+    for name in budgets:  # nor may a budget of the file other than the one chosen
+        if name != budget:
+            tree = copy.deepcopy(raw)
+            given = _apply_budget(tree, name, budgets[name], True, set(), source)
+            _validated(tree, name, given, source)
+    tree = copy.deepcopy(raw)
+    parsed = [(text, *parse_override(text)) for text in overrides]
+    given: dict[str, str] = {}  # key path -> what set it, to name in an error
+    switched = set()
+    for text, dotted, value in parsed:
+        if dotted.split(".")[0] in ("budget", "budgets"):
+            raise SpecError("--set", dotted, "choose a budget with --budget")
+        if _switch_kind(tree, dotted, value):  # before the budget, whose fields depend on the kind
+            section = dotted.split(".")[0]
+            switched.add(section)
+            given[section] = f"--set {text}"  # the new kind's missing or bad fields are this --set's
+    own = budget in budgets
+    given.update(_apply_budget(tree, budget, budgets[budget] if own else DEFAULT_BUDGETS[budget], own, switched, source))
+    for text, dotted, value in parsed:
+        _set_path(tree, dotted, value, "--set")
+        given.pop(dotted, None)
+        given[dotted] = f"--set {text}"
+    return _validated(tree, budget, given, source)
+
+
+def _apply_budget(tree: dict, budget: str, entries: Any, own: bool, switched: set[str], source: str) -> dict[str, str]:
+    """Set a budget's entries in `tree`; -> {key path: what set it}."""
+    where = f"budgets.{budget}" if own else f"the {budget} budget"
+    if not isinstance(entries, dict):
+        raise SpecError(source, f"budgets.{budget}", "must be a mapping of key.path to value")
+    given = {}
+    for dotted, value in entries.items():
+        dotted = str(dotted)
+        if dotted.split(".")[0] in ("budget", "budgets", "name"):
+            raise SpecError(f"{source}, {where}", dotted, "a budget sets fields of the run's sections, not this")
+        # The default budgets name fields of every kind (e.g. ESR's update count); they apply
+        # only where the spec's kind has that field. A spec's own budgets apply as written,
+        # except to a section whose kind --set changed (they were written for the file's kind).
+        as_written = own and dotted.split(".")[0] not in switched
+        if as_written and _switch_kind(tree, dotted, value):  # as --set SECTION.kind does
+            given[dotted.split(".")[0]] = where
+        elif as_written or _kind_has_field(tree, dotted):
+            _set_path(tree, dotted, value, f"{source}, {where}" if source else where)
+            given[dotted] = where
+    return given
+
+
+def _validated(tree: dict, budget: str, given: dict[str, str], source: str) -> Spec:
+    tree["budget"] = budget
+    try:
+        return validate(tree, source)
+    except SpecError as e:
+        raise _blame(e, given) from None
+
+
+def _switch_kind(tree: dict, dotted: str, value: Any) -> bool:
+    """`--set method.kind=random` (or `method={kind: random, ...}`) on an ESR spec: the section
+    starts again from the new kind, as a child file's section naming another kind replaces its
+    parent's (`_merge`); ESR's fields would be unknown keys of the new model."""
+    section, _, field = dotted.partition(".")
+    if section not in KIND_MODELS or not isinstance(tree.get(section), dict):
+        return False
+    if section == "human" and not field and isinstance(value, dict) and "kind" not in value and "preset" in value:
+        tree[section] = {}  # `human={preset: NAME}`: the named human, whatever the file's kind (`_human_preset`)
+        return True
+    kind = value if field == "kind" else value.get("kind") if not field and isinstance(value, dict) else None
+    if kind is None or kind == tree[section].get("kind"):
+        return False
+    tree[section] = {"kind": kind}
+    return True
+
+
+def _within(path: str, section: str) -> bool:
+    """`path` is `section` or a key or item inside it."""
+    return path == section or path.startswith((section + ".", section + "["))
+
+
+def _blame(e: SpecError, given: dict[str, str]) -> SpecError:
+    """The error with the value's origin named: a field set by `--set` or by the budget is the
+    user's mistake there, not in the file that the other fields come from; a cross-field problem
+    that quotes such a field says where its value came from."""
+    for dotted, origin in reversed(given.items()):  # the last --set of a path is the one that holds
+        if e.path and (_within(e.path, dotted) or _within(dotted, e.path)):
+            if origin.startswith("--set"):
+                return SpecError(origin, e.path, e.problem)
+            return SpecError(f"{e.source}, {origin}" if origin.startswith("budgets.") else e.source, e.path,
+                             e.problem + ("" if origin.startswith("budgets.") else f" (set by {origin})"))
+    notes = [f"{dotted} from {origin}" for dotted, origin in given.items()
+             if re.search(rf"(?<![\w.]){re.escape(dotted)}(?![\w])", e.problem)]
+    if notes:
+        return SpecError(e.source, e.path, f"{e.problem} ({'; '.join(notes)})")
+    return e
+
+
+def _chain(path: str | Path) -> list[tuple[Path, dict]]:
+    """The files of an `extends:` chain with their own keys, the given file first."""
+    out, p = [], Path(path)
+    while len(out) < MAX_EXTENDS:
+        raw = _read_yaml(p)
+        out.append((p, raw))
+        parent = raw.get("extends")
+        if not isinstance(parent, str) or not parent:
+            break
+        p = (p.parent / parent).resolve()
+        if any(p == q.resolve() for q, _ in out):
+            break
+    return out
+
+
+def _defines(tree: dict, dotted: str) -> bool:
+    node: Any = tree
+    parts = dotted.replace("[", ".[").split(".")
+    for i, part in enumerate(parts):
+        if part.startswith("["):
+            break  # a list is written in one file as a whole
+        if isinstance(node, dict) and ".".join(parts[i:]) in node:
+            return True  # the path written as one dotted key (itself a mistake to name)
+        if not isinstance(node, dict) or part not in node:
+            return False
+        node = node[part]
+    return True
+
+
+# The paper's specs and suites as installed with esr: the checkout's experiments/ (through a
+# link), or the copy a wheel carries.
+INSTALLED_EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+
+
+def experiment_file(path: str | Path) -> Path:
+    """A spec or suite file named on the command line: the path from the current directory; a
+    relative `experiments/...` path that is not there is read from INSTALLED_EXPERIMENTS, so
+    the README's commands work wherever an installed esr runs."""
+    p = Path(path)
+    if p.is_absolute() or len(p.parts) < 2 or p.parts[0] != "experiments" or p.exists():
+        return p
+    installed = INSTALLED_EXPERIMENTS.joinpath(*p.parts[1:])
+    return installed if installed.is_file() else p
+
+
+def load(path: str | Path, budget: str = "paper", overrides: list[str] | tuple[str, ...] = ()) -> Spec:
+    path = experiment_file(path)
+    raw = load_raw(path)
+    try:
+        return resolve(raw, budget, overrides, source=str(path))
+    except SpecError as e:
+        # A bad value (or budget entry) from a file this one extends: name the file that wrote it.
+        own_source = re.fullmatch(re.escape(str(path)) + r"(?:, budgets\.([\w-]+))?", e.source)
+        if not own_source or not e.path:
+            raise
+        entry_of = own_source.group(1)  # the budget whose entry it is, or None: a value of the spec
+
+        def writes(own: dict) -> bool:
+            if entry_of is None:
+                return _defines(own, e.path)
+            entries = (own.get("budgets") or {}).get(entry_of)
+            return isinstance(entries, dict) and e.path in map(str, entries)
+
+        for file, own in _chain(path):
+            if writes(own):
+                if file != Path(path):
+                    where = f"{file} (extended by {path})" + (f", budgets.{entry_of}" if entry_of else "")
+                    raise SpecError(where, e.path, e.problem) from None
+                break
+        raise
+
+
+def to_yaml(spec: Spec) -> str:
+    return yaml.safe_dump(spec.model_dump(mode="json"), sort_keys=False)

@@ -1,0 +1,59 @@
+"""Why a training run ends short of its length, each with its exit code and line; they live
+apart from the training loop so that a usage error or `--help` is answered without importing
+JAX and orbax (seconds of start-up, paid by every command that only refuses its input)."""
+
+from __future__ import annotations
+
+import signal
+
+from esr_cli.common.failures import Failure
+
+
+class Interrupted(Failure):
+    """Ctrl-C (SIGINT) or SIGTERM arrived; the run stopped, keeping its checkpoint of `epoch`
+    (the chunk in flight, if any, is dropped). The command exits with `exit_code`. `unit`:
+    what `epoch` counts (a trained human counts PPO updates)."""
+
+    def __init__(self, epoch: int, signum: int = signal.SIGINT, unit: str = "epoch"):
+        self.epoch, self.signum, self.unit = epoch, signum, unit
+        super().__init__(f"interrupted after {unit} {epoch}")
+
+    @property
+    def exit_code(self) -> int:
+        return exit_code(self.signum)
+
+    def one_line(self) -> str:
+        how = "interrupted" if self.exit_code == 130 else "terminated (SIGTERM)"
+        if not self.epoch:
+            return f"{how} before the first checkpoint: run the same command again to start over"
+        return f"{how} after {self.unit} {self.epoch:,}; the checkpoint is saved: run the same command again to resume"
+
+
+def exit_code(signum: int) -> int:
+    """A shell's code for a process a signal ended: 130 for SIGINT, 143 for SIGTERM."""
+    return 128 + int(signum)
+
+
+class TimeLimitReached(Failure):
+    """The next chunk would end past the run's time limit; the run stopped after saving."""
+
+    exit_code = 75
+
+    def __init__(self, epoch: int, total: int):
+        self.epoch, self.total = epoch, total
+        super().__init__(f"stopped at the time limit after epoch {epoch} of {total}")
+
+    def one_line(self) -> str:
+        return (f"stopped after epoch {self.epoch:,} of {self.total:,}: the next chunk would pass the time limit; "
+                "the checkpoint is saved: run the same command again to continue")
+
+
+class CorruptCheckpoint(Failure):
+    """A checkpoint exists but cannot be restored."""
+
+
+class Diverged(Failure):
+    """A non-finite value appeared; the run stops and is not committed."""
+
+    def one_line(self) -> str:
+        return f"run diverged: {self} (the partial run is kept for inspection)"

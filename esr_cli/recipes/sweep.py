@@ -1,0 +1,622 @@
+"""Sweeps: run every training run of a suite, here or on a SLURM cluster (docs/cluster.md).
+
+Executors:
+  local           in this process, one run after another (artifacts.ensure of runs.run_recipe): the default;
+  slurm           one SLURM job per run, submitted as one job array through submitit;
+  submitit-local  the same jobs as `slurm`, started as local processes by submitit (all at
+                  once): checks a suite's job path without a cluster.
+
+Every job is the equivalent of `esr train SPEC --budget B --set ...` with the same store root.
+The store does the coordination: a committed key is skipped, a run whose lock is held is left
+to its holder, and a re-submitted or duplicated job waits on the lock and then finds the
+artifact committed. Job ids go to a small state file, <store>/sweeps/<suite>-<budget>-<key>.json,
+so `--status` can tell a queued or crashed job from a run that was never submitted.
+
+A store may be shared, so nothing read from it here is unpickled: each job writes how it ended
+as a small JSON record beside submitit's files (`<job id>_esr_outcome.json`), and status reads
+that, bounded, and only from a job folder inside the store's own sweeps/ folder. Submitit's
+result pickles are left unread.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import os
+import re
+import stat
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Iterable, Optional
+
+from pydantic import ValidationError
+from rich.console import Console
+from rich.table import Table
+from rich.text import Text
+
+from esr_cli.common import specs
+from esr_cli.common.printing import plain_console, tagged
+from esr_cli.recipes.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
+from esr_cli.storage import provenance
+from esr_cli.storage.artifacts import ensure
+from esr_cli.storage.store import RUN_KIND, Store, atomic_write_text, read_pending
+
+EXECUTORS = ("local", "slurm", "submitit-local")
+STATES = ("done", "running", "queued", "stopped", "failed", "missing")
+SWEEPS_DIR = "sweeps"
+OUTCOME_SUFFIX = "_esr_outcome.json"  # a job's own record of how it ended, beside submitit's files
+MAX_RECORD_BYTES = 1 << 20  # far above any state file or outcome record esr writes
+_JOB_ID = re.compile(r"\w[\w+-]*")  # a SLURM job (4242, 4242_0) or a local pid: never a path
+
+# SLURM job states (sacct) grouped by what they mean for a run that is not committed.
+# UNKNOWN (sacct unreachable) counts as queued: a sweep then does not submit the run twice.
+_QUEUED = {"PENDING", "REQUEUED", "REQUEUE_FED", "REQUEUE_HOLD", "CONFIGURING", "SUSPENDED", "RESIZING", "UNKNOWN"}
+_ALIVE = {"RUNNING", "COMPLETING", "STAGE_OUT", "SIGNALING"}
+
+
+class SweepError(Exception):
+    """A sweep that cannot proceed (e.g. no SLURM here); `str()` is one line."""
+
+
+@dataclass(frozen=True)
+class JobStopped:
+    """What a job returns when it reached its time budget first: saved at a chunk boundary,
+    resumable. A job that ends this way succeeded; its run is *stopped*, not failed."""
+
+    epoch: int
+    total: int
+
+    def __str__(self) -> str:
+        return f"stopped at its time budget after epoch {self.epoch:,} of {self.total:,}; sweep again to continue"
+
+
+__all__ = ["EXECUTORS", "JobStopped", "RunStatus", "SlurmOptions", "SweepError", "SweepResult", "SuiteError", "check_metrics",
+           "known_metrics", "load_suite", "run_suite", "slurm_options", "status", "status_table"]
+
+
+# ---------------------------------------------------------------- the state file
+def state_path(store: Store, suite: Suite) -> Path:
+    return store.root / SWEEPS_DIR / f"{suite.name}-{suite.budget}-{suite.key[:16]}.json"
+
+
+def read_record(path: Path) -> Optional[dict]:
+    """A JSON object esr wrote, or None where `path` is missing, a link, not a regular file (a
+    FIFO would block), larger than any esr writes, or not a JSON object."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW)
+    except OSError:
+        return None
+    try:
+        data = os.read(fd, MAX_RECORD_BYTES + 1) if stat.S_ISREG(os.fstat(fd).st_mode) else b""
+    except OSError:
+        return None
+    finally:
+        os.close(fd)
+    try:
+        value = json.loads(data) if 0 < len(data) <= MAX_RECORD_BYTES else None
+    except (ValueError, RecursionError):
+        return None
+    return value if isinstance(value, dict) else None
+
+
+def read_state(store: Store, suite: Suite) -> dict:
+    return read_record(state_path(store, suite)) or {}
+
+
+@contextmanager
+def _state_lock(store: Store, suite: Suite):
+    """Two sweeps of one suite at once must not lose each other's job records."""
+    path = state_path(store, suite).with_suffix(".lock")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _record_jobs(store: Store, suite: Suite, executor: str, submitted: Iterable[tuple[Run, str, Path]]) -> None:
+    with _state_lock(store, suite):
+        state = read_state(store, suite)
+        state.update({"suite": str(suite.path), "name": suite.name, "budget": suite.budget})
+        jobs = state.setdefault("jobs", {})
+        now = provenance.now_iso()
+        for run, job_id, folder in submitted:
+            jobs[run.key] = {"label": run.label, "executor": executor, "job_id": job_id,
+                             "folder": str(folder), "submitted_at": now}
+        atomic_write_text(state_path(store, suite), json.dumps(state, indent=2, sort_keys=True))
+
+
+# ---------------------------------------------------------------- status
+@dataclass(frozen=True)
+class RunStatus:
+    run: Run
+    state: str  # one of STATES
+    note: str = ""
+    path: Optional[Path] = None  # the committed artifact (done) or the partial directory
+
+
+def _lock_holder(store: Store, key: str) -> Optional[str]:
+    """Who holds the run's lock, or None. Probing takes a shared flock and drops it at once."""
+    path = store.lock_path(RUN_KIND, key)
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        return None
+    except OSError as e:
+        if e.errno not in (errno.EAGAIN, errno.EACCES):
+            raise
+        return os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
+    finally:
+        os.close(fd)  # also releases the probe's lock if it was taken
+
+
+class _Refused(Exception):
+    """A job record that status will not follow; `str()` says why, in one line."""
+
+
+def _job_folder(store: Store, rec: object) -> Path:
+    """The recorded job's folder, resolved, only where it lies inside the store's own sweeps/
+    folder: the state file is a store file, and anyone who can write there could point it anywhere."""
+    from submitit.core.utils import JobPaths
+
+    if not (isinstance(rec, dict) and all(isinstance(rec.get(k), str) for k in ("job_id", "folder", "executor"))
+            and _JOB_ID.fullmatch(rec["job_id"])):
+        raise _Refused("its job record is damaged; not read")
+    try:
+        folder = Path(os.path.realpath(JobPaths(rec["folder"], job_id=rec["job_id"]).folder))
+    except (ValueError, RuntimeError):  # a NUL byte in the path; ~user of no such user
+        raise _Refused("its job record is damaged; not read") from None
+    area = Path(os.path.realpath(store.root / SWEEPS_DIR))
+    if not folder.is_relative_to(area):
+        raise _Refused(f"its job folder {rec['folder']} is outside {area}; not read")
+    return folder
+
+
+def outcome_path(folder: Path, job_id: str) -> Path:
+    return Path(folder) / f"{job_id}{OUTCOME_SUFFIX}"
+
+
+def _last_line(text: str, default: str) -> str:
+    lines = [ln.strip() for ln in text.strip().splitlines() if ln.strip()]
+    return (lines[-1] if lines else default)[:160]
+
+
+def _from_outcome(outcome: dict) -> tuple[str, str]:
+    """(state, detail) of a job from its own outcome record."""
+    kind, epoch, total = outcome.get("outcome"), outcome.get("epoch"), outcome.get("total")
+    if kind == "success":
+        return "SUCCESS", ""
+    if kind == "stopped" and isinstance(epoch, int) and isinstance(total, int):
+        return "STOPPED", str(JobStopped(epoch, total))
+    if kind == "error":
+        return "ERROR", _last_line(str(outcome.get("error", "")), "job raised")
+    return "ENDED", "its outcome record is unreadable"
+
+
+def _job_outcome(store: Store, rec: object) -> tuple[str, str]:
+    """(state, detail) of a recorded job: SUCCESS, STOPPED or ERROR from the job's own outcome
+    record; else a SLURM state, RUNNING or GONE (a local job's process); ENDED (a result but no
+    record: never unpickled); REFUSED (a record status does not follow)."""
+    try:
+        folder = _job_folder(store, rec)
+    except _Refused as e:
+        return "REFUSED", str(e)
+    job_id = rec["job_id"]
+    outcome = read_record(outcome_path(folder, job_id))
+    if outcome is not None and outcome.get("job_id") == job_id:
+        return _from_outcome(outcome)
+    if (folder / f"{job_id}_0_result.pkl").exists():  # an older esr's job, or a planted pickle
+        return "ENDED", "finished without esr's outcome record (its submitit result is not read)"
+    if rec["executor"] == "slurm":
+        return _slurm_state(rec["folder"], job_id)
+    # submitit-local: the job id is the controller's pid.
+    try:
+        os.kill(int(job_id), 0)
+        return "RUNNING", ""
+    except (ProcessLookupError, ValueError):
+        return "GONE", "the job's process ended without a result"
+    except PermissionError:
+        return "RUNNING", ""
+
+
+def _slurm_state(folder: str, job_id: str) -> tuple[str, str]:
+    import logging
+
+    import submitit
+
+    # Off the cluster submitit warns on every sacct call; UNKNOWN below says it once per run.
+    logging.getLogger("submitit").setLevel(logging.ERROR)
+    try:
+        state = str(submitit.SlurmJob(folder=folder, job_id=job_id).state).upper()
+    except Exception:  # noqa: BLE001 - sacct missing or refusing: the state is unknown
+        state = "UNKNOWN"
+    return state, "SLURM state unknown here (no sacct?)" if state == "UNKNOWN" else ""
+
+
+_OVER = {"SUCCESS", "STOPPED", "GONE", "ENDED"}  # ended, not in error: the run's own files say more
+
+
+def status(suite: Suite, store: Store) -> list[RunStatus]:
+    """done: committed; running: its lock is held; queued: a recorded job not started yet;
+    failed: a partial run nobody holds, or a recorded job that ended in error; missing: none of those.
+    A job record status does not follow counts as no record, and the row says why."""
+    jobs = read_state(store, suite).get("jobs")
+    jobs = jobs if isinstance(jobs, dict) else {}
+    return [_run_status(store, run, jobs.get(run.key)) for run in suite.runs]
+
+
+def _run_status(store: Store, run: Run, rec: object) -> RunStatus:
+    hit = store.lookup(RUN_KIND, run.key)
+    if hit:
+        return RunStatus(run, "done", path=hit)
+    partial = store.partial_path(RUN_KIND, run.key)
+    holder = _lock_holder(store, run.key)
+    if holder:
+        return RunStatus(run, "running", holder, partial)
+    job_state, detail = _job_outcome(store, rec) if rec is not None else ("", "")
+    if job_state == "REFUSED":
+        row = _job_status(run, partial, None, "", "")
+        return replace(row, note="; ".join(filter(None, (f"job record refused: {detail}", row.note))))
+    return _job_status(run, partial, rec, job_state, detail)
+
+
+def _job_status(run: Run, partial: Path, rec: Optional[dict], job_state: str, detail: str) -> RunStatus:
+    """A run neither committed nor held: what its job and its partial directory say."""
+    job = f"job {rec['job_id']}" if rec else ""
+    if job_state == "STOPPED" and partial.is_dir():
+        return RunStatus(run, "stopped", f"{job}: {detail}", partial)
+    if job_state == "ERROR" or (job_state and job_state not in _QUEUED | _ALIVE | _OVER):
+        return RunStatus(run, "failed", f"{job} {job_state}: {detail}".rstrip(": "), partial if partial.is_dir() else None)
+    if job_state in _QUEUED:
+        return RunStatus(run, "queued", f"{job} {job_state}: {detail}".rstrip(": "))
+    if job_state in _ALIVE:
+        return RunStatus(run, "running", f"{job} started")
+    if partial.is_dir() and isinstance(stop := (read_pending(partial) or {}).get("stopped"), dict):
+        note = f"stopped ({stop.get('why')}) after epoch {stop.get('epoch')}; sweep again (or esr train) to continue it"
+        return RunStatus(run, "stopped", f"{job}: {note}" if job else note, partial)
+    if partial.is_dir():
+        note = "partial run with no live writer; sweep again (or esr train) to resume it"
+        return RunStatus(run, "failed", f"{job} {job_state}: {note}" if job else note, partial)
+    if job_state == "SUCCESS":
+        # The job committed a different key: the code or toolchain changed since.
+        return RunStatus(run, "missing", f"{job} finished, but under another key (code changed since?)")
+    return RunStatus(run, "missing", f"{job} {job_state}: {detail}".strip(" :") if job else "")
+
+
+_STYLE = {"done": "green", "running": "cyan", "queued": "blue", "stopped": "magenta", "failed": "red", "missing": "yellow"}
+
+
+def status_table(suite: Suite, rows: list[RunStatus]) -> Table:
+    counts = {s: sum(r.state == s for r in rows) for s in STATES}
+    summary = ", ".join(f"{n} {s}" for s, n in counts.items() if n)
+    table = Table(title=f"suite {suite.name} ({suite.budget}): {summary}")
+    for col in ("run", "key", "state", "detail"):
+        table.add_column(col, overflow="fold")
+    for r in rows:
+        detail = str(r.path) if r.state == "done" else r.note
+        table.add_row(r.run.label, r.run.key[:12], Text(r.state, style=_STYLE[r.state]), str(detail))
+    return table
+
+
+def status_json(rows: list[RunStatus]) -> list[dict]:
+    return [{"run": r.run.label, "spec": str(r.run.spec_path), "sets": list(r.run.sets), "key": r.run.key,
+             "state": r.state, "detail": r.note, "path": str(r.path) if r.path else None} for r in rows]
+
+
+DEFAULT_RESULT_METRICS = ("return", "success")
+_NOT_METRICS = ("epoch", "env_steps")  # bookkeeping columns of metrics.jsonl
+
+
+def known_metrics(suite: Suite, store: Store, rows: Optional[list[RunStatus]] = None) -> tuple[str, ...]:
+    """Every metric `--metric` may name for this suite: the trainer's own, those each registered
+    method declares (ESR's with inferred human actions too), and whatever the suite's committed
+    runs logged (a learning human's, for one)."""
+    from esr_cli.model.methods.registry import METHODS
+    from esr_cli.model.train import BASE_METRICS
+    from esr_cli.storage.finals import read_rows
+
+    names = dict.fromkeys(BASE_METRICS)
+    for cls in METHODS.values():
+        names.update(dict.fromkeys(cls.all_metric_names))
+    for r in rows if rows is not None else status(suite, store):
+        if r.state == "done":
+            logged = read_rows(r.path)
+            names.update(dict.fromkeys(k for k in (logged[-1] if logged else {}) if k not in _NOT_METRICS))
+    return tuple(names)
+
+
+def check_metrics(suite: Suite, store: Store, metrics: tuple[str, ...], rows: Optional[list[RunStatus]] = None) -> None:
+    """Raise SuiteError naming the first of `metrics` that no run of this suite can log."""
+    if set(metrics) <= set(DEFAULT_RESULT_METRICS):
+        return
+    known = known_metrics(suite, store, rows)
+    for m in metrics:
+        if m not in known:
+            raise SuiteError("--metric", "", f"unknown metric {m!r}; known: {', '.join(known)}")
+
+
+def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS) -> list[dict]:
+    """Each run's final value of each metric (return and success unless told; mean +- SE across
+    seeds, esr_cli.storage.finals) and wall time, read from the committed artifacts; a metric a run does
+    not log is left out of its row; runs not done carry their state and the command. A metric
+    no run of the suite can log is refused (SuiteError)."""
+    from esr_cli.storage.finals import read_rows, run_finals
+
+    rows = status(suite, store)
+    check_metrics(suite, store, metrics, rows)
+    out = []
+    for r in rows:
+        row = {"run": r.run.label, "method": r.run.spec.method.kind, "key": r.run.key, "state": r.state}
+        if r.state == "done":
+            logged = set(read_rows(r.path)[-1]) if metrics != DEFAULT_RESULT_METRICS else set(metrics)
+            row.update(run_finals(r.path, tuple(m for m in metrics if m in logged)),
+                       wall_s=store.read_manifest(r.path).get("wall_time_s"), path=str(r.path))
+        else:
+            row["command"] = r.run.command(suite.budget, store.invocation())
+        out.append(row)
+    return out
+
+
+def _pm(row: dict, name: str, digits: int) -> str:
+    from esr_cli.common.stats import format_summary
+
+    return format_summary(row[name], digits)
+
+
+def _cell(row: dict, name: str) -> str:
+    if name not in row:
+        return "—"  # the run does not log this metric
+    return _pm(row, name, 2 if name == "return" else 3)
+
+
+def _what(metrics: tuple[str, ...]) -> str:
+    return ", ".join(metrics[:-1]) + f" and {metrics[-1]}" if len(metrics) > 1 else metrics[0]
+
+
+def results_table(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS) -> Table:
+    table = Table(title=f"suite {suite.name} ({suite.budget}): final {_what(metrics)}, mean ± SE and IQM "
+                        "[95% bootstrap CI] across seeds (last 10% of epochs)")
+    for col in ("run", "method", "seeds", *metrics, "wall"):
+        table.add_column(col, overflow="fold")
+    for r in rows:
+        if r["state"] == "done":
+            wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
+            table.add_row(r["run"], r["method"], str(r["seeds"]), *(_cell(r, m) for m in metrics), wall)
+        else:
+            table.add_row(r["run"], r["method"], "", Text(r["state"], style=_STYLE[r["state"]]), *[""] * len(metrics))
+    return table
+
+
+def results_markdown(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS) -> str:
+    lines = [f"Suite `{suite.name}`, budget `{suite.budget}`: final {_what(metrics)}, mean ± SE and "
+             "the interquartile mean [95% stratified bootstrap interval] across seeds (each seed's last 10% of epochs).", "",
+             "| run | method | seeds | " + " | ".join(metrics) + " | wall |", "|---|---|---|" + "---|" * len(metrics) + "---|"]
+    for r in rows:
+        if r["state"] == "done":
+            wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
+            lines.append(f"| {r['run']} | {r['method']} | {r['seeds']} | " + " | ".join(_cell(r, m) for m in metrics) + f" | {wall} |")
+        else:
+            lines.append(f"| {r['run']} | {r['method']} | | {r['state']}: `{r['command']}` |" + " |" * len(metrics))
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------- running
+@dataclass
+class SweepResult:
+    suite: Suite
+    paths: list[Optional[Path]]  # per run, in suite order: the committed artifact, or None
+    submitted: list[tuple[Run, str]] = field(default_factory=list)  # (run, job id); local: "local"
+    skipped: list[RunStatus] = field(default_factory=list)  # done, running or queued before the sweep
+    failed: list[tuple[Run, str]] = field(default_factory=list)
+    stopped: list[tuple[Run, str]] = field(default_factory=list)  # (run, why): at its time budget, resumable
+
+    @property
+    def complete(self) -> bool:
+        return all(p is not None for p in self.paths)
+
+
+def job_time_budget_s(time_min: int) -> float:
+    """Seconds a job trains before it stops at a chunk boundary: its wall-clock limit less a
+    margin (5%, at least a minute) for start-up and exit, so the scheduler never kills a chunk
+    half-done and the next sweep resumes from the job's last chunk."""
+    limit = 60.0 * time_min
+    return max(0.0, limit - max(60.0, 0.05 * limit))
+
+
+def train_job(spec_path: str, budget: str, sets: list[str], store_root: str,
+              stop_after_s: float | None = None) -> str | JobStopped:
+    """One job: `esr train spec_path --budget budget --set ... --stop-after stop_after_s`
+    in-process. -> the artifact path, or JobStopped if the time budget came first (the run is
+    saved at a chunk boundary). Module-level so that submitit pickles it by reference. How it
+    ended is also written as the job's outcome record, which is what status reads."""
+    try:
+        result = _train(spec_path, budget, sets, store_root, stop_after_s)
+    except Exception as e:
+        _record_outcome({"outcome": "error", "error": f"{type(e).__name__}: {e}"[-2000:]})
+        raise
+    if isinstance(result, JobStopped):
+        _record_outcome({"outcome": "stopped", "epoch": result.epoch, "total": result.total})
+    else:
+        _record_outcome({"outcome": "success", "path": result})
+    return result
+
+
+def _record_outcome(record: dict) -> None:
+    """Write `record` as <job folder>/<job id>_esr_outcome.json, atomically. Outside a submitit
+    job (train_job called directly) there is no job to record."""
+    import submitit
+
+    try:
+        env = submitit.JobEnvironment()
+    except RuntimeError:
+        return
+    atomic_write_text(outcome_path(env.paths.folder, env.job_id), json.dumps({"job_id": env.job_id, **record}))
+
+
+def _train(spec_path: str, budget: str, sets: list[str], store_root: str, stop_after_s: float | None) -> str | JobStopped:
+    from esr_cli.common.stops import TimeLimitReached
+    from esr_cli.recipes import runs  # jax and the training core load only where a run is made here
+
+    stop_at = None if stop_after_s is None else time.monotonic() + stop_after_s
+    spec = specs.load(spec_path, budget, sets)
+    try:
+        return str(ensure(runs.run_recipe(spec, plain_console(stderr=True), stop_at=stop_at), Store(store_root)).path)
+    except TimeLimitReached as e:
+        return JobStopped(e.epoch, e.total)
+
+
+def _executor(kind: str, folder: Path, suite: Suite, opts: SlurmOptions):
+    import submitit
+
+    ex = submitit.AutoExecutor(folder=folder / "%j", cluster="slurm" if kind == "slurm" else "local")
+    params = {"name": f"esr-{suite.name}", "timeout_min": opts.time_min, "cpus_per_task": opts.cpus, "mem_gb": opts.mem_gb}
+    if kind == "slurm":
+        params.update(gpus_per_node=opts.gpus, slurm_partition=opts.partition, slurm_account=opts.account,
+                      slurm_qos=opts.qos, slurm_array_parallelism=opts.array_parallelism,
+                      slurm_setup=list(opts.setup) or None, slurm_additional_parameters=dict(opts.additional) or None)
+    ex.update_parameters(**params)
+    return ex
+
+
+_SLURM_FLAGS = {"time_min": "--time-min", "mem_gb": "--mem-gb"}  # the rest: --name
+
+
+def slurm_options(base: SlurmOptions, overrides: Optional[dict], source: str) -> SlurmOptions:
+    """`base` with the command line's `overrides` (None: not given), validated. A problem is a
+    one-line SuiteError naming the option as it was given (--mem-gb, or slurm.mem_gb in the suite)."""
+    given = {k: v for k, v in (overrides or {}).items() if v is not None}
+    try:
+        return SlurmOptions.model_validate({**base.model_dump(), **given})
+    except ValidationError as e:
+        err, msg = specs.first_problem(e)
+        loc, msg = tuple(err["loc"]), msg + specs.other_problems(e)
+        field = str(loc[0]) if loc else ""
+        where = _SLURM_FLAGS.get(field, f"--{field}") if field in given else ("slurm." + ".".join(map(str, loc))).rstrip(".")
+        raise SuiteError(source, where, msg) from None
+
+
+def run_suite(
+    suite: Suite | str | Path,
+    budget: str = "paper",
+    executor: str = "local",
+    store: Store | str | Path = "artifacts",
+    console: Optional[Console] = None,
+    wait: Optional[bool] = None,
+    slurm: Optional[dict] = None,
+) -> SweepResult:
+    """Run or submit every run of `suite` that the store lacks. -> SweepResult (paths per run).
+
+    `wait`: block until submitted jobs end (default: yes except for `slurm`). `slurm`: options
+    that replace the suite file's `slurm:` values (partition, time_min, gpus, cpus, mem_gb, ...).
+    Raises SuiteError (bad suite or spec; nothing has run) or SweepError.
+    """
+    console = console or plain_console(stderr=True)
+    store = store if isinstance(store, Store) else Store(store)
+    # The command line's own mistakes first: loading a suite builds every run.
+    if executor not in EXECUTORS:
+        raise SuiteError("--executor", "", f"unknown executor {executor!r}; known: {', '.join(EXECUTORS)}")
+    if not isinstance(suite, Suite):
+        slurm_options(SlurmOptions(), slurm, str(suite))  # before loading builds every run
+        suite = load_suite(suite, budget)
+    elif suite.budget != budget:
+        raise SuiteError(str(suite.path), "--budget", f"the suite was loaded for budget {suite.budget!r}, not {budget!r}")
+    opts = slurm_options(suite.slurm, slurm, str(suite.path))
+    wait = executor != "slurm" if wait is None else wait
+    store.ensure_writable()
+
+    before = status(suite, store)
+    result = SweepResult(suite, [None] * len(suite.runs))
+    if executor == "local":
+        # artifacts.ensure waits on a run another process holds, so nothing is skipped but the done.
+        todo = [s for s in before if s.state != "done"]
+    else:
+        todo = [s for s in before if s.state in ("missing", "stopped", "failed")]
+    todo_keys = {s.run.key for s in todo}
+    result.skipped = [s for s in before if s.run.key not in todo_keys]
+    n_done = sum(s.state == "done" for s in before)
+    console.print(f"suite {suite.name} ({suite.budget}): {len(suite.runs)} run(s); {n_done} done, "
+                  f"{len(result.skipped) - n_done} running or queued, {len(todo)} to {'run' if executor == 'local' else 'submit'}"
+                  + (f" ({suite.duplicates} duplicate(s) dropped)" if suite.duplicates else ""))
+
+    if executor == "local":
+        _check_local_runs_fit(todo)  # all of them before the first trains for hours
+        _run_local(todo, store, console, result)
+    elif todo:
+        _submit(todo, executor, opts, suite, store, console, result, wait)
+
+    for i, run in enumerate(suite.runs):
+        result.paths[i] = store.lookup(RUN_KIND, run.key)
+    return result
+
+
+def _check_local_runs_fit(todo: list[RunStatus]) -> None:
+    """Raise ResourceError, naming the run, if any run here would not fit this machine's memory."""
+    from esr_cli.runner.resources import ResourceError, check_run_fits
+
+    for s in todo:
+        try:
+            check_run_fits(s.run.spec)
+        except ResourceError as e:
+            raise ResourceError(f"{s.run.label}: {e} (nothing of the suite has run)") from None
+
+
+def _run_local(todo: list[RunStatus], store: Store, console: Console, result: SweepResult) -> None:
+    from esr_cli.common.stops import Interrupted
+    from esr_cli.model.train import release_compiled
+    from esr_cli.recipes import runs  # jax and the training core load only where a run is made here
+
+    for i, s in enumerate(todo, 1):
+        console.print(tagged(f"({i}/{len(todo)})", "bold", f" {s.run.label}"))
+        release_compiled()  # one spec's programs at a time
+        try:
+            ensure(runs.run_recipe(s.run.spec, console), store)
+            result.submitted.append((s.run, "local"))
+        except (Interrupted, KeyboardInterrupt):
+            raise  # Ctrl-C ends the sweep; the same command resumes it
+        except Exception as e:  # noqa: BLE001 - one failed run must not stop the others
+            console.print(tagged("failed", "red", f": {s.run.label}: {type(e).__name__}: {e}"))
+            result.failed.append((s.run, f"{type(e).__name__}: {e}"))
+
+
+def _submit(todo, executor, opts, suite, store, console, result, wait) -> None:
+    logs = store.root.absolute() / SWEEPS_DIR / "logs" / state_path(store, suite).stem
+    try:
+        ex = _executor(executor, logs, suite, opts)
+    except RuntimeError as e:  # submitit: no srun on this machine
+        raise SweepError(f"{e} (submit from a SLURM login node, or use --executor local)") from None
+    jobs = []
+    try:
+        with ex.batch():  # one job array on SLURM
+            for s in todo:
+                jobs.append(ex.submit(train_job, str(s.run.spec_path), suite.budget, list(s.run.sets), str(store.root.absolute()),
+                                         job_time_budget_s(opts.time_min)))
+    except FileNotFoundError as e:
+        raise SweepError(f"cannot submit to SLURM from here ({e.filename or e} not found): run on a login node, "
+                         "or use --executor local") from None
+    except Exception as e:  # noqa: BLE001 - sbatch's own refusal (bad partition, limits): one line
+        raise SweepError(f"submission failed: {str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__}") from None
+    _record_jobs(store, suite, executor, [(s.run, j.job_id, logs / "%j") for s, j in zip(todo, jobs)])
+    result.submitted = [(s.run, j.job_id) for s, j in zip(todo, jobs)]
+    console.print(f"submitted {len(jobs)} job(s) ({executor}): {', '.join(j.job_id for j in jobs)}; logs under {logs}")
+    if not wait:
+        return
+    for s, j in zip(todo, jobs):
+        j.wait()  # until it ends; its outcome comes from its own record, as for --status
+        state, detail = _job_outcome(store, {"job_id": j.job_id, "folder": str(logs / "%j"), "executor": executor})
+        if state == "SUCCESS":
+            console.print(tagged("done", "green", f": {s.run.label} (job {j.job_id})"))
+        elif state == "STOPPED":
+            console.print(tagged("stopped", "magenta", f": {s.run.label} (job {j.job_id}): {detail}"))
+            result.stopped.append((s.run, detail))
+        else:
+            msg = detail if state == "ERROR" else f"{state}: {detail}".strip(" :") + f"; its log: {j.paths.stderr}"
+            console.print(tagged("failed", "red", f": {s.run.label} (job {j.job_id}): {msg}"))
+            result.failed.append((s.run, msg))

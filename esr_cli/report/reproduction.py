@@ -1,0 +1,732 @@
+"""The reproduction report (`esr paper --report`, docs/reproduction.md): every claim of the paper
+next to what the store holds, with a verdict.
+
+Evidence is found by *spec*, not by key: a stored run (finished or not) supports a claim when
+its validated spec equals the claim's spec in every field outside `train` (length, seeds,
+environments in parallel and chunking may differ). Runs made by another checkout are therefore
+found too; the report names each run's key, its commit where known, its length and its seeds.
+Among the runs that match, the one with the most epochs done (then the most seeds) is used.
+Nothing here trains; the estimator check computes exact artifacts for a stored run.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field, replace
+from functools import cache
+from pathlib import Path
+from typing import NamedTuple, Optional
+
+import numpy as np
+
+from esr_cli.common import specs, yamlio
+from esr_cli.common.printing import train_line
+from esr_cli.common.stats import describe, format_summary, mean_difference_ci, probability_of_improvement, scored_seeds
+from esr_cli.model import spec as spec_model
+from esr_cli.storage import provenance
+from esr_cli.storage.artifacts import ensure
+from esr_cli.storage.checkpoint_files import verified_steps
+from esr_cli.storage.finals import FINAL_FRACTION, final_per_seed, read_rows, series
+from esr_cli.storage.store import RUN_KIND, Store, atomic_write_bytes, atomic_write_text
+
+EXPERIMENTS = provenance.experiments_dir()
+PAPER_EPOCHS = 10_000
+# A run is at a length comparable with the paper's once it has this many epochs behind it: the
+# gridworld at 30% of the paper's 10,000 epochs (beyond which ESR's return in the paper's
+# figure changes little), Overcooked at its full length (cheap enough to run whole).
+COMPARABLE_EPOCHS = {"gridworld": 3000, "overcooked": 10_000}
+# "Similar" returns: the difference of the means within this share of the larger mean, by two
+# one-sided tests (the 90% bootstrap interval of the difference inside the margin) where a side
+# has several seeds, by the point difference where both have one.
+EQUIVALENCE_MARGIN = 0.15
+# A verdict needs this many seeds on every side; with fewer a row is only indicative.
+MIN_SEEDS = 3
+# "Positive" MI estimate: above this many nats at the end (a grid_2 run that learned ends near
+# +0.17; an estimate stuck at +0.002 carries no signal however many epochs are above zero).
+MI_POSITIVE = 0.01
+REPRODUCED, NOT_REPRODUCED, INCONCLUSIVE, NOT_YET = (
+    "reproduced", "not reproduced", "inconclusive", "not yet run at a comparable budget")
+INDICATIVE = "indicative"
+# What an indicative row's numbers say, before enough seeds: holds, does not hold, open.
+LEANINGS = {True: "holds", False: "does not hold", None: "open"}
+
+
+# ---------------------------------------------------------------- evidence in the store
+@dataclass
+class Evidence:
+    """One stored run: what it is, how far it got, its per-seed metric rows."""
+
+    key: str
+    path: Path
+    status: str  # complete | partial
+    budget: str
+    spec: spec_model.Spec
+    rows: list[dict]
+    commit: Optional[str]  # the checkout it was started from
+    device: Optional[str] = None  # where it ran, e.g. 'gpu:NVIDIA H200'; None: unknown
+    # False for an unfinished run whose checkpoint is not in this store (a record of its
+    # logged epochs, `esr import --without-checkpoint`): training it again starts from epoch 0.
+    resumable: bool = True
+    # True when the checkout it was started from had edits under esr_cli/ (its code digest,
+    # part of the key, still says exactly which training code it ran).
+    modified: bool = False
+    # A pooled run (`pooled`): the finished runs whose seeds it joins; () for a stored run.
+    parts: tuple = ()
+    _finals: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def epochs_done(self) -> int:
+        return self.rows[-1]["epoch"] if self.rows else 0
+
+    @property
+    def seeds(self) -> int:
+        return len(self.rows[-1]["return"]) if self.rows else len(self.spec.train.seeds)
+
+    def finals(self, name: str = "return") -> dict:
+        """stats.describe of the per-seed finals, computed once (it bootstraps)."""
+        if name not in self._finals:
+            self._finals[name] = describe(final_per_seed(self.rows, name))
+        return self._finals[name]
+
+    def comparable(self) -> bool:
+        return self.epochs_done >= COMPARABLE_EPOCHS.get(self.spec.env.kind, PAPER_EPOCHS)
+
+    @property
+    def commit_label(self) -> str:
+        if not self.commit:
+            return "unknown"
+        return self.commit[:7] + (" (esr_cli/ modified)" if self.modified else "")
+
+    @property
+    def accelerator(self) -> Optional[str]:
+        """The device where it is not a CPU (the default, left unsaid), else None."""
+        return self.device if self.device and not self.device.startswith("cpu") else None
+
+    def describe_length(self) -> str:
+        state = ""
+        if self.status != "complete":
+            lost = "" if self.resumable else "; its checkpoint is not in this store"
+            state = f" of {self.spec.train.epochs:,} (unfinished{lost})"
+        return f"{self.epochs_done:,} epochs{state}, {self.seeds} seed{'s' if self.seeds != 1 else ''}"
+
+
+def _without_train(spec: spec_model.Spec) -> str:
+    part = spec.training_part()
+    part.pop("train")
+    return json.dumps(part, sort_keys=True)
+
+
+def index_store(store: Store) -> dict[str, list[Evidence]]:
+    """Every training run of the store whose spec still validates, by spec outside `train`."""
+    out: dict[str, list[Evidence]] = {}
+    for entry in store.entries():
+        if entry.kind != RUN_KIND or not (entry.path / "spec.yaml").is_file():
+            continue
+        try:
+            spec = specs.validate(yamlio.read(entry.path / "spec.yaml"), str(entry.path))
+        except (specs.SpecError, yamlio.YamlInputError):
+            continue  # made by code whose spec fields this version no longer reads
+        info = entry.manifest or {}
+        sessions = provenance.earlier_sessions(info)
+        # The commit a run was started from (its training code is the same at every resume: the
+        # code digest is part of the key); a manifest from before sessions names the last one.
+        commit = next((s["commit"] for s in sessions if s.get("commit")), None) \
+            or info.get("provenance", {}).get("git", {}).get("commit")
+        modified = bool(sessions and sessions[0].get("dirty"))
+        # Every device it ran on, in order; an unfinished run made by an esr whose pending.json
+        # named only its backend (part of its key) says just that.
+        devices = list(dict.fromkeys(s["device"] for s in sessions if isinstance(s.get("device"), str)))
+        backend = info.get("key_components", {}).get("toolchain", {}).get("backend")
+        device = ", then ".join(devices) or info.get("provenance", {}).get("device") or backend
+        resumable = entry.status == "complete" or bool(verified_steps(entry.path))
+        ev = Evidence(entry.key, entry.path, entry.status, info.get("budget", spec.budget), spec,
+                      read_rows(entry.path), commit, device, resumable, modified=modified)
+        if ev.rows:
+            out.setdefault(_without_train(spec), []).append(ev)
+    return out
+
+
+def _rank(e: Evidence) -> tuple:
+    return (e.epochs_done, e.seeds, e.status == "complete")
+
+
+def best(index: dict[str, list[Evidence]], spec: spec_model.Spec) -> Optional[Evidence]:
+    return max(index.get(_without_train(spec), []), key=_rank, default=None)
+
+
+def _train_but_seeds(e: Evidence) -> str:
+    train = e.spec.training_part()["train"]
+    train.pop("seeds")
+    return json.dumps(train, sort_keys=True)
+
+
+def _join_rows(runs: list[Evidence]) -> list[dict]:
+    """Epoch rows of runs of equal length, each per-seed list joined in run order."""
+    return [{k: sum((r[k] for r in rows), []) if isinstance(v, list) else v for k, v in rows[0].items()}
+            for rows in zip(*(e.rows for e in runs))]
+
+
+def pooled(index: dict[str, list[Evidence]], spec: spec_model.Spec) -> Optional[Evidence]:
+    """The evidence for `spec`: its longest run, or, where several finished runs share that
+    length and differ only in their seeds (same commit, device and every other training
+    field; no seed twice), all of them as one run of their joined seeds. Which of two
+    single-seed runs of one length to believe is otherwise an arbitrary choice."""
+    top = best(index, spec)
+    if top is None or top.status != "complete" or not top.commit:
+        return top
+    train_rest = _train_but_seeds(top)
+    mates = [e for e in index.get(_without_train(spec), [])
+             if e.status == "complete" and e.epochs_done == top.epochs_done and e.commit == top.commit
+             and e.device == top.device and _train_but_seeds(e) == train_rest]
+    seeds = [s for e in mates for s in e.spec.train.seeds]
+    if len(mates) < 2 or len(set(seeds)) != len(seeds):
+        return top
+    mates.sort(key=lambda e: min(e.spec.train.seeds))
+    train = top.spec.train.model_copy(update={"seeds": seeds})
+    return replace(top, key="+".join(e.key[:8] for e in mates), spec=top.spec.model_copy(update={"train": train}),
+                   rows=_join_rows(mates), parts=tuple(mates), _finals={})
+
+
+def others(index: dict[str, list[Evidence]], spec: spec_model.Spec, chosen: Evidence) -> list[Evidence]:
+    """The runs of `spec` besides `chosen` (or the runs it pools), longest first."""
+    used = {p.key for p in chosen.parts} | {chosen.key}
+    return sorted((e for e in index.get(_without_train(spec), []) if e.key not in used), key=_rank, reverse=True)
+
+
+# ---------------------------------------------------------------- claims
+@dataclass
+class Claim:
+    """One statement of the paper, checked on runs of the specs it names."""
+
+    figure: str
+    text: str
+    paper: str  # what the paper reports
+    kind: str  # above | similar | mi_positive
+    a: tuple[str, tuple[str, ...]]  # (spec stem in experiments/, --set values)
+    b: Optional[tuple[str, tuple[str, ...]]] = None
+    variants: list[tuple[str, tuple[str, ...]]] = field(default_factory=list)  # esr's variants of `a`, shown too
+    # esr's stronger versions of the baseline `b` (the paper ran the published one): extra rows
+    baseline_variants: list[tuple[str, tuple[str, ...]]] = field(default_factory=list)
+
+
+QUICK_CHANGES = ("learner.warmup_epochs=20", "method.repr_lr=0.001")
+PUBLISHED_AVE = ("method.variant=original",)
+PUBLISHED_GOAL_INFERENCE = ("method.variant=original",)
+NO_ROBOT_ACTION = ("method.condition_on_robot_action=false",)
+GREEDY = ("learner.gamma=0.0",)
+FUTURE_HUMAN = ("method.future=human",)  # esr's estimator: psi sees only the human's part of the future
+
+
+def _paper_cell(mean: float, se) -> str:
+    return f"{mean:.2f}" if se is None else f"{mean:.2f} ± {se:.2f}"
+
+
+def paper_claims() -> list[Claim]:
+    claims = []
+    for n in (2, 5, 7, 10):
+        esr = (f"grid_{n}", ())
+        var = [(f"grid_{n}", QUICK_CHANGES), (f"grid_{n}", FUTURE_HUMAN)]
+        claims.append(Claim("Figure 1", f"N = {n}: ESR ends above Random", "ESR's final return is above Random's at every N",
+                            "above", esr, (f"grid_{n}_random", ()), var))
+        if n == 2:
+            claims.append(Claim("Figure 1", "N = 2: ESR and AvE end level",
+                                "at N = 2 ESR and AvE reach a similar final return (AvE sooner)",
+                                "similar", esr, (f"grid_{n}_ave", PUBLISHED_AVE), var, [(f"grid_{n}_ave", ())]))
+        else:
+            fixed_ave = [(f"grid_{n}_ave", ())]
+            claims.append(Claim("Figure 1", f"N = {n}: ESR ends above AvE", "from N = 5 on ESR is clearly the best method",
+                                "above", esr, (f"grid_{n}_ave", PUBLISHED_AVE), var, fixed_ave))
+            claims.append(Claim("Figure 1", f"N = {n}: AvE ends below Random", "from N = 5 on AvE falls below Random",
+                                "above", (f"grid_{n}_random", ()), (f"grid_{n}_ave", PUBLISHED_AVE), [], fixed_ave))
+            claims.append(Claim("Figure 1", f"N = {n}: ESR ends above Goal Inference", "Goal Inference fails except at N = 2",
+                                "above", esr, (f"grid_{n}_goal_inference", PUBLISHED_GOAL_INFERENCE), var,
+                                [(f"grid_{n}_goal_inference", ())]))
+            claims.append(Claim("Figure 1", f"N = {n}: ESR ends above Reward Inference",
+                                "Reward Inference fails except at N = 2", "above", esr, (f"grid_{n}_iq_learn", ()), var))
+    from esr_cli.report.figures import PAPER_OVERCOOKED  # the paper's table: mean, SE (Random: mean only)
+
+    for layout in ("cramped_room", "coord_ring", "asymm_advantages"):
+        paper = {m: _paper_cell(*v) for m, v in PAPER_OVERCOOKED[layout].items()}
+        for base, label in (("random", "Random"), ("iq_learn", "Reward Inference"), ("ave", "AvE")):
+            claims.append(Claim("Figure 2", f"{layout}: ESR ends above {label}",
+                                f"ESR {paper['esr']} against {label} {paper[base]}", "above", (layout, ()), (f"{layout}_{base}", ())))
+    for n in (2, 5, 7, 10):
+        claims.append(Claim("Figure 3", f"N = {n}: ESR ends above ESR without the robot action",
+                            "without aR in phi and phi' learning is worse, most at high N", "above",
+                            (f"grid_{n}", ()), (f"grid_{n}", NO_ROBOT_ACTION)))
+    for n in (2, 5, 7, 10):
+        claims.append(Claim("Figure 4", f"N = {n}: ESR ends above the greedy ESR (critic gamma 0)",
+                            "a greedy critic does far worse than gamma = 0.9", "above",
+                            (f"grid_{n}", ()), (f"grid_{n}", GREEDY)))
+    for n in (2, 5, 7, 10):
+        claims.append(Claim("Figure 5", f"N = {n}: the MI estimate turns positive and stays positive",
+                            "the estimate turns positive early in training and stays positive", "mi_positive",
+                            (f"grid_{n}", ()), None, [(f"grid_{n}", QUICK_CHANGES), (f"grid_{n}", FUTURE_HUMAN)]))
+    return claims
+
+
+def claim_spec(ref: tuple[str, tuple[str, ...]]) -> spec_model.Spec:
+    stem, sets = ref
+    return specs.load(EXPERIMENTS / f"{stem}.yaml", "paper", list(sets))
+
+
+# ---------------------------------------------------------------- verdicts
+@dataclass
+class Finding:
+    claim: Claim
+    a: Optional[Evidence]
+    b: Optional[Evidence]
+    verdict: str
+    measured: str
+    variants: list[tuple[str, Optional[Evidence], str]] = field(default_factory=list)
+    # esr's stronger baselines, each judged in place of the published one
+    baselines: list["BaselineRow"] = field(default_factory=list)
+    # The other stored runs of the first spec (fewer epochs, another seed set or device), with
+    # their own comparison: a one-seed verdict is read beside the several-seed runs that exist.
+    others: list[tuple[Evidence, str]] = field(default_factory=list)
+
+
+def _mi_summary(ev: Evidence) -> tuple[bool, str]:
+    epochs, vals = series(ev.rows, "mi_estimate")
+    mi = np.nanmean(vals, axis=1)
+    second = mi[len(mi) // 2:]
+    k = max(1, int(round(len(mi) * FINAL_FRACTION)))
+    final = float(np.nanmean(mi[-k:]))
+    share = float(np.mean(second > 0)) if len(second) else float("nan")
+    holds = final > MI_POSITIVE and share >= 0.9
+    return holds, f"final MI {final:+.3f} nats; positive in {share:.0%} of the second half's epochs"
+
+
+@cache  # every label of a report asks again for the same few spec files
+def _paper_repr_lr(name: str) -> Optional[float]:
+    """The representation rate of experiments/<name>.yaml at the paper's budget (it differs
+    between environments), or None where there is no such ESR spec file."""
+    try:
+        base = specs.load(EXPERIMENTS / f"{name}.yaml", "paper")
+    except (OSError, specs.SpecError, yamlio.YamlInputError):
+        return None
+    return base.method.repr_lr if isinstance(base.method, spec_model.ESRMethodSpec) else None
+
+
+def run_label(spec: spec_model.Spec) -> str:
+    """The method of a run as a reader knows it, with what sets it apart from the paper's
+    settings in brackets: 'ESR (warm-up 20, representation rate 0.001)', 'AvE (published)'."""
+    from esr_cli.report.figures import PAPER_LABELS
+
+    method, notes = spec.method, []
+    if isinstance(method, spec_model.AvEMethodSpec) and method.variant == "original":
+        notes.append("published")
+    if isinstance(method, spec_model.GoalInferenceMethodSpec):
+        notes.append("published" if method.variant == "original" else "exact posterior")
+    if isinstance(method, spec_model.ESRMethodSpec):
+        if not method.condition_on_robot_action:
+            notes.append("without aR")
+        if method.future == "human":
+            notes.append("human future")
+        paper_rate = _paper_repr_lr(spec.name)
+        if paper_rate is not None and method.repr_lr != paper_rate:
+            notes.append(f"representation rate {method.repr_lr:g}")
+    if spec.learner.gamma == 0.0:
+        notes.append("critic gamma 0")
+    if spec.learner.warmup_epochs:
+        notes.append(f"warm-up {spec.learner.warmup_epochs}")
+    name = PAPER_LABELS.get(method.kind, method.kind).removesuffix(" (ours)")
+    return name + (f" ({', '.join(notes)})" if notes else "")
+
+
+def _compare(kind: str, a: Evidence, b: Evidence) -> tuple[bool | None, str]:
+    """(holds, text): True / False, or None where several seeds leave it open."""
+    fa, fb = a.finals(), b.finals()
+    text = f"{run_label(a.spec)} {format_summary(fa)} against {run_label(b.spec)} {format_summary(fb)}"
+    if not scored_seeds(fa) or not scored_seeds(fb):  # a side without a finite final score decides nothing
+        return None, text
+    if kind == "similar":
+        return _equivalent(fa, fb, text)
+    if scored_seeds(fa) >= 2 or scored_seeds(fb) >= 2:
+        p, low, high = probability_of_improvement(fa["per_seed"], fb["per_seed"])
+        text += f"; P(improvement) {p:.2f} [{low:.2f}, {high:.2f}]"
+        return (True if low > 0.5 else False if high < 0.5 else None), text
+    if kind == "above":
+        return fa["mean"] > fb["mean"], text
+    return _equivalent(fa, fb, text)
+
+
+def _equivalent(fa: dict, fb: dict, text: str) -> tuple[bool | None, str]:
+    """Two one-sided tests: similar when the 90% interval of the difference of the means lies
+    inside +- EQUIVALENCE_MARGIN of the larger mean, different when it lies wholly outside it."""
+    margin = EQUIVALENCE_MARGIN * max(abs(fa["mean"]), abs(fb["mean"]), 1e-9)
+    diff, low, high = mean_difference_ci(fa["per_seed"], fb["per_seed"])
+    if low is None:
+        return abs(diff) <= margin, text + f"; difference {diff:+.2f}, margin ±{margin:.2f}"
+    text += f"; difference {diff:+.2f} [{low:+.2f}, {high:+.2f}], margin ±{margin:.2f}"
+    if -margin <= low and high <= margin:
+        return True, text
+    return (False if low > margin or high < -margin else None), text
+
+
+def judge(claim: Claim, index: dict[str, list[Evidence]]) -> Finding:
+    a = pooled(index, claim_spec(claim.a))
+    b = pooled(index, claim_spec(claim.b)) if claim.b else None
+    variants = []
+    for ref in claim.variants:
+        ev = pooled(index, claim_spec(ref))
+        label = " ".join(ref[1])
+        if ev is None:
+            variants.append((label, None, "not run"))
+        elif claim.kind == "mi_positive":
+            variants.append((label, ev, _mi_summary(ev)[1]))
+        else:
+            other = b and _compare(claim.kind, ev, b)[1]
+            variants.append((label, ev, other or f"{run_label(ev.spec)} {format_summary(ev.finals())}"))
+    baselines = _baseline_rows(claim, a, index)
+    needed = [a] + ([b] if claim.b else [])
+    if any(e is None for e in needed):
+        return Finding(claim, a, b, NOT_YET, "not run", variants, baselines)
+    more = [(ev, _mi_summary(ev)[1] if claim.kind == "mi_positive" else _compare(claim.kind, ev, b)[1])
+            for ev in others(index, claim_spec(claim.a), a)]
+    if claim.kind == "mi_positive":
+        holds, measured = _mi_summary(a)
+    else:
+        holds, measured = _compare(claim.kind, a, b)
+    if not all(e.comparable() for e in needed):
+        return Finding(claim, a, b, NOT_YET, measured, variants, baselines, more)
+    verdict = tiered_verdict(holds, [_scored(e) for e in needed])
+    differs = [row.label for row in baselines if row.judged and row.holds != holds]
+    if differs:
+        measured += f"; the verdict depends on the baseline: against {', '.join(differs)} it is different (below)"
+    return Finding(claim, a, b, verdict, measured, variants, baselines, more)
+
+
+class BaselineRow(NamedTuple):
+    """A claim judged against one of esr's stronger baselines instead of the published one."""
+
+    label: str
+    evidence: Optional[Evidence]
+    measured: str
+    verdict: str
+    holds: bool | None = None  # which way the comparison leans (when judged)
+    judged: bool = False  # both runs at a comparable length
+
+
+def _baseline_rows(claim: Claim, a: Optional[Evidence], index) -> list[BaselineRow]:
+    rows = []
+    for ref in claim.baseline_variants:
+        ev = pooled(index, claim_spec(ref))
+        label = f"esr's {run_label(claim_spec(ref))}"
+        if ev is None or a is None:
+            rows.append(BaselineRow(label, ev, "not run" if ev is None else format_summary(ev.finals()), NOT_YET))
+            continue
+        holds, measured = _compare(claim.kind, a, ev)
+        if not (a.comparable() and ev.comparable()):
+            rows.append(BaselineRow(label, ev, measured, NOT_YET))
+            continue
+        rows.append(BaselineRow(label, ev, measured, tiered_verdict(holds, [_scored(a), _scored(ev)]), holds, True))
+    return rows
+
+
+def _scored(ev: Evidence) -> int:
+    """Seeds with a final score: a seed without one counts towards no tier."""
+    return scored_seeds(ev.finals())
+
+
+def tiered_verdict(holds: bool | None, seeds: list[int]) -> str:
+    """reproduced / not reproduced / inconclusive with MIN_SEEDS seeds on every side; below that
+    only indicative, with which way the numbers lean; always with the seeds it rests on."""
+    note = _seed_note(seeds)
+    if min(seeds) >= MIN_SEEDS:
+        return (INCONCLUSIVE if holds is None else REPRODUCED if holds else NOT_REPRODUCED) + note
+    return f"{INDICATIVE}: {LEANINGS[holds]}{note}"
+
+
+def _seed_note(seeds: list[int]) -> str:
+    """The seeds a verdict rests on: ' (3 seeds each)', ' (1 seed)', ' (5 seeds against 1 seed)'."""
+    count = lambda n: f"{n:,} seed{'' if n == 1 else 's'}"  # noqa: E731
+    if len(set(seeds)) == 1:
+        return f" ({count(seeds[0])}{' each' if len(seeds) > 1 and seeds[0] > 1 else ''})"
+    return " (" + " against ".join(count(n) for n in seeds) + ")"
+
+
+# ---------------------------------------------------------------- the report
+def _run_cell(ev: Optional[Evidence]) -> str:
+    if ev is None:
+        return "—"
+    if ev.parts:
+        return "seeds pooled from " + " + ".join(_run_cell(p) for p in ev.parts)
+    commit = f", commit {ev.commit_label}" if ev.commit else ""
+    # The CPU is the default and goes unsaid; an accelerator's figures are marked as such.
+    device = f", on {ev.accelerator}" if ev.accelerator else ""
+    return f"`{ev.key[:8]}` ({ev.budget}; {ev.describe_length()}{commit}{device})"
+
+
+def _leaves(tree: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in tree.items():
+        if isinstance(v, dict):
+            out.update(_leaves(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _override_text(path: str, value) -> str:
+    if path == "train.seeds" and value == list(range(len(value))):
+        value = len(value)  # seeds 0..n-1, as a spec file writes them
+    text = value if isinstance(value, str) else json.dumps(value)
+    return f"{path}={text}"
+
+
+def train_overrides(spec: spec_model.Spec, budget: str, experiments: Path = EXPERIMENTS) -> Optional[tuple[Path, list[str]]]:
+    """The spec file in `experiments` and the `--set` values that, at `budget`, resolve to this
+    spec's training part (the run's key), or None when no such file does. The result is checked
+    by resolving it, so a command printed from it makes this very run."""
+    file = experiments / f"{spec.name}.yaml"
+    if not file.is_file():
+        return None
+    try:
+        target = spec.training_part()
+        base_part = specs.load(file, budget).training_part()
+        sets = []
+        for section, value in target.items():
+            base, want = _leaves(base_part.get(section, {}), f"{section}."), _leaves(value, f"{section}.")
+            if base.keys() != want.keys():  # another kind of method, human or network: the section whole
+                sets.append(f"{section}={json.dumps(value)}")
+            else:
+                sets += [_override_text(k, want[k]) for k in want if want[k] != base[k]]
+        if specs.load(file, budget, sets).training_part() != target:
+            return None
+    except (specs.SpecError, yamlio.YamlInputError):
+        return None
+    return file, sets
+
+
+def train_command(ev: Evidence, store: Store) -> str:
+    """The command that made this run and, run again from a checkout of its commit, continues it."""
+    found = train_overrides(ev.spec, ev.budget)
+    if found is None:
+        return f"no spec file in experiments/ resolves to this run; its spec is {ev.path / 'spec.yaml'}"
+    file, sets = found
+    try:
+        shown = file.relative_to(EXPERIMENTS.parent)
+    except ValueError:
+        shown = file
+    return train_line(store.invocation(always_named=True), shown, ev.budget, sets)
+
+
+MIN_CURVE_EPOCHS = 500
+
+
+def learning_curves(findings: list[Finding], out_png: Path, title: str) -> Optional[Path]:
+    """The curves of every run behind the report with at least MIN_CURVE_EPOCHS epochs: a row per
+    figure of the paper (its MI estimate for figure 5, returns otherwise), a panel per
+    environment, a line per run (esr_cli/report/reproduction_figure.py)."""
+    from esr_cli.report import figures as figs, reproduction_figure
+
+    def panel_order(e: Evidence):
+        return (e.spec.env.kind, getattr(e.spec.env, "blocks", 0), figs.env_title(e.spec))
+
+    rows = []
+    for figure in dict.fromkeys(f.claim.figure for f in findings):
+        runs: dict[str, Evidence] = {}
+        for f in (x for x in findings if x.claim.figure == figure):
+            for ev in [f.a, f.b] + [v[1] for v in f.variants] + [r.evidence for r in f.baselines]:
+                if ev is not None and ev.epochs_done >= MIN_CURVE_EPOCHS:
+                    runs[ev.key] = ev
+        panels: dict[str, list] = {}
+        for ev in sorted(runs.values(), key=lambda e: (panel_order(e), run_label(e.spec), e.key)):
+            panels.setdefault(figs.env_title(ev.spec), []).append((run_label(ev.spec), ev.spec, ev.rows))
+        if panels:
+            metric = "mi_estimate" if any(f.claim.kind == "mi_positive" for f in findings if f.claim.figure == figure) else "return"
+            rows.append((figure, metric, list(panels.items())))
+    if not rows:
+        return None
+    return reproduction_figure.draw(rows, out_png, title)
+
+
+def estimator_run(index: dict[str, list[Evidence]]) -> Optional[Evidence]:
+    """The finished ESR gridworld run with the most epochs (then seeds) that learned (its final
+    return above Random's at its N), among the gridworlds small enough for exact empowerment
+    (N <= 2 blocks); ties go to the paper's own settings, then to the key, so the choice never
+    depends on the order of the store."""
+    learned = []
+    for runs in index.values():
+        for ev in runs:
+            if ev.spec.method.kind != "esr" or ev.spec.env.kind != "gridworld" or ev.spec.env.blocks > 2 or ev.status != "complete":
+                continue
+            rnd = best(index, claim_spec((f"grid_{ev.spec.env.blocks}_random", ())))
+            if rnd is not None and ev.finals()["mean"] > rnd.finals()["mean"]:
+                learned.append(ev)
+
+    def paper_settings(e: Evidence) -> bool:
+        return _without_train(e.spec) == _without_train(claim_spec((f"grid_{e.spec.env.blocks}", ())))
+
+    return max(learned, key=lambda e: (e.epochs_done, e.seeds, paper_settings(e), e.key), default=None)
+
+
+def estimator_section(index: dict[str, list[Evidence]], store: Store, console, compute: bool,
+                      img_dir: Path) -> list[str]:
+    """The estimator check (exact empowerment against ESR's reward) on `estimator_run`, its
+    scatter copied into `img_dir` beside the report."""
+    lines = ["## The estimator against exact empowerment", ""]
+    ev = estimator_run(index)
+    if ev is None:
+        return lines + ["No finished ESR run on a gridworld small enough for exact empowerment (N = 2) has "
+                        "learned yet (above Random at its N); this section fills in once one has.", ""]
+    head = (f"On ESR run `{ev.key[:8]}` (N = {ev.spec.env.blocks}, {ev.describe_length()}), goal at the centre, "
+            "seed 0's robot:")
+    if not compute:
+        return lines + [head, "", "not computed (run `esr paper --report` without `--no-exact`).", ""]
+    from esr_cli.common.plots import SCATTER_POINTS
+    from esr_cli.recipes import exact_runs  # jax: only when the report computes exact empowerment
+
+    trained = ensure(exact_runs.exact_recipe(ev.spec, store, None, None, ev.key, 0, console), store)
+    uniform = ensure(exact_runs.exact_recipe(ev.spec, store, None, None, None, 0, console), store)
+    uniform_summary = uniform.summary()
+    scatter = ensure(exact_runs.estimator_recipe(trained.path.name, store, console), store)
+    check, trained_summary = scatter.summary(), trained.summary()
+    figure = []
+    if (scatter.path / "estimator.png").is_file():
+        img_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(img_dir / "reproduction_estimator.png", (scatter.path / "estimator.png").read_bytes())
+        figure = ["![ESR's reward against the exact MI](img/reproduction_estimator.png)", ""]
+    return lines + [head, "",
+                    "| quantity | value |", "|---|---|",
+                    f"| Spearman (ESR's reward, exact MI), all {check['pairs']:,} (state, robot action) pairs | {check['spearman']:.3f} |",
+                    f"| the same over the {check['visited_pairs']:,} pairs holding 99% of the trained robot's discounted occupancy | {check['spearman_visited']:.3f} |",
+                    f"| the human's exact effective empowerment under the trained robot | {trained_summary['effective_empowerment']:.3f} nats |",
+                    f"| the same under a uniform robot | {uniform_summary['effective_empowerment']:.3f} nats |",
+                    "", f"Artifacts: exact `{trained.path.name[:8]}` (trained), `{uniform.path.name[:8]}` (uniform), "
+                    f"scatter `{scatter.path.name[:8]}` (`esr plot estimator`): one point per (state, robot action) pair, "
+                    f"{min(check['pairs'], SCATTER_POINTS):,} of the {check['pairs']:,} drawn at random.", ""] + figure
+
+
+def verdict_counts(findings: list[Finding]) -> dict[str, int]:
+    """How many statements have each verdict, whatever their seed note; indicative rows by how
+    their numbers lean."""
+    tiers = [REPRODUCED, NOT_REPRODUCED, INCONCLUSIVE] + [f"{INDICATIVE}: {v}" for v in LEANINGS.values()] + [NOT_YET]
+    return {v: sum(f.verdict.startswith(v) for f in findings) for v in tiers}
+
+
+def summary_line(findings: list[Finding]) -> str:
+    c = verdict_counts(findings)
+    lean = [c[f"{INDICATIVE}: {v}"] for v in LEANINGS.values()]
+    return (f"{len(findings)} statements: {c[REPRODUCED]} {REPRODUCED}, {c[NOT_REPRODUCED]} {NOT_REPRODUCED} and "
+            f"{c[INCONCLUSIVE]} {INCONCLUSIVE} with at least {MIN_SEEDS} seeds on every side; {sum(lean)} {INDICATIVE} "
+            f"on fewer seeds ({lean[0]} holding, {lean[1]} not holding, {lean[2]} open); {c[NOT_YET]} {NOT_YET}.")
+
+
+def report(store: Store, out: Path, console, exact: bool = True, now: Optional[str] = None) -> list[Finding]:
+    """Write the reproduction report to `out` (markdown, with its curves beside it in img/)."""
+    import time
+
+    index = index_store(store)
+    findings = [judge(c, index) for c in paper_claims()]
+    lines = [
+        "# Reproduction report", "",
+        f"Generated by `esr --store {store.root} paper --report --out {out}` on "
+        f"{now or time.strftime('%Y-%m-%d %H:%M %Z')} from the runs in that store; nothing is copied by hand. "
+        "Run the same command again to bring it up to date.", "",
+        "How to read it:",
+        "- Each row is one statement of the paper, checked on the stored run with the most epochs whose spec matches "
+        "(in every field outside `train`, so runs of any length, seed count or checkout count). A run made on an "
+        "accelerator says so ('on gpu:...'); the others ran on a CPU. Finished runs of that length that differ only in "
+        "their seeds (same commit and device) are pooled into one run of all their seeds; every other run of the spec "
+        "is listed beside the verdict.",
+        f"- Final return: each seed's mean over its last {FINAL_FRACTION:.0%} of epochs. Several seeds: mean ± SE, "
+        "the interquartile mean (IQM) with its 95% stratified bootstrap interval, and the probability that the first run "
+        "improves on the second with its interval. One seed: its value, marked as one seed.",
+        f"- Verdict: a row is judged once every run behind it has {COMPARABLE_EPOCHS['gridworld']:,} epochs (gridworld) "
+        f"or {COMPARABLE_EPOCHS['overcooked']:,} (Overcooked); before that it is *{NOT_YET}*, with the numbers so far. "
+        f"With at least {MIN_SEEDS} seeds on every side it is *{REPRODUCED}*, *{NOT_REPRODUCED}* or *{INCONCLUSIVE}*; "
+        f"with fewer it is only *{INDICATIVE}*, saying which way its numbers lean (holds, does not hold, open). "
+        "'Above': with several seeds on a side, holds when the lower end of the probability-of-improvement interval is "
+        "above 0.5, does not when its upper end is below 0.5, open otherwise; one seed against one: the sign of the "
+        f"difference. 'Similar' (an equivalence test): the margin is {EQUIVALENCE_MARGIN:.0%} of the larger mean; holds "
+        "when the 90% bootstrap interval of the difference of the means lies inside it (two one-sided tests at 5%), does "
+        "not when the interval lies wholly outside it, open otherwise; one seed against one: the difference itself. "
+        f"The MI estimate 'stays positive' when its mean over the last {FINAL_FRACTION:.0%} of epochs is above "
+        f"{MI_POSITIVE} nats and it is above 0 in at least 90% of the second half's epochs.",
+        "- Baselines: each claim is judged against the baseline the paper ran (the published AvE, Du et al.'s Goal "
+        "Inference); esr's stronger versions (AvE with its sampling fixed, Goal Inference by the exact posterior) are "
+        "extra rows marked as esr's, and a verdict that would change with them says so.",
+        "- The paper ran 20 seeds (gridworld) and 5 to 15 (Overcooked) for 10,000 epochs.", "",
+        f"**Summary:** {summary_line(findings)}", "",
+    ]
+    for figure in dict.fromkeys(f.claim.figure for f in findings):
+        lines += [f"## {figure}", "", "| statement | the paper | measured | runs | verdict |", "|---|---|---|---|---|"]
+        for f in (x for x in findings if x.claim.figure == figure):
+            runs = _run_cell(f.a) + ("<br>vs " + _run_cell(f.b) if f.claim.b else "")
+            lines.append(f"| {f.claim.text} | {f.claim.paper} | {f.measured} | {runs} | **{f.verdict}** |")
+            for ev, measured in f.others:
+                lines.append(f"| ↳ another run of this spec | | {measured} | {_run_cell(ev)} | |")
+            for label, ev, measured in f.variants:
+                if ev is not None:
+                    lines.append(f"| ↳ esr's variant `{label}` | | {measured} | {_run_cell(ev)} | |")
+            for row in f.baselines:
+                if row.evidence is not None:
+                    lines.append(f"| ↳ against {row.label} | | {row.measured} | {_run_cell(row.evidence)} | {row.verdict} |")
+        lines.append("")
+    behind = {part.key: part for f in findings
+              for ev in [f.a, f.b] + [v[1] for v in f.variants] + [o[0] for o in f.others] + [r.evidence for r in f.baselines]
+              if ev is not None for part in (ev.parts or (ev,))}
+    if behind:
+        lines += ["## The runs behind this report", "",
+                  "Each was made by the command beside it, run from a checkout of its commit (the training code is part of a "
+                  "run's key: docs/store.md). An unfinished run continues from its last checkpoint with the same command; a "
+                  "finished one grows with a larger `train.epochs`, starting from its last epoch (docs/store.md). A run "
+                  "made on an accelerator continues on one with the same jax (the backend and jax version are part of its "
+                  "key); one whose checkpoint is not in this store (its logged epochs only, `esr import "
+                  "--without-checkpoint`) starts again from epoch 0.", "",
+                  "| run | spec | status | commit | command |", "|---|---|---|---|---|"]
+        for ev in sorted(behind.values(), key=lambda e: (e.status == "complete", e.spec.name, e.key)):
+            state = f"finished: {ev.describe_length()}" if ev.status == "complete" else f"**{ev.describe_length()}**"
+            if ev.accelerator:
+                state += f", on {ev.accelerator}"
+            lines.append(f"| `{ev.key[:8]}` | {ev.spec.name} | {state} | "
+                         f"{ev.commit_label} | `{train_command(ev, store)}` |")
+        lines.append("")
+    img = out.parent / "img" / "reproduction_curves.png"
+    if learning_curves(findings, img, f"Runs of at least {MIN_CURVE_EPOCHS:,} epochs behind the report: the interquartile "
+                                      "mean over seeds with its 95% bootstrap band (seeds per run: the tables above); dashed: esr's variants"):
+        lines += ["## Learning curves", "", f"![learning curves](img/{img.name})", ""]
+    lines += estimator_section(index, store, console, exact, out.parent / "img")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, "\n".join(lines))
+    return findings
+
+
+GENERATED_PREFIX = "Generated by `esr"  # the line that names the store and the time: left out of --check
+
+
+def _comparable_lines(text: str) -> list[str]:
+    return [line for line in text.splitlines() if not line.startswith(GENERATED_PREFIX)]
+
+
+def check(store: Store, committed: Path, console, exact: bool = True) -> list[str]:
+    """The differences (a unified diff, at most 60 lines) between `committed` and the report the
+    store's runs give now; [] when they agree. Writes nothing beside `committed`."""
+    import difflib
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        fresh = Path(tmp) / committed.name
+        report(store, fresh, console, exact=exact)
+        now = _comparable_lines(fresh.read_text(encoding="utf-8"))
+    try:
+        before = _comparable_lines(committed.read_text(encoding="utf-8", errors="replace"))
+    except OSError as e:
+        return [f"cannot read {committed}: {e.strerror or e}"]
+    diff = list(difflib.unified_diff(before, now, str(committed), "now", lineterm="", n=0))
+    return diff[:60] + ([f"... {len(diff) - 60} more lines"] if len(diff) > 60 else [])
+
+
+def findings_json(findings: list[Finding]) -> list[dict]:
+    """Per-claim verdicts with the per-seed finals behind them (for scripts)."""
+    def ev(e: Optional[Evidence]):
+        return None if e is None else {"key": e.key, "status": e.status, "epochs": e.epochs_done, "seeds": e.seeds,
+                                       "commit": e.commit, "final_return": e.finals()}
+
+    return [{"figure": f.claim.figure, "statement": f.claim.text, "paper": f.claim.paper, "verdict": f.verdict,
+             "measured": f.measured, "a": ev(f.a), "b": ev(f.b),
+             "baselines": [{"baseline": r.label, "verdict": r.verdict, "measured": r.measured, "run": ev(r.evidence)}
+                           for r in f.baselines]} for f in findings]
+

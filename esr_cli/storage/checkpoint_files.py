@@ -1,0 +1,130 @@
+"""A run's checkpoint files and their digests, without JAX: which checkpoints are intact, and
+whether a checkpoint's epoch agrees with the run's metrics and length.
+
+Digests of every checkpoint's files are written after the checkpoint is saved; a resume, an
+export and a report use only checkpoints that verify, so a damaged newest checkpoint falls
+back to the one before and a run without an intact one is known to start again.
+
+A checkpoint's folder is named by its epoch, but a name is only a name (an archive's folder can
+be renamed): the epoch the training state holds, the metrics logged and the run's length must
+agree with it before a run resumes from it, is imported with it or is verified with it.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from esr_cli.common.jsonl import JsonInputError, read_json
+from esr_cli.storage.finals import read_rows
+from esr_cli.storage.store import CHECKPOINT_FOLDER, MANIFEST, MAX_MANIFEST_BYTES, RUN_KIND, Store, atomic_write_text, digest_file, load_manifest, without_checkpoint
+
+CHECKPOINT_DIR = CHECKPOINT_FOLDER
+CHECKPOINT_DIGESTS = "checkpoint_digests.json"
+
+
+def _is_step(name: str) -> bool:
+    """Whether `name` is a checkpoint folder's: a few ASCII digits (an archive's folder or digests
+    may name anything; str.isdigit also takes '²', and int() refuses both it and 5,000 digits)."""
+    return name.isascii() and name.isdigit() and len(name) <= 12
+
+
+def step_digests(run_dir: Path, step: int) -> dict[str, str]:
+    root = Path(run_dir) / CHECKPOINT_DIR / str(step)
+    return {f.relative_to(root).as_posix(): digest_file(f) for f in sorted(root.rglob("*")) if f.is_file()}
+
+
+def read_digests(run_dir: Path) -> dict:
+    """{step: {file: digest}}; {} where the file is missing, unreadable or not an object."""
+    try:
+        digests = read_json(Path(run_dir) / CHECKPOINT_DIGESTS, MAX_MANIFEST_BYTES)
+    except (OSError, JsonInputError):
+        return {}
+    return digests if isinstance(digests, dict) else {}
+
+
+def step_intact(run_dir: Path, step: int, digests: dict) -> bool:
+    """Whether checkpoint `step`'s files match the digests recorded for it."""
+    return bool(digests.get(str(step))) and step_digests(run_dir, step) == digests[str(step)]
+
+
+def record_digests(run_dir: Path, steps, saved: int) -> None:
+    """Record the just-saved step's digests; keep those of older steps still present."""
+    known = read_digests(run_dir)
+    digests = {str(s): known.get(str(s)) for s in steps if s != saved and known.get(str(s))}
+    digests[str(saved)] = step_digests(run_dir, saved)
+    atomic_write_text(Path(run_dir) / CHECKPOINT_DIGESTS, json.dumps(digests, sort_keys=True))
+
+
+def verified_steps(run_dir: Path) -> list[int]:
+    """The checkpoint steps of `run_dir` whose files match their recorded digests, newest first."""
+    root = Path(run_dir) / CHECKPOINT_DIR
+    if not root.is_dir():
+        return []
+    digests = read_digests(run_dir)
+    steps = sorted((int(d.name) for d in root.iterdir() if d.is_dir() and _is_step(d.name)), reverse=True)
+    return [s for s in steps if step_intact(run_dir, s, digests)]
+
+
+def run_length(record: dict) -> int | None:
+    """The epochs a run's manifest or pending.json asks for (its key components' train.epochs);
+    None where they name none."""
+    value = record.get("key_components")
+    for name in ("spec", "train", "epochs"):
+        value = value.get(name) if isinstance(value, dict) else None
+    return value if type(value) is int else None
+
+
+def logged_epochs(run_dir: Path) -> list[int]:
+    """The epochs of a run's metrics lines, in order."""
+    return [r["epoch"] for r in read_rows(run_dir) if type(r.get("epoch")) is int]
+
+
+def _epochs(values: list[int]) -> str:
+    return f"epoch {values[0]}" if len(values) == 1 else f"epochs {', '.join(map(str, values))}"
+
+
+def epochs_problem(run_dir: Path, step: int, total: int | None, held: list[int] | None = None) -> str | None:
+    """Why checkpoint `step` of `run_dir` is not where the run stands, or None: it must be an
+    epoch of the run (at most `total`, where known) that the metrics logged, and the epoch the
+    training state holds (`held`: each seed's, where it was read) must be `step` too."""
+    logged = logged_epochs(run_dir)
+    beyond = total is not None and step > total
+    if not beyond and step in logged and held in (None, [step]):
+        return None
+    facts = [f"its state holds {_epochs(held)}"] if held is not None else []
+    facts.append(f"metrics end at {logged[-1]}" if logged else "no epoch is logged")
+    return (f"checkpoint folder says epoch {step} but {' and '.join(facts)}"
+            + (f", in a run of {total} epochs" if beyond else ""))
+
+
+def run_epochs_problem(run_dir: Path, manifest: dict) -> str | None:
+    """Why a committed run's epochs disagree, or None: its newest checkpoint folder, the newest
+    step its digests record, its last logged epoch and its manifest's summary must all be its
+    length (checked where the manifest names one, as every run training commits does)."""
+    total = run_length(manifest)
+    if total is None:
+        return None
+    root = Path(run_dir) / CHECKPOINT_DIR
+    folders = [int(d.name) for d in root.iterdir() if d.is_dir() and _is_step(d.name)] if root.is_dir() else []
+    digested = [int(s) for s in read_digests(run_dir) if _is_step(s)]
+    summary = manifest.get("summary")
+    said = {"its newest checkpoint folder says": max(folders, default=None),
+            "its checkpoint digests end at": max(digested, default=None),
+            "its metrics end at": (logged_epochs(run_dir) or [None])[-1],
+            f"its {MANIFEST} summary says": summary.get("epochs") if isinstance(summary, dict) else None}
+    if without_checkpoint(run_dir):  # kept as metrics only: no folder to agree
+        said.pop("its newest checkpoint folder says")
+    wrong = [f"{what} {'none' if epoch is None else epoch}" for what, epoch in said.items() if epoch != total]
+    return f"the run has {total} epochs but {' and '.join(wrong)}" if wrong else None
+
+
+def verify_artifact(store: Store, path: Path) -> list[str]:
+    """`Store.verify` and, for a run whose files are as committed, whether its epochs agree
+    (`run_epochs_problem`): what `esr verify` and `esr import` check."""
+    problems = store.verify(path)
+    if problems:
+        return problems
+    manifest = load_manifest(Path(path))
+    epochs = run_epochs_problem(Path(path), manifest) if manifest["kind"] == RUN_KIND else None
+    return [epochs] if epochs else []

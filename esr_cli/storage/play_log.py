@@ -1,0 +1,54 @@
+"""The log of a played episode (a `play` artifact's files) and the state records in it.
+
+  episode.json      who played with which robot, on which environment and seed, and when
+  steps.jsonl       one line per step, appended (flushed and synced) as it is played: the key,
+                    both actions, reward, score, wall time, reaction time and the state the
+                    step was taken from
+  final_state.json  the state after the last step
+  summary.json      return, success, steps, completed (also in the manifest)
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from esr_cli.common.jsonl import read_jsonl
+
+STEPS_FILE, EPISODE_FILE, FINAL_STATE_FILE = "steps.jsonl", "episode.json", "final_state.json"
+
+
+def state_record(state) -> dict:
+    """An environment state (any pytree) as {field path: plain Python value}."""
+    leaves, _ = jax.tree_util.tree_flatten_with_path(state)
+    return {jax.tree_util.keystr(path).lstrip("."): np.asarray(v).tolist() for path, v in leaves}
+
+
+def state_from_record(env, record: dict):
+    """The environment state a record holds (state_record's inverse), shaped like env.reset's."""
+    template = env.reset(jax.random.PRNGKey(0))
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
+    values = [np.asarray(record[jax.tree_util.keystr(path).lstrip(".")], dtype=np.asarray(leaf).dtype).reshape(np.shape(leaf))
+              for path, leaf in leaves]
+    return jax.tree_util.tree_unflatten(treedef, values)
+
+
+def read_header(path: Path) -> dict:
+    return json.loads((Path(path) / EPISODE_FILE).read_text())
+
+
+def read_steps(path: Path) -> list[dict]:
+    """An episode's steps; a last line cut short by a crash is dropped."""
+    return read_jsonl(Path(path) / STEPS_FILE)
+
+
+def read_states(path: Path, env) -> list:
+    """The states of an episode: each step's, then the final one (when it was written)."""
+    states = [state_from_record(env, s["state"]) for s in read_steps(path)]
+    final = Path(path) / FINAL_STATE_FILE
+    if final.exists():
+        states.append(state_from_record(env, json.loads(final.read_text())))
+    return states
