@@ -479,7 +479,7 @@ def test_a_bad_stop_after_is_a_usage_error_before_any_work(tmp_path, value):
 
 
 def test_durations_by_hand():
-    from esr_cli.cli.main import Exit, parse_duration
+    from esr_cli.cli.app import Exit, parse_duration
 
     assert parse_duration("90", "--x") == 90.0
     assert parse_duration("90s", "--x") == 90.0

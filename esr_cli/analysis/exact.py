@@ -336,11 +336,6 @@ class Empowerment:
     complete: bool  # MI computed for every pair (else only for `pairs`: state_mi, value are lower bounds)
 
 
-def pair_weights(space: StateSpace, pi_robot: np.ndarray, visitation: np.ndarray) -> np.ndarray:
-    """float64[S, A_R]: d(s) pi_R(aR | s), the discounted occupancy of each (state, robot action)."""
-    return visitation[:, None] * pi_robot
-
-
 # "Visited" (state, robot action) pairs: the most likely pairs under the robot's own discounted
 # occupancy from the start states that together hold this share of it.
 VISITED_MASS = 0.99

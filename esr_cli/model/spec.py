@@ -326,7 +326,40 @@ HumanSpec = Annotated[Union[NoisyGreedyHumanSpec, BCHumanSpec, PPOHumanSpec], Fi
 
 
 # ---------------------------------------------------------------- methods
-class ESRMethodSpec(_Model):
+class _MethodModel(_Model):
+    """What shared code asks of any method's spec, so that the runner, the memory check and the
+    spec's cross-checks never ask for a method's kind. The defaults: the method samples the
+    replay buffer as the learner does, and adds nothing to memory or to the checks."""
+
+    def replay_future_gamma(self, learner_gamma: float) -> float:
+        """The discount of the future states the replay sampler draws for this method."""
+        return learner_gamma
+
+    def replay_episode_group(self) -> int:
+        """Transitions drawn from each sampled episode in a representation batch."""
+        return 1
+
+    def reads_post_step_view(self) -> bool:
+        """Whether every update reads the buffer as `replay.post_step_view` (o_{t+1} with a_t)."""
+        return False
+
+    def network_outputs(self) -> int:
+        """Outputs of this method's own networks (0: none), for the memory estimate."""
+        return 0
+
+    def update_bytes(self, batch_size: int, obs_bytes: int) -> int:
+        """Bytes one update holds beyond the networks' activations, per seed in flight."""
+        return 0
+
+    def table_bytes(self, buffer_size: int) -> int:
+        """Bytes of tables over the whole replay buffer, per seed in flight."""
+        return 0
+
+    def check_with(self, spec: Spec) -> None:
+        """Raise ValueError, naming the fields, where this method cannot run with the rest of `spec`."""
+
+
+class ESRMethodSpec(_MethodModel):
     kind: Literal["esr"]
     repr_dim: Int = Field(32, ge=1, le=MAX_WIDTH)
     reward: Literal["dot", "simplified", "simplified_normalized"] = Field(
@@ -361,12 +394,41 @@ class ESRMethodSpec(_Model):
     repr_lr: Float = Field(1e-4, gt=0.0)
     repr_updates_per_epoch: Int = Field(100, ge=0, le=MAX_UPDATES)
 
+    def replay_future_gamma(self, learner_gamma: float) -> float:
+        return float(self.future_gamma)  # ESR's own future-state horizon
 
-class RandomMethodSpec(_Model):
+    def replay_episode_group(self) -> int:
+        return int(self.episode_group)
+
+    def reads_post_step_view(self) -> bool:
+        return self.pairing == "original"
+
+    def network_outputs(self) -> int:
+        return self.repr_dim
+
+    def update_bytes(self, batch_size: int, obs_bytes: int) -> int:
+        return 16 * batch_size * batch_size  # the batch x batch InfoNCE logits, 4 float32 copies
+
+    def table_bytes(self, buffer_size: int) -> int:
+        return 4 * 3 * buffer_size * self.repr_dim  # phi, phi' and psi of every stored transition
+
+    def check_with(self, spec: Spec) -> None:
+        if self.pairing == "original" and spec.env.kind != "overcooked":
+            raise ValueError("method.pairing=original is the published Overcooked code's pairing; its gridworld code "
+                             "pairs o_t with a_t, which is pairing: aligned (docs/choices.md)")
+        if self.action_input == "append" and spec.network.kind != "mlp":
+            raise ValueError("method.action_input=append feeds the one-hot once to a network that flattens its "
+                             "input: it needs network.kind: mlp (a convolution would see it in one cell only)")
+        if self.episode_group > spec.learner.batch_size:
+            raise ValueError(f"method.episode_group={self.episode_group} is larger than "
+                             f"learner.batch_size={spec.learner.batch_size}: a batch cannot hold one group")
+
+
+class RandomMethodSpec(_MethodModel):
     kind: Literal["random"]
 
 
-class AvEMethodSpec(_Model):
+class AvEMethodSpec(_MethodModel):
     """Assistance via Empowerment (Du et al. 2020): reward = log variance of the human's
     position after random human rollouts from the current state (docs/baselines.md)."""
 
@@ -377,8 +439,11 @@ class AvEMethodSpec(_Model):
         "fixed", description="original: the published code's action sampling and features (docs/baselines.md)"
     )
 
+    def update_bytes(self, batch_size: int, obs_bytes: int) -> int:
+        return 2 * batch_size * self.num_rollouts * (self.rollout_length + 1) * obs_bytes  # the rollouts' observations
 
-class GoalInferenceMethodSpec(_Model):
+
+class GoalInferenceMethodSpec(_MethodModel):
     """Goal inference, then a rule that clears the human's way (docs/baselines.md): esr's exact
     Bayesian belief under the known human model, or Du et al.'s published step rule."""
 
@@ -388,8 +453,12 @@ class GoalInferenceMethodSpec(_Model):
     )
     step: Float = Field(0.5, gt=0.0, le=10.0, description="original: alpha; each move shifts a goal's weight by alpha / |G|")
 
+    def check_with(self, spec: Spec) -> None:
+        if spec.env.kind != "gridworld":
+            raise ValueError("method.kind=goal_inference needs the gridworld's known human model (env.kind: gridworld)")
 
-class IQLearnMethodSpec(_Model):
+
+class IQLearnMethodSpec(_MethodModel):
     """Reward inference with IQ-Learn (Garg et al. 2021): a soft Q of the human fitted online
     from the human's transitions; the robot is rewarded with r = Q(s, aH) - gamma V(s')."""
 
@@ -401,10 +470,16 @@ class IQLearnMethodSpec(_Model):
     updates_per_epoch: Int = Field(100, ge=0, le=MAX_UPDATES)
 
 
-class OracleMethodSpec(_Model):
+class OracleMethodSpec(_MethodModel):
     """An upper bound: the robot sees the goal (env.goal_visible) and gets the human's reward."""
 
     kind: Literal["oracle"]
+
+    def check_with(self, spec: Spec) -> None:
+        if spec.env.kind != "gridworld":
+            raise ValueError("method.kind=oracle is gridworld-only: in Overcooked the goal is the shared reward (docs/baselines.md)")
+        if not getattr(spec.env, "goal_visible", False):
+            raise ValueError("method.kind=oracle needs env.goal_visible: true (the oracle sees the goal)")
 
 
 # Every method's spec model, once: the union below and KIND_MODELS derive from it, and
@@ -558,21 +633,7 @@ class Spec(_Model):
         clone = self.human.bc_clone() if self.human.kind == "ppo" else None
         if clone is not None and clone.layout not in (None, self.env.layout):
             raise ValueError(f"human.clone.layout={clone.layout!r} differs from env.layout={self.env.layout!r}")
-        if self.method.kind == "oracle" and self.env.kind != "gridworld":
-            raise ValueError("method.kind=oracle is gridworld-only: in Overcooked the goal is the shared reward (docs/baselines.md)")
-        if self.method.kind == "oracle" and not getattr(self.env, "goal_visible", False):
-            raise ValueError("method.kind=oracle needs env.goal_visible: true (the oracle sees the goal)")
-        if self.method.kind == "goal_inference" and self.env.kind != "gridworld":
-            raise ValueError("method.kind=goal_inference needs the gridworld's known human model (env.kind: gridworld)")
-        if self.method.kind == "esr" and self.method.pairing == "original" and self.env.kind != "overcooked":
-            raise ValueError("method.pairing=original is the published Overcooked code's pairing; its gridworld code "
-                             "pairs o_t with a_t, which is pairing: aligned (docs/choices.md)")
-        if self.method.kind == "esr" and self.method.action_input == "append" and self.network.kind != "mlp":
-            raise ValueError("method.action_input=append feeds the one-hot once to a network that flattens its "
-                             "input: it needs network.kind: mlp (a convolution would see it in one cell only)")
-        if self.method.kind == "esr" and self.method.episode_group > self.learner.batch_size:
-            raise ValueError(f"method.episode_group={self.method.episode_group} is larger than "
-                             f"learner.batch_size={self.learner.batch_size}: a batch cannot hold one group")
+        self.method.check_with(self)
         self._entropy_target_reachable()
         steps = self.env.episode_steps
         total = self.train.epochs * self.train.num_envs * steps * len(self.train.seeds)

@@ -62,22 +62,20 @@ class Trainer(NamedTuple):
     method: Any
     learner: SoftQLearner
 
+    # How the replay buffer is sampled is the method's to say (model/spec.py, `_MethodModel`).
     @property
     def future_gamma(self) -> float:
-        method = self.spec.method  # only ESR has its own future-state horizon
-        return float(method.future_gamma) if method.kind == "esr" else float(self.spec.learner.gamma)
+        return float(self.spec.method.replay_future_gamma(self.spec.learner.gamma))
 
     @property
     def repr_episode_group(self) -> int:
-        """Transitions per sampled episode in a representation batch (ESR's option; 1 otherwise)."""
-        method = self.spec.method
-        return int(method.episode_group) if method.kind == "esr" else 1
+        """Transitions per sampled episode in a representation batch."""
+        return int(self.spec.method.replay_episode_group())
 
     @property
     def post_step_pairing(self) -> bool:
-        """ESR's `pairing: original`: every update reads the buffer as `replay.post_step_view`."""
-        method = self.spec.method
-        return method.kind == "esr" and method.pairing == "original"
+        """Every update reads the buffer as `replay.post_step_view` (ESR's `pairing: original`)."""
+        return bool(self.spec.method.reads_post_step_view())
 
     @property
     def metric_names(self) -> tuple[str, ...]:

@@ -81,24 +81,16 @@ def _network_floats(network_spec, obs_shape: tuple, out: int) -> tuple[int, int]
 
 def network_bytes(spec, obs_shape: tuple, obs_bytes: int, seeds_at_once: int, num_actions: int) -> int:
     method = spec.method
-    repr_dim = method.repr_dim if method.kind == "esr" else 0
-    params, acts = _network_floats(spec.network, obs_shape, max(num_actions, repr_dim))
+    params, acts = _network_floats(spec.network, obs_shape, max(num_actions, method.network_outputs()))
     batch = spec.learner.batch_size
-    floats = batch * acts * ACTIVATION_COPIES
-    if method.kind == "esr":
-        floats += 4 * batch * batch
-    in_flight = 4 * floats
-    if method.kind == "ave":
-        in_flight += 2 * batch * method.num_rollouts * (method.rollout_length + 1) * obs_bytes
+    in_flight = 4 * batch * acts * ACTIVATION_COPIES + method.update_bytes(batch, obs_bytes)
     return 4 * len(spec.train.seeds) * PARAMETER_COPIES * params + seeds_at_once * in_flight
 
 
 def representation_table_bytes(spec, seeds_at_once: int) -> int:
-    """ESR's representations of the whole buffer (3 x buffer x repr_dim floats per seed in
-    flight): it grows with learner.buffer_size, so it counts with the buffers."""
-    if spec.method.kind != "esr":
-        return 0
-    return seeds_at_once * 4 * 3 * spec.learner.buffer_size * spec.method.repr_dim
+    """A method's tables over the whole buffer (ESR's representations: 3 x buffer x repr_dim
+    floats per seed in flight): they grow with learner.buffer_size, so they count with the buffers."""
+    return seeds_at_once * spec.method.table_bytes(spec.learner.buffer_size)
 
 
 def observation(spec):

@@ -9,9 +9,11 @@ from __future__ import annotations
 from esr_cli.model.envs import gridworld, overcooked  # jaxmarl itself loads only when an Overcooked env is made
 
 
+# How each `env.kind` is made from its spec.
+ENVS = {"gridworld": gridworld.make, "overcooked": overcooked.make}
+
+
 def make_env(env_spec):
-    if env_spec.kind == "gridworld":
-        return gridworld.make(env_spec)
-    if env_spec.kind == "overcooked":
-        return overcooked.make(env_spec)
-    raise ValueError(f"unknown env kind {env_spec.kind!r}")
+    if env_spec.kind not in ENVS:
+        raise ValueError(f"unknown env kind {env_spec.kind!r}; known: {', '.join(ENVS)}")
+    return ENVS[env_spec.kind](env_spec)

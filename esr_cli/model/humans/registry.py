@@ -21,19 +21,19 @@ STORED_POLICIES = {
     "ppo": lambda human_spec: conv_actor_critic.policy_logits,
 }
 
+
 def policy_logits(human_spec):
     """A stored human's policy: (params, obs [..., H, W, 26]) -> logits [..., 6]."""
     if human_spec.kind not in STORED_POLICIES:
         raise ValueError(f"human kind {human_spec.kind!r} is not a stored policy")
     return STORED_POLICIES[human_spec.kind](human_spec)
 
-def make_human(human_spec, env, params=None, seeds: tuple = ()):
-    """`params`: a stored human's parameters (kinds bc and ppo), loaded from the store by the
-    caller (runs.build_trainer): the models never reach into the store themselves. With
-    `human.per_seed`, a list of parameters, one per training seed in `seeds` order."""
-    if human_spec.kind == "noisy_greedy":
-        return NoisyGreedyHuman(env=env, noise=float(human_spec.noise))
-    logits = policy_logits(human_spec)  # every other kind is a stored policy
+def _noisy_greedy(human_spec, env, params, seeds: tuple):
+    return NoisyGreedyHuman(env=env, noise=float(human_spec.noise))
+
+
+def _stored_policy(human_spec, env, params, seeds: tuple):
+    logits = policy_logits(human_spec)
     if params is None:
         raise ValueError("a stored human needs its parameters (runs.build_trainer loads them from the store)")
     per_seed = None
@@ -51,3 +51,17 @@ def make_human(human_spec, env, params=None, seeds: tuple = ()):
         seeds=tuple(int(s) for s in seeds) if per_seed is not None else (),
         **adapt,
     )
+
+
+# How each `human.kind` is made: (human spec, environment, stored parameters or None, seeds).
+HUMANS = {"noisy_greedy": _noisy_greedy, "bc": _stored_policy, "ppo": _stored_policy}
+
+
+def make_human(human_spec, env, params=None, seeds: tuple = ()):
+    """The human of `human_spec.kind`. `params`: a stored human's parameters (kinds bc and ppo),
+    loaded from the store by the caller (runs.build_trainer): the models never reach into the
+    store themselves. With `human.per_seed`, a list of parameters, one per training seed in
+    `seeds` order."""
+    if human_spec.kind not in HUMANS:
+        raise ValueError(f"unknown human kind {human_spec.kind!r}; known: {', '.join(HUMANS)}")
+    return HUMANS[human_spec.kind](human_spec, env, params, seeds)

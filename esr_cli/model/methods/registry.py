@@ -1,7 +1,7 @@
 """Which class implements each `method.kind`. A new method is one file with a class that meets
 `interfaces.Method` and has `from_spec(spec, env, human)`, one line here, and its spec model in
-spec.py. The imports are plain module-level imports on purpose: the run key's code digest
-follows imports from the runner (provenance.module_closure), so every method's source is in it.
+model/spec.py (docs/extending.md). Every file of esr_cli/model is in a run's key, so a new
+method's source is keyed wherever it is imported from.
 """
 
 from __future__ import annotations

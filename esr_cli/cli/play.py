@@ -1,0 +1,186 @@
+"""esr play (a person in the human's seat) and esr plays (what was played)."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+from rich.table import Table
+
+from esr_cli.cli.app import BudgetOpt, Exit, SetOpt, app, check_output_file, err, out, refuse_inside_store, refuse_spec_options
+from esr_cli.common.printing import print_table, tagged
+from esr_cli.model import spec as spec_model
+from esr_cli.recipes import targets
+from esr_cli.storage.store import PLAY_KIND, Store, atomic_write_bytes
+
+MAX_PLAY_EPISODES = 10_000  # a person plays each one: far above any study's session
+
+
+@app.command()
+def play(
+    ctx: typer.Context,
+    target: str = typer.Argument(..., help="a trained run (key or path) or a spec; with --robots, the spec only names the environment", show_default=False),
+    budget: str = BudgetOpt,
+    set_: Optional[List[str]] = SetOpt,
+    robots: Optional[str] = typer.Option(None, "--robots", help="comma-separated robots to play with, in a counterbalanced "
+                                         "order under neutral names: run keys, paths or specs, and `random`"),
+    episodes: int = typer.Option(1, "--episodes", "-n", help="episodes in the session"),
+    participant: str = typer.Option("anonymous", "--participant", help="the person's id (logged; decides the order and names of the robots)"),
+    fps: float = typer.Option(6.0, "--fps", help="Overcooked: steps per second (a tick without a key is stay)"),
+    web: bool = typer.Option(False, "--web", help="play in a browser: serve the game on localhost"),
+    port: int = typer.Option(8765, "--port", help="--web: the port on 127.0.0.1"),
+    seed: int = typer.Option(0, "--seed", help="the first episode's environment seed (episode i: seed + i)"),
+    seed_index: int = typer.Option(0, "--seed-index", help="which seed of each trained run acts"),
+    countdown: float = typer.Option(3.0, "--countdown", help="seconds counted down after the person presses space to "
+                                    "start each episode (0: none)"),
+):
+    """Play the human's part with trained robots; every episode is logged as a `play` artifact."""
+    from esr_cli.play import session as ps
+
+    if not 1 <= episodes <= MAX_PLAY_EPISODES:
+        raise Exit(2, f"--episodes: between 1 and {MAX_PLAY_EPISODES:,} (got {episodes:,})")
+    if not 0.5 <= fps <= 60:
+        raise Exit(2, f"--fps: between 0.5 and 60 (got {fps})")
+    if not 1024 <= port <= 65535:
+        raise Exit(2, f"--port: between 1024 and 65535 (got {port})")
+    if not 0 <= countdown <= 30:
+        raise Exit(2, f"--countdown: between 0 and 30 seconds (got {countdown})")
+    if not participant.strip() or len(participant) > 200:
+        raise Exit(2, "--participant: a non-empty id of at most 200 characters")
+    if not 0 <= seed <= spec_model.MAX_SEED - (episodes - 1):  # episode i plays seed + i, an int32 PRNG seed
+        raise Exit(2, f"--seed: between 0 and {spec_model.MAX_SEED - (episodes - 1):,} for {episodes} episode(s) (got {seed})")
+    refs = [r.strip() for r in robots.split(",") if r.strip()] if robots else []
+    if robots is not None and not refs:
+        raise Exit(2, "--robots: name at least one robot (a run key, path or spec, or `random`)")
+    if not any(targets.is_spec_file(r) for r in [target, *refs]):
+        refuse_spec_options(target, budget, set_)
+    if web:
+        from esr_cli.play.web import PortInUse, Web
+
+        try:
+            front = Web(port, err)
+        except PortInUse as e:
+            raise Exit(2, str(e)) from None
+        name = "web"
+    else:
+        from esr_cli.play.terminal import NotATerminal, Terminal
+
+        try:
+            front = Terminal(out)
+        except NotATerminal as e:
+            raise Exit(2, str(e)) from None
+        name = "terminal"
+    spec, opponents = ps.load_opponents(target, refs, budget, set_, seed_index, ctx.obj.store, participant)
+    ps.recover_abandoned(ctx.obj.store, err)
+    session = ps.new_session_id()
+    with front:
+        played = ps.run_session(spec, opponents, participant, episodes, seed, fps, front, name, ctx.obj.store, err,
+                                countdown, session)
+        rows = ps.summary_rows(played)
+        front.finish([f"session over: {len(played)} episode(s) played. Thank you!"])
+    # The terminal is the participant's screen: which robot is which stays with `esr plays`.
+    shown = ("robot", "episodes (completed)", "return (mean)", "success", "steps (mean)")
+    table = Table(title=f"esr play: participant {participant}, session {session}, {len(played)} of {episodes} episode(s)")
+    for col in shown if not web else shown[:1] + ("key",) + shown[1:]:
+        table.add_column(col)
+    for r in rows:
+        cells = [f"{r['episodes']} ({r['completed']})", f"{r['return_mean']:.2f}", f"{r['success_rate']:.2f}",
+                 f"{r['steps_mean']:.1f}"]
+        table.add_row(r["robot_label"], *([r["robot"][:12]] if web else []), *cells)
+    err.print(table)
+    if not web:
+        err.print(f"the robots' keys: esr plays --session {session}", highlight=False)
+    for p in played:
+        out.print(p["path"], highlight=False)
+    if played and not played[-1]["completed"]:
+        err.print("the session was ended early; its last episode is kept as incomplete", highlight=False)
+        raise Exit(130)
+
+
+@app.command()
+def plays(
+    ctx: typer.Context,
+    participant: Optional[str] = typer.Option(None, "--participant", help="only this participant's episodes"),
+    session: Optional[str] = typer.Option(None, "--session", help="only this session's episodes"),
+    export: Optional[Path] = typer.Option(None, "--export", help="write the episodes shown: .jsonl, every step of any "
+                                          "environment (docs/play.md); .pickle (a pandas DataFrame) or .csv, the "
+                                          "Overcooked ones in overcooked-ai's human-data schema"),
+    by_robot: bool = typer.Option(False, "--by-robot", help="a table per robot instead: participants, episodes, and the "
+                                  "return and success of completed episodes (per participant, then mean ± SE and IQM across participants)"),
+    csv_file: Optional[Path] = typer.Option(None, "--csv", help="also write one row per episode shown (participant, "
+                                            "robot, return, success, keys, reaction time...) to this CSV file"),
+):
+    """List the played episodes (`esr play`), sum them up per robot, and export them."""
+    from esr_cli.play import results, session as ps
+
+    if export is not None and export.suffix not in (".jsonl", ".pickle", ".pkl", ".csv"):
+        raise Exit(2, f"--export: {export} should end in .jsonl (steps), .pickle or .csv (Overcooked human data)")
+    for path, option in ((export, "--export"), (csv_file, "--csv")):
+        if path is not None:
+            refuse_inside_store(path, option, ctx.obj.store)
+            check_output_file(path, option)
+    if export is not None and csv_file is not None and export.resolve() == csv_file.resolve():
+        raise Exit(2, "--export and --csv name the same file")
+    found = ps.played_episodes(ctx.obj.store, participant, session)
+    if not found:
+        raise Exit(1, f"no played episodes in {ctx.obj.store.root}" + (" for that selection" if participant or session else ""))
+    rows = results.episode_rows(found)
+    if by_robot:
+        _print_by_robot(results.by_robot(rows))
+    else:
+        _print_plays(found)
+    if csv_file is not None:
+        csv_file.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(csv_file, results.episodes_csv(rows).encode())
+        err.print(tagged("written", "green", f" {len(rows)} episode(s): {csv_file}"))
+    if export is not None and export.suffix == ".jsonl":
+        from esr_cli.play.step_export import export_jsonl
+
+        text, count = export_jsonl([ctx.obj.store.lookup(PLAY_KIND, k) for k, _, _ in found])
+        export.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(export, text.encode())
+        err.print(tagged("exported", "green", f" {len(found)} episode(s), {count} steps: {export}"))
+    elif export is not None:
+        _export_overcooked(found, export, ctx.obj.store)
+
+
+def _print_by_robot(rows: list[dict]) -> None:
+    from esr_cli.common.stats import format_summary
+
+    table = Table(title="played episodes per robot: completed episodes averaged per participant, then mean ± SE and "
+                        "IQM [95% bootstrap CI] across participants")
+    for col in ("robot", "env", "participants", "episodes", "return", "success"):
+        table.add_column(col, no_wrap=col == "robot")
+    for r in rows:
+        scored = "" if r["scored_participants"] == r["participants"] else f" ({r['scored_participants']} with a completed episode)"
+        table.add_row(str(r["robot"]), r["env"], f"{r['participants']}{scored}", f"{r['completed']} of {r['episodes']} completed",
+                      format_summary(r["return"], 2, "participant"), format_summary(r["success"], 2, "participant"))
+    print_table(out, table)
+
+
+def _print_plays(found) -> None:
+    table = Table()
+    for col in ("key", "participant", "session", "episode", "robot", "env", "completed", "steps", "return"):
+        table.add_column(col, no_wrap=col == "key")  # the whole key, as human.data takes it
+    for key, header, summary in found:
+        env = header["env"]
+        table.add_row(key, str(header["participant"]), str(header["session"]), str(header["episode"]),
+                      str(header["robot"][:12]), str(env.get("layout", env["kind"])), "yes" if summary["completed"] else "no", str(summary["steps"]),
+                      f"{summary['score']:g}")
+    print_table(out, table)
+
+
+def _export_overcooked(found, export: Path, store: Store) -> None:
+    from esr_cli.play import export as px
+
+    frame, count = px.export_overcooked(store, [k for k, _, _ in found])
+    if count == 0:
+        raise Exit(2, "--export: none of these episodes is an Overcooked episode")
+    export.parent.mkdir(parents=True, exist_ok=True)
+    buffer = io.BytesIO()
+    frame.to_csv(buffer, index=False) if export.suffix == ".csv" else frame.to_pickle(buffer)
+    atomic_write_bytes(export, buffer.getvalue())
+    err.print(tagged("exported", "green", f" {count} Overcooked episode(s), {len(frame)} rows: {export}"))
+

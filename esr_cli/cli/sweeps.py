@@ -1,0 +1,199 @@
+"""Commands over suites of runs: esr sweep and esr paper."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from esr_cli.cli.app import BudgetOpt, Exit, app, check_budget, check_executor, check_output_file, draw_preview, err, out
+from esr_cli.common.printing import tagged
+from esr_cli.storage.artifacts import ensure
+
+
+def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait, job_opts,
+                                  unfinished=False, out_dir=None):
+    """An option that would change nothing is a mistake to name, not to ignore."""
+    for flag, given in (("--unfinished", unfinished), ("--out", out_dir is not None)):
+        if given and not plot:
+            raise Exit(2, f"{flag} applies with --results --plot only")
+    if show_status and show_results:
+        raise Exit(2, "--status and --results: choose one")
+    if as_json and markdown:
+        raise Exit(2, "--json and --markdown: choose one")
+    for flag, given in (("--markdown", markdown), ("--metric", metric), ("--plot", plot)):
+        if given and not show_results:
+            raise Exit(2, f"{flag} applies with --results only")
+    if as_json and not (show_status or show_results):
+        raise Exit(2, "--json applies with --status or --results only")
+    # submitit-local uses the time, CPU and memory limits; partition and GPUs are SLURM's alone.
+    used = {"slurm": set(job_opts), "submitit-local": {"--time-min", "--cpus", "--mem-gb"}}.get(executor, set())
+    submits = not (show_status or show_results)
+    ignored = [f for f, v in job_opts.items() if v is not None and (f not in used or not submits)]
+    if ignored:
+        raise Exit(2, f"{', '.join(ignored)}: " + (f"not used by --executor {executor}" if submits else
+                                                   "--status and --results submit nothing"))
+    if wait is not None and (executor == "local" or not submits):
+        raise Exit(2, "--wait/--no-wait: for submitted jobs (--executor slurm or submitit-local)")
+
+
+@app.command()
+def sweep(
+    ctx: typer.Context,
+    suite_file: Path = typer.Argument(..., help="a suite (YAML): spec files and/or a grid of --set values", show_default=False),
+    budget: str = BudgetOpt,
+    executor: str = typer.Option("local", "--executor", "-e", help="local (here, one after another) | slurm | submitit-local"),
+    show_status: bool = typer.Option(False, "--status", help="only show each run's state: done / running / queued / stopped / failed / missing"),
+    show_results: bool = typer.Option(False, "--results", help="only show each finished run's final return and success (mean ± SE across seeds); trains nothing"),
+    as_json: bool = typer.Option(False, "--json", help="--status / --results: print JSON instead of a table"),
+    markdown: bool = typer.Option(False, "--markdown", help="--results: print a markdown table"),
+    metric: Optional[list[str]] = typer.Option(None, "--metric", help="--results: a logged metric to show (repeat for "
+                                               "several; default: return and success), e.g. mi_estimate"),
+    plot: bool = typer.Option(False, "--plot", help="--results: also draw the runs' learning curves (a figures artifact; every run must be done, unless --unfinished)"),
+    unfinished: bool = typer.Option(False, "--unfinished", help="--plot: draw runs still training as far as they have got, "
+                                    "marked unfinished (a preview outside the store)"),
+    out_dir: Optional[Path] = typer.Option(None, "--out", help="--plot --unfinished: the folder for the preview "
+                                           "(default: suite-NAME-BUDGET-unfinished here)"),
+    wait: Optional[bool] = typer.Option(None, "--wait/--no-wait", help="wait for submitted jobs (default: wait, except for slurm)"),
+    partition: Optional[str] = typer.Option(None, "--partition", help="slurm: partition (default: the suite's slurm.partition)"),
+    time_min: Optional[int] = typer.Option(None, "--time-min", help="slurm: wall-clock limit per job, minutes"),
+    gpus: Optional[int] = typer.Option(None, "--gpus", help="slurm: GPUs per job"),
+    cpus: Optional[int] = typer.Option(None, "--cpus", help="slurm: CPU cores per job"),
+    mem_gb: Optional[float] = typer.Option(None, "--mem-gb", help="slurm: memory per job, GB"),
+):
+    """Train every run of a suite that the store lacks: here, or as SLURM jobs (docs/cluster.md)."""
+    from esr_cli.recipes import sweep as sw
+
+    check_executor(executor, sw.EXECUTORS)
+    _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait,
+                                  {"--partition": partition, "--time-min": time_min, "--gpus": gpus,
+                                   "--cpus": cpus, "--mem-gb": mem_gb}, unfinished, out_dir)
+    overrides = {"partition": partition, "time_min": time_min, "gpus": gpus, "cpus": cpus, "mem_gb": mem_gb}
+    try:
+        sw.slurm_options(sw.SlurmOptions(), overrides, "")  # before the suite's runs are built
+    except sw.SuiteError as e:
+        raise Exit(2, str(e)) from None
+    try:
+        suite = sw.load_suite(suite_file, budget)
+        if show_results:
+            metrics = tuple(dict.fromkeys(metric)) if metric else sw.DEFAULT_RESULT_METRICS
+            try:
+                rows = sw.results(suite, ctx.obj.store, metrics)  # refuses a metric no run can log
+            except sw.SuiteError as e:
+                raise Exit(2, str(e)) from None
+            if as_json:
+                out.print_json(json.dumps(rows))
+            elif markdown:
+                out.print(sw.results_markdown(suite, rows, metrics), highlight=False)
+            else:
+                out.print(sw.results_table(suite, rows, metrics))
+            if plot:
+                from esr_cli.report import figures as figs, paper
+
+                try:
+                    recipe = paper.suite_figure_recipe(suite, ctx.obj.store, unfinished)
+                except figs.MissingRuns as e:
+                    raise Exit(2, f"{e}\nor all at once: esr sweep {suite_file} --budget {budget}") from None
+                if recipe.unfinished:
+                    draw_preview(recipe, out_dir or Path(f"suite-{suite.name}-{budget}-unfinished"), ctx.obj.store, print_path=False)
+                else:
+                    built = ensure(recipe, ctx.obj.store)
+                    path = built.path
+                    err.print(tagged("cache hit" if built.cached else "drawn", "green", f": {path / 'suite.png'}  (table: {path / 'table.md'})"))
+            return
+        if show_status:
+            rows = sw.status(suite, ctx.obj.store)
+            if as_json:
+                out.print_json(json.dumps(sw.status_json(rows)))
+            else:
+                out.print(sw.status_table(suite, rows))
+            return
+        result = sw.run_suite(suite, budget, executor, ctx.obj.store, err, wait, overrides)
+    except sw.SuiteError as e:
+        raise Exit(2, f"bad suite: {e}") from None
+    except sw.SweepError as e:
+        raise Exit(1, str(e)) from None
+    for p in result.paths:
+        if p is not None:
+            out.print(str(p), highlight=False)
+    done = sum(p is not None for p in result.paths)
+    err.print(tagged(f"{done} of {len(result.paths)} run(s) done", "green", f"; {len(result.submitted)} "
+                     f"{'run' if executor == 'local' else 'submitted'} this time; `{ctx.obj.store.invocation()} sweep --status {suite_file} --budget {budget}` shows each"))
+    if result.failed:
+        raise Exit(1, f"{len(result.failed)} run(s) failed: " + "; ".join(f"{r.label}: {m}" for r, m in result.failed))
+    if result.stopped:  # saved at their jobs' time budgets: resumable, like `esr train --stop-after`
+        raise Exit(75, f"{len(result.stopped)} run(s) stopped at their jobs' time budget, saved; "
+                       f"run the same sweep again to continue them")
+
+
+@app.command("paper")
+def paper_(
+    ctx: typer.Context,
+    budget: str = BudgetOpt,
+    executor: str = typer.Option("local", "--executor", "-e", help="local | slurm | submitit-local (see esr sweep)"),
+    report: bool = typer.Option(False, "--report", help="train nothing: write the reproduction report (every claim of "
+                                "the paper against the store's runs, with a verdict) to --out"),
+    report_out: Path = typer.Option(Path("docs/reproduction.md"), "--out", help="where --report writes (markdown; "
+                                    "its curves go to img/ beside it)"),
+    exact: bool = typer.Option(True, "--exact/--no-exact", help="with --report: compute the estimator check's exact "
+                               "artifacts (a few minutes the first time)"),
+    as_json: bool = typer.Option(False, "--json", help="with --report: also print every verdict as JSON on stdout"),
+    check: bool = typer.Option(False, "--check", help="with --report: write nothing; exit 1 if --out differs from "
+                               "what the store's runs give now (the generated-on line aside)"),
+):
+    """Train what the paper suite lacks, draw every figure and write the report (make paper-figures);
+    with --report, the reproduction report instead (docs/reproduction.md)."""
+    # The two modes take different options; one the chosen mode would ignore is a mistake to
+    # name (a forgotten --report must not start hours of training).
+    given = {name for name in ("budget", "executor", "report_out", "exact", "as_json", "check")
+             if getattr(ctx.get_parameter_source(name), "name", "DEFAULT") not in ("DEFAULT", "DEFAULT_MAP")}
+    options = {"budget": "--budget", "executor": "--executor", "report_out": "--out", "exact": "--exact/--no-exact",
+               "as_json": "--json", "check": "--check"}
+    wrong = given & ({"budget", "executor"} if report else {"report_out", "exact", "as_json", "check"})
+    if wrong:
+        names = ", ".join(options[n] for n in sorted(wrong))
+        verb = "applies" if len(wrong) == 1 else "apply"
+        raise Exit(2, f"{names}: {verb} to `esr paper --report` only; add --report to write the report (without "
+                      "it, `esr paper` trains the paper suite)" if not report else
+                      f"{names}: {verb} to training the paper suite; `esr paper --report` trains nothing and "
+                      "reads every budget's runs")
+    if not report:
+        check_budget(budget)
+    from esr_cli.recipes import sweep as sw
+    from esr_cli.report import figures as figs, paper
+
+    if not report:
+        check_executor(executor, sw.EXECUTORS)
+
+    if report:
+        from esr_cli.report import reproduction
+
+        if check:
+            differences = reproduction.check(ctx.obj.store, report_out, err, exact=exact)
+            if differences:
+                err.print(f"{report_out} differs from what the store's runs give now "
+                          f"(esr paper --report --out {report_out} brings it up to date):", highlight=False)
+                err.print("\n".join(differences), highlight=False)
+                raise Exit(1, f"{report_out} is stale")
+            err.print(tagged("reproduction report", "green", f": {report_out} is what the store's runs give"))
+            return
+        check_output_file(report_out, "--out")
+        findings = reproduction.report(ctx.obj.store, report_out, err, exact=exact)
+        err.print(reproduction.summary_line(findings))
+        err.print(tagged("reproduction report", "green", f": {report_out}"))
+        if as_json:
+            out.print(json.dumps(reproduction.findings_json(findings), indent=2), highlight=False)
+        else:
+            out.print(str(report_out), highlight=False)
+        return
+    try:
+        path = paper.make_paper(ctx.obj.store, budget, executor, err)
+    except sw.SuiteError as e:
+        raise Exit(2, f"bad suite: {e}") from None
+    except (sw.SweepError, figs.MissingRuns) as e:
+        raise Exit(1, str(e)) from None
+    err.print(tagged("report", "green", f": {path / 'report.md'}"))
+    out.print(str(path / "report.md"), highlight=False)
+
