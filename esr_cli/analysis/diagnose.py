@@ -45,8 +45,7 @@ def situation(obs: np.ndarray, reward: np.ndarray) -> np.ndarray:
 def reward_by_situation(trainer, state, key, batches: int = 40) -> dict:
     """The method's reward on `batches` critic batches from the run's buffer, by situation:
     {situation: {"n", "mean", "sd"}}. `state` is one seed's TrainState."""
-    spec = trainer.spec
-    sample = jax.jit(lambda k: replay.sample(state.buffer, k, spec.learner.batch_size, trainer.future_gamma))
+    sample = jax.jit(lambda k: trainer.critic_sampler.batch(state.buffer, k))
     reward = jax.jit(lambda b, k: trainer.method.reward(state.method, b, k))
     values = {name: [] for name in SITUATIONS}
     for i in range(batches):
@@ -138,11 +137,11 @@ def representation_check(trainer, state, key, batches: int = 40) -> dict:
       mi_estimate                         mean diagonal logit of phi minus that of phi' (nats)
     When layout_only is near 1 the block layout alone names the episode, phi' solves the batch
     without the human's action, and the MI estimate has no reason to grow (docs/results.md)."""
-    spec, method = trainer.spec, trainer.method
+    method = trainer.method
     params = state.method.params
 
     def one(k):
-        b = replay.sample(state.buffer, k, spec.learner.batch_size, trainer.future_gamma)
+        b = trainer.critic_sampler.batch(state.buffer, k)
         phi_s, phi_sa, psi = method.represent_batch(params, b)
         return representation_scores(phi_s, phi_sa, psi, b.future_obs)
 

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from esr_cli.model.gradient import gradient_step
 from esr_cli.model.networks import conv_net
 from esr_cli.model.replay import map_episodes
 
@@ -86,9 +87,7 @@ class SoftQLearner(NamedTuple):
         def loss_fn(params):
             return td_loss(self.q_values(params, obs), action, reward, q_next, done, self.spec.gamma)
 
-        (loss, q), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
-        updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
-        params = optax.apply_updates(state.params, updates)
+        (loss, q), params, opt_state = gradient_step(loss_fn, state.params, state.opt_state, self.optimizer)
         target = optax.incremental_update(params, state.target_params, self.spec.tau)
         metrics = {"critic_loss": loss, "q_mean": jnp.mean(q)}
         return state._replace(params=params, target_params=target, opt_state=opt_state), metrics

@@ -138,5 +138,20 @@ def gather(buf: Buffer, idx: Index) -> Batch:
     )
 
 
+class Sampler(NamedTuple):
+    """How a run samples its buffer, bound once: the batch size, the discount of the future
+    states drawn with each transition, and the transitions drawn from each sampled episode."""
+
+    batch_size: int
+    future_gamma: float
+    episode_group: int = 1
+
+    def index(self, buf: Buffer, key: jax.Array) -> Index:
+        return sample_index(buf, key, self.batch_size, self.future_gamma, self.episode_group)
+
+    def batch(self, buf: Buffer, key: jax.Array) -> Batch:
+        return gather(buf, self.index(buf, key))
+
+
 def sample(buf: Buffer, key: jax.Array, batch_size: int, future_gamma: float, episode_group: int = 1) -> Batch:
     return gather(buf, sample_index(buf, key, batch_size, future_gamma, episode_group))

@@ -73,6 +73,16 @@ class Trainer(NamedTuple):
         return int(self.spec.method.replay_episode_group())
 
     @property
+    def repr_sampler(self) -> replay.Sampler:
+        """The representation updates' batches (the method's grouping)."""
+        return replay.Sampler(self.spec.learner.batch_size, self.future_gamma, self.repr_episode_group)
+
+    @property
+    def critic_sampler(self) -> replay.Sampler:
+        """The critic's and the temperature's batches (one transition per sampled episode)."""
+        return replay.Sampler(self.spec.learner.batch_size, self.future_gamma)
+
+    @property
     def post_step_pairing(self) -> bool:
         """Every update reads the buffer as `replay.post_step_view` (ESR's `pairing: original`)."""
         return bool(self.spec.method.reads_post_step_view())
@@ -211,14 +221,14 @@ class Trainer(NamedTuple):
         if self.human_learns:  # the human learns from the episodes it just played
             ep = roll.episodes
             hstate, h_metrics = self.human.update(state.human, roll.states, ep.human_action, ep.reward, jax.random.fold_in(key, 2))
-        batch_size, fg = spec.learner.batch_size, self.future_gamma
+        repr_sampler, critic_sampler = self.repr_sampler, self.critic_sampler
         stored = buf
         if self.post_step_pairing:  # the updates read the published code's pairing; the buffer is unchanged
             buf = replay.post_step_view(buf)
 
         def repr_step(mstate, key):
             k_sample, k_update = jax.random.split(key)
-            batch = replay.sample(buf, k_sample, batch_size, fg, self.repr_episode_group)
+            batch = repr_sampler.batch(buf, k_sample)
             return self.method.update(mstate, batch, k_update)
 
         mstate, m_metrics = self._scan_updates(repr_step, state.method, k_repr, self.method.updates_per_epoch)
@@ -230,7 +240,7 @@ class Trainer(NamedTuple):
 
         def critic_step(lstate, key):
             k_sample, k_reward = jax.random.split(key)
-            idx = replay.sample_index(buf, k_sample, batch_size, fg)
+            idx = critic_sampler.index(buf, k_sample)
             batch = replay.gather(buf, idx)
             if reward_table is None:
                 reward = self.method.reward(mstate, batch, k_reward)
@@ -242,7 +252,7 @@ class Trainer(NamedTuple):
             return lstate, {**metrics, "reward_mean": jnp.mean(reward)}
 
         def dual_step(lstate, key, q_table):
-            idx = replay.sample_index(buf, key, batch_size, fg)
+            idx = critic_sampler.index(buf, key)
             if q_table is None:
                 return self.learner.dual_step(lstate, buf.obs[idx.episode, idx.t])
             return self.learner.dual_step_q(lstate, q_table[idx.episode, idx.t])

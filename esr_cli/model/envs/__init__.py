@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from esr_cli.model.envs import gridworld, overcooked  # jaxmarl itself loads only when an Overcooked env is made
 
-
 # How each `env.kind` is made from its spec.
 ENVS = {"gridworld": gridworld.make, "overcooked": overcooked.make}
 

@@ -25,6 +25,7 @@ import numpy as np
 import optax
 
 from esr_cli.model.envs.overcooked import NUM_ACTIONS, STAY, URGENCY_CHANNEL
+from esr_cli.model.gradient import gradient_step
 from esr_cli.model.humans import conv_actor_critic
 from esr_cli.model.networks import MLP
 
@@ -87,9 +88,9 @@ def train_bc(obs: np.ndarray, actions: np.ndarray, spec, seed: int = 0):
     def epoch(carry, key):
         def step(carry, idx):
             params, opt_state = carry
-            loss, grads = jax.value_and_grad(lambda p: weighted_ce(apply(p, obs_j[idx]), act_j[idx], spec.stay_weight))(params)
-            updates, opt_state = opt.update(grads, opt_state, params)
-            return (optax.apply_updates(params, updates), opt_state), loss
+            (loss, _), params, opt_state = gradient_step(
+                lambda p: (weighted_ce(apply(p, obs_j[idx]), act_j[idx], spec.stay_weight), ()), params, opt_state, opt)
+            return (params, opt_state), loss
 
         order = jax.random.permutation(key, n)[: steps * bs].reshape(steps, bs)
         carry, losses = jax.lax.scan(step, carry, order)

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import optax
 
 from esr_cli.model.envs.overcooked import Overcooked
+from esr_cli.model.gradient import gradient_step
 
 
 class AdaptState(NamedTuple):
@@ -109,7 +110,6 @@ class PolicyHuman(NamedTuple):
         (the first T are used), human_actions and rewards [n, T]."""
         steps = human_actions.shape[1]
         obs = jax.vmap(jax.vmap(self.env.observe_human))(jax.tree.map(lambda a: a[:steps], states))
-        grads, (pg, kl, ent) = jax.grad(self.loss, has_aux=True)(hstate.params, obs, human_actions.T, rewards.T)
-        updates, opt_state = self.optimizer.update(grads, hstate.opt_state, hstate.params)
-        params = optax.apply_updates(hstate.params, updates)
+        (_, (pg, kl, ent)), params, opt_state = gradient_step(
+            lambda p: self.loss(p, obs, human_actions.T, rewards.T), hstate.params, hstate.opt_state, self.optimizer)
         return AdaptState(params=params, opt_state=opt_state), {"human_pg_loss": pg, "human_kl_to_bc": kl, "human_entropy": ent}

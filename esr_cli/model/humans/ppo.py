@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import optax
 
 from esr_cli.model.envs.overcooked import NUM_ACTIONS, Overcooked
+from esr_cli.model.gradient import gradient_step
 from esr_cli.model.humans import conv_actor_critic as cac
 
 
@@ -330,9 +331,8 @@ class PPO(NamedTuple):
             def minibatch(carry, idx):
                 params, opt_state = carry
                 t, a, g = jax.tree.map(lambda x: x[idx], flat)
-                grads, aux = jax.grad(self.loss, has_aux=True)(params, t, a, g)
-                updates, opt_state = opt.update(grads, opt_state, params)
-                return (optax.apply_updates(params, updates), opt_state), aux
+                (_, aux), params, opt_state = gradient_step(lambda p: self.loss(p, t, a, g), params, opt_state, opt)
+                return (params, opt_state), aux
 
             order = jax.random.permutation(key, batch).reshape(c.num_minibatches, -1)
             return jax.lax.scan(minibatch, carry, order)

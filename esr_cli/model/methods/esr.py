@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from esr_cli.model.gradient import gradient_step
 from esr_cli.model.methods.latent_actions import LatentActions, code_action_agreement
 from esr_cli.model.networks import conv_net
 from esr_cli.model.replay import map_episodes
@@ -257,10 +258,9 @@ class ESR(NamedTuple):
             latent_loss, logits = self.latent.loss(params, batch.obs, self._robot_planes(batch.robot_action), batch.next_obs, key)
             return loss + latent_loss, (loss, phi_s, phi_sa, psi, (latent_loss, logits))
 
-        (_, (loss, phi_s, phi_sa, psi, latent)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        (_, (loss, phi_s, phi_sa, psi, latent)), params, opt_state = gradient_step(
+            loss_fn, state.params, state.opt_state, self.optimizer)
         same = same_future(batch.future_obs)
-        updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
-        params = optax.apply_updates(state.params, updates)
         metrics = {
             "repr_loss": loss,
             "mi_estimate": mutual_information_estimate(phi_s, phi_sa, psi),

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from esr_cli.model.gradient import gradient_step
 from esr_cli.model.networks import conv_net
 from esr_cli.model.replay import map_episodes
 
@@ -89,9 +90,7 @@ class IQLearn(NamedTuple):
             loss, r = iq_loss(q_s, batch.human_action, q_next, batch.done, s.gamma, s.alpha, s.chi2)
             return loss, (q_s, q_next, r)
 
-        (loss, (q_s, q_next, r)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
-        updates, opt_state = self.optimizer.update(grads, state.opt_state, state.params)
-        params = optax.apply_updates(state.params, updates)
+        (loss, (q_s, q_next, r)), params, opt_state = gradient_step(loss_fn, state.params, state.opt_state, self.optimizer)
         # How the recovered reward ranks the human's actual actions against random ones.
         random_action = jax.random.randint(key, batch.human_action.shape, 0, self.env.num_human_actions)
         r_random = recovered_reward(q_s, random_action, q_next, batch.done, s.gamma, s.alpha)
