@@ -1,4 +1,5 @@
-"""docs/extending.md's example method, run through the real runner: the page stays true."""
+"""docs/extending.md's example method, run through the real runner, its evaluation and a figure
+of its curves: the page stays true."""
 
 import re
 from pathlib import Path
@@ -16,7 +17,7 @@ PAGE = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 
 
 @pytest.mark.slow
-def test_the_example_method_trains(monkeypatch):
+def test_the_example_method_trains_evaluates_and_is_drawn(monkeypatch, tmp_path):
     (code,) = re.findall(r"```python\n(.*?)```", PAGE.read_text(), flags=re.S)
     namespace: dict = {}
     exec(compile(code, str(PAGE), "exec"), namespace)
@@ -32,3 +33,15 @@ def test_the_example_method_trains(monkeypatch):
     assert np.isfinite(float(metrics["critic_loss"])) and int(state.epoch) == 1
     # The reward is the human's free neighbours: 0 to 4, and the batch's mean is what the critic saw.
     assert 0.0 <= float(metrics["reward_mean"]) <= 4.0
+
+    # Evaluated as `esr eval` does (all seeds in one program), and drawn as `esr plot curve` draws.
+    from esr_cli.common.plots import learning_curve
+    from esr_cli.model.evaluate import evaluate, policy_modes
+
+    seeds = jax.tree.map(lambda x: x[None], state)
+    result = evaluate(trainer, seeds, episodes=2, seeds=[0])
+    assert set(result) == set(policy_modes(trainer))
+    assert all(r["return"].shape == (1, 2) and np.isfinite(r["return"]).all() for r in result.values())
+    rows = [{"epoch": 1, **{k: [float(v)] for k, v in metrics.items()}}]
+    png = learning_curve(rows, tmp_path / "room_to_move.png", "room_to_move", {"method": "room_to_move"})
+    assert png.is_file() and png.stat().st_size > 1000
