@@ -4,7 +4,7 @@
   mean squared error; Adam; Polyak-averaged target (rate tau).
 - Policy pi(a | s) = softmax(beta (Q(s, a) - logsumexp_a Q(s, a))).
 - beta is tuned by a dual step, clipped to [1e-3, 100]. `learner.dual`:
-  squared (the original code): a gradient step on mean_s (target_entropy - H(pi(. | s)))^2.
+  squared (the original code, docs/paper-facts.md): a gradient step on mean_s (target_entropy - H(pi(. | s)))^2.
     Its gradient vanishes once the policy saturates (dH/dbeta -> 0), so a beta that
     overshoots early stays high and the policy stays deterministic (docs/choices.md).
   linear (SAC's temperature rule, on log beta): log beta += dual_lr (H - target_entropy),

@@ -6,7 +6,7 @@ rewards [E, T]. This makes the two lookups that need episode boundaries exact an
 - the next observation of step t is obs[e, t + 1], and `done` is true only at t = T - 1;
 - the future state g is obs[e, min(t + K, T)] with K ~ Geometric(1 - future_gamma) on
   {1, 2, ...}: never in another episode (clipped to the episode's last state).
-The original code kept a flat ring of transitions whose `done` was true only for the newest
+The original code (docs/paper-facts.md) kept a flat ring of transitions whose `done` was true only for the newest
 row, so its Q-targets bootstrapped across episode ends; docs/choices.md says more.
 """
 

@@ -8,7 +8,7 @@ rollouts of a critic batch are one vmapped scan (the environment's `random_human
 Variants (`method.variant`, docs/baselines.md):
 - fixed (default): human actions uniform over the human's actions; features = the human's
   position; reward = log(mean over coordinates of the variance across rollouts + 1e-3).
-- original: as the published code computed it. Gridworld: actions drawn from [0, robot action
+- original: as the published code (docs/paper-facts.md) computed it. Gridworld: actions drawn from [0, robot action
   count) and clamped to the last human action ('stay'), so most rollout steps stay; features =
   all coordinates of the state vector [human, blocks] of all rollouts, one variance over them
   all. Overcooked: the published rollouts never advance the state, so each is one uniform human

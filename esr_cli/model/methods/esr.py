@@ -11,7 +11,7 @@ estimates log p(g | s, aR, aH) / p(g | s, aR), whose expectation is the human's 
 mutual information I(aH; s+ | s, aR): the robot's reward, resampled with a fresh g at every
 critic update.
 
-As in the original code, phi and phi' are one network (phi' zeroes the human input), logits
+As in the original code (docs/paper-facts.md), phi and phi' are one network (phi' zeroes the human input), logits
 are phi . psi / repr_dim, and the reward is the raw dot product (not divided by repr_dim).
 """
 
