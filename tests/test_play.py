@@ -27,7 +27,8 @@ from play_script import STALE, Scripted
 from esr_cli.common import specs
 from esr_cli.model.envs import make_env
 from esr_cli.play import session as ps
-from esr_cli.play.game import CLOSED, KEYMAP, QUIT, Game, Robot
+from esr_cli.play.boards import BOARDS
+from esr_cli.play.game import CLOSED, QUIT, Game, Robot
 from esr_cli.storage.play_log import state_from_record
 from esr_cli.storage.store import PLAY_KIND, Store
 
@@ -100,7 +101,7 @@ def test_the_game_loop_logs_every_key_and_plays_out_a_finished_gridworld():
 
     assert play_episode(game, front, 6.0, "t", steps.append, countdown_s=0)
     assert [s.key for s in steps[: len(keys)]] == keys and all(s.key is None for s in steps[len(keys):])
-    assert [s.human_action for s in steps[: len(keys)]] == [KEYMAP["gridworld"][k] for k in keys]
+    assert [s.human_action for s in steps[: len(keys)]] == [BOARDS["gridworld"].keymap[k] for k in keys]
     assert len(steps) == env.episode_steps and game.score == env.episode_steps - len(keys) + 1
     assert front.views[0].message == "press space to start" and "unknown key 'x'" in front.views[2].message
     assert front.views[-1].over and all(s.reaction_s == 0.25 for s in steps[: len(keys)])
@@ -246,12 +247,10 @@ def test_overcooked_board_shows_who_is_who_where_they_face_and_what_they_hold(cr
 
 
 def test_overcooked_legend_names_every_symbol_and_colour():
-    from types import SimpleNamespace
-
     from esr_cli.play import overcooked_board as ob
 
     for as_text in (True, False):  # both front ends draw Overcooked's picture
-        legend = Game.legend(SimpleNamespace(env_kind="overcooked"), as_text)
+        legend = BOARDS["overcooked"].legend(as_text)
         assert legend == ob.LEGEND
         for words in ("blue: you", "red: the robot", "faces", "holds", "onion", "plate", "soup", "pot", "onions in it",
                       "cooks", "ready", "onion pile", "plate pile", "serving window", "counter"):
@@ -410,7 +409,7 @@ def test_terminal_gridworld_to_the_goal(tmp_path):
     (path,) = played(tmp_path)
     steps = logged_steps(path)
     assert [s["key"] for s in steps if s["key"] is not None] == keys
-    assert [s["human_action"] for s in steps[: len(keys)]] == [KEYMAP["gridworld"][k] for k in keys]
+    assert [s["human_action"] for s in steps[: len(keys)]] == [BOARDS["gridworld"].keymap[k] for k in keys]
     summary = json.loads((path / "summary.json").read_text())
     assert summary["completed"] and summary["success"] and summary["participant"] == "p1"
     assert summary["score"] == 50 - len(keys) + 1 and all(s["reaction_s"] > 0 for s in steps[: len(keys)])
@@ -437,7 +436,7 @@ def test_terminal_overcooked_ticks_and_logs_the_keys(tmp_path):
     logged = [s["key"] for s in steps if s["key"] is not None]
     # A key acts on the next tick; of keys pressed within one tick the latest counts.
     assert len(logged) >= 2 and is_subsequence(logged, sent)
-    assert all(s["human_action"] == KEYMAP["overcooked"][s["key"]] for s in steps if s["key"])
+    assert all(s["human_action"] == BOARDS["overcooked"].keymap[s["key"]] for s in steps if s["key"])
     assert all(s["human_action"] == 4 for s in steps if s["key"] is None)  # stay
 
 
@@ -998,3 +997,25 @@ def test_plays_by_robot_averages_each_participant_first_and_writes_one_csv_row_p
         assert line["robot_label"] == "robot B" and line["env"] == "gridworld" and line["layout"] is None
         assert {k: line[k] for k in step} == step  # the logged step, state included, unchanged
         assert line["human_action_name"] == ("left", "down", "right", "up", "stay")[step["human_action"]]
+
+
+def test_every_environment_kind_has_a_board_that_meets_its_protocol():
+    """esr play asks the environment's board, never its kind: every env.kind a spec accepts has
+    one, with a key for each of the person's keys and a picture of a reset state."""
+    from esr_cli.model import spec as spec_model
+    from esr_cli.model.envs import make_env
+    from esr_cli.play.boards import board_for
+    from esr_cli.play.game import KEYS
+
+    assert set(BOARDS) == set(spec_model.KIND_MODELS["env"])
+    for kind in BOARDS:
+        board = board_for(kind)
+        assert set(board.keymap) == set(KEYS) and isinstance(board.space_does, str)
+        spec = specs.load(ROOT / "experiments" / ("grid_2.yaml" if kind == "gridworld" else "cramped_room.yaml"), "smoke")
+        env = make_env(spec.env)
+        state = env.reset(jax.random.PRNGKey(0))
+        picture = board.frame(env, state)
+        assert picture.ndim == 3 and picture.shape[2] == 3 and picture.size > 0
+        assert board.legend(True) and board.legend(False)
+    with pytest.raises(ValueError, match="no board for env.kind 'nope'"):
+        board_for("nope")

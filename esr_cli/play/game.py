@@ -27,23 +27,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from esr_cli.model.envs import gridworld, overcooked
-from esr_cli.play import overcooked_board
+from esr_cli.play.boards import board_for
 from esr_cli.storage.play_log import state_record
 
 KEYS = ("up", "down", "left", "right", "space")
 QUIT = "quit"  # the person asks to end the session (confirmed before it ends)
 CLOSED = "closed"  # the tab or the terminal went away: the session ends at once
 START_KEY = "space"
-KEYMAP = {
-    "gridworld": {"up": gridworld.UP, "down": gridworld.DOWN, "left": gridworld.LEFT, "right": gridworld.RIGHT,
-                  "space": gridworld.STAY},
-    "overcooked": {"up": overcooked.UP, "down": overcooked.DOWN, "left": overcooked.LEFT, "right": overcooked.RIGHT,
-                   "space": overcooked.INTERACT},
-}
-# The human's action on a tick without a key (Overcooked ticks; the gridworld waits for a key).
-IDLE_ACTION = {"gridworld": gridworld.STAY, "overcooked": overcooked.STAY}
-TICKS = {"gridworld": False, "overcooked": True}
 RANDOM_ROBOT = "random"
 
 
@@ -128,7 +118,7 @@ class Game:
     gridworld episode is played out."""
 
     def __init__(self, env_kind: str, robot: Robot, seed: int):
-        self.env_kind, self.robot, self.env = env_kind, robot, robot.env
+        self.board, self.robot, self.env = board_for(env_kind), robot, robot.env
         self.key = jax.random.PRNGKey(seed)
         self.key, k_reset = jax.random.split(self.key)
         self.state = self.env.reset(k_reset)
@@ -140,7 +130,7 @@ class Game:
 
     @property
     def ticks(self) -> bool:
-        return TICKS[self.env_kind]
+        return self.board.idle_action is not None
 
     @property
     def steps_left(self) -> int:
@@ -153,15 +143,17 @@ class Game:
     def act(self, press: KeyPress | None, frame: dict | None = None) -> list[Step]:
         """`frame`: the Step fields of the frame the step is taken from (frame, frame_sent_at,
         frame_shown_at, dropped_keys), recorded on the first step."""
+        keymap = self.board.keymap
         if press is None:
-            steps = [self._advance(IDLE_ACTION[self.env_kind], None, frame)]
+            steps = [self._advance(self.board.idle_action, None, frame)]
         else:
-            if press.name not in KEYMAP[self.env_kind]:
+            if press.name not in keymap:
                 raise ValueError(f"unknown key {press.name!r}: {', '.join(KEYS)}")
-            steps = [self._advance(KEYMAP[self.env_kind][press.name], press, frame)]
-        if self.env_kind == "gridworld" and bool(self.env.frozen(self.state)):
+            steps = [self._advance(keymap[press.name], press, frame)]
+        rest = self.board.finished_early(self.env, self.state)
+        if rest is not None:
             while not self.done:  # nothing can move any more: play the rest out
-                steps.append(self._advance(gridworld.STAY, None, None))
+                steps.append(self._advance(rest, None, None))
         return steps
 
     def _advance(self, human_action: int, press: KeyPress | None, frame: dict | None) -> Step:
@@ -184,34 +176,16 @@ class Game:
         return state_record(self.state)
 
     def frame(self) -> np.ndarray:
-        """The current state as an RGB picture: Overcooked's board (esr_cli/play/overcooked_board.py),
-        the gridworld by its own renderer."""
-        if self.env_kind == "overcooked":
-            return overcooked_board.draw_env(self.env, self.state)
-        return np.asarray(self.env.render(self.state))
+        """The current state as an RGB picture (the environment's board, esr_cli/play/boards.py)."""
+        return self.board.frame(self.env, self.state)
 
     def legend(self, as_text: bool) -> str:
         """What the person is looking at: the characters of `text()`, or the picture's colours."""
-        if self.env_kind == "gridworld":
-            if as_text:
-                return "@ you   G your goal (the robot does not know it)   # a block the robot can push   " \
-                       "X you, trapped under a block   . floor"
-            return "orange: you · green: your goal (the robot does not know it) · purple: blocks the robot can push"
-        return overcooked_board.LEGEND  # both front ends draw Overcooked's picture
+        return self.board.legend(as_text)
 
     def text(self) -> list[str] | None:
-        """The gridworld as characters (the terminal draws these): @ you, G your goal, # a
-        block, . floor; None for Overcooked (drawn from its picture)."""
-        if self.env_kind != "gridworld":
-            return None
-        size = self.env.size
-        rows = [["."] * size for _ in range(size)]
-        goal, human = np.asarray(self.state.goal), np.asarray(self.state.human)
-        rows[goal[0]][goal[1]] = "G"
-        for r, c in np.asarray(self.state.blocks):
-            rows[r][c] = "#"
-        rows[human[0]][human[1]] = "X" if bool(self.env.is_dead(self.state)) else "@"
-        return ["".join(r) for r in rows]
+        """The state in characters where the board has them (the terminal draws these), else None."""
+        return self.board.text(self.env, self.state)
 
 
 @dataclass
@@ -326,7 +300,7 @@ def play_episode(game: Game, front: FrontEnd, fps: float, title: str, write: Cal
     """Run one episode; every step is written as it happens. -> completed (False: the person
     ended it: q confirmed, Ctrl-C, a closed tab)."""
     interval = 1.0 / fps if game.ticks else None
-    help_line = "arrow keys move; space " + ("interacts" if game.env_kind == "overcooked" else "stays") + "; q ends"
+    help_line = f"arrow keys move; space {game.board.space_does}; q ends"
     screen = Screen(front, game, title)
     try:
         dropped = ready_gate(screen, countdown_s)

@@ -22,6 +22,7 @@ from rich.console import Console
 
 from esr_cli.common import specs
 from esr_cli.model.envs import make_env
+from esr_cli.play.boards import board_for
 from esr_cli.play.game import RANDOM_ROBOT, Game, Robot, play_episode
 from esr_cli.recipes.runs import find_run, load_run, seed_slice
 from esr_cli.recipes.targets import run_spec
@@ -116,7 +117,7 @@ def episode_recipe(spec, opponent: Opponent, participant: str, session: str, epi
         header = {"participant": participant, "session": session, "episode": episode, "robot": opponent.ref,
                   "robot_label": opponent.label, "env": components["env"], "seed": seed, "front_end": front_name,
                   "episode_steps": spec.env.episode_steps,
-                  "fps": fps if spec.env.kind == "overcooked" else None, "countdown_s": countdown_s,
+                  "fps": fps if board_for(spec.env.kind).idle_action is not None else None, "countdown_s": countdown_s,
                   "started_at": time.time(),
                   # the clocks of the steps' stamps (docs/play.md)
                   "clocks": {"frame_sent_at": "esr, monotonic", "key_received_at": "esr, monotonic",
