@@ -11,7 +11,7 @@ from esr_cli.storage import artifacts
 from esr_cli.storage.artifacts import Recipe, ensure
 from esr_cli.storage.store import FIGURE_KIND, MANIFEST, PLAY_KIND, RUN_KIND, Store, StoreError
 
-PACKAGE = Path(artifacts.__file__).parent
+PACKAGE = Path(artifacts.__file__).parents[1]  # esr_cli/
 
 
 def _writer(calls: list, name: str, fail: bool = False):
