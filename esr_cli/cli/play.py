@@ -21,13 +21,15 @@ MAX_PLAY_EPISODES = 10_000  # a person plays each one: far above any study's ses
 @app.command()
 def play(
     ctx: typer.Context,
-    target: str = typer.Argument(..., help="a trained run (key or path) or a spec; with --robots, the spec only names the environment", show_default=False),
+    target: Optional[str] = typer.Argument(None, help="a trained run (key or path) or a spec; with --robots, the spec only "
+                                          "names the environment", show_default=False),
     budget: str = BudgetOpt,
     set_: Optional[List[str]] = SetOpt,
     robots: Optional[str] = typer.Option(None, "--robots", help="comma-separated robots to play with, in a counterbalanced "
                                          "order under neutral names: run keys, paths or specs, and `random`"),
     episodes: int = typer.Option(1, "--episodes", "-n", help="episodes in the session"),
-    participant: str = typer.Option("anonymous", "--participant", help="the person's id (logged; decides the order and names of the robots)"),
+    participant: Optional[str] = typer.Option(None, "--participant", help="the person's id (logged; decides the order and "
+                                              "names of the robots); default: anonymous, or with --study asked first"),
     fps: float = typer.Option(6.0, "--fps", help="Overcooked: steps per second (a tick without a key is stay)"),
     web: bool = typer.Option(False, "--web", help="play in a browser: serve the game on localhost"),
     port: int = typer.Option(8765, "--port", help="--web: the port on 127.0.0.1"),
@@ -35,16 +37,23 @@ def play(
     seed_index: int = typer.Option(0, "--seed-index", help="which seed of each trained run acts"),
     countdown: float = typer.Option(3.0, "--countdown", help="seconds counted down after the person presses space to "
                                     "start each episode (0: none)"),
+    study: Optional[Path] = typer.Option(None, "--study", help="run a user study from its file (docs/play.md): consent, "
+                                         "instructions, practice, each robot's episodes and questionnaire, a completion code"),
 ):
     """Play the human's part with trained robots; every episode is logged as a `play` artifact."""
     from esr_cli.play import session as ps
 
+    if not 1024 <= port <= 65535:
+        raise Exit(2, f"--port: between 1024 and 65535 (got {port})")
+    if study is not None:
+        return _play_study(ctx, study, target, participant, web, port)
+    if target is None:
+        raise Exit(2, "esr play: name a trained run or a spec (or give --study STUDY.yaml)")
+    participant = "anonymous" if participant is None else participant
     if not 1 <= episodes <= MAX_PLAY_EPISODES:
         raise Exit(2, f"--episodes: between 1 and {MAX_PLAY_EPISODES:,} (got {episodes:,})")
     if not 0.5 <= fps <= 60:
         raise Exit(2, f"--fps: between 0.5 and 60 (got {fps})")
-    if not 1024 <= port <= 65535:
-        raise Exit(2, f"--port: between 1024 and 65535 (got {port})")
     if not 0 <= countdown <= 30:
         raise Exit(2, f"--countdown: between 0 and 30 seconds (got {countdown})")
     if not participant.strip() or len(participant) > 200:
@@ -56,22 +65,7 @@ def play(
         raise Exit(2, "--robots: name at least one robot (a run key, path or spec, or `random`)")
     if not any(targets.is_spec_file(r) for r in [target, *refs]):
         refuse_spec_options(target, budget, set_)
-    if web:
-        from esr_cli.play.web import PortInUse, Web
-
-        try:
-            front = Web(port, err)
-        except PortInUse as e:
-            raise Exit(2, str(e)) from None
-        name = "web"
-    else:
-        from esr_cli.play.terminal import NotATerminal, Terminal
-
-        try:
-            front = Terminal(out)
-        except NotATerminal as e:
-            raise Exit(2, str(e)) from None
-        name = "terminal"
+    front, name = _front(web, port)
     spec, opponents = ps.load_opponents(target, refs, budget, set_, seed_index, ctx.obj.store, participant)
     ps.recover_abandoned(ctx.obj.store, err)
     session = ps.new_session_id()
@@ -97,6 +91,64 @@ def play(
     if played and not played[-1]["completed"]:
         err.print("the session was ended early; its last episode is kept as incomplete", highlight=False)
         raise Exit(130)
+
+
+def _front(web: bool, port: int):
+    """(the front end, its name): the browser's server on `port`, or this terminal."""
+    if web:
+        from esr_cli.play.web import PortInUse, Web
+
+        try:
+            return Web(port, err), "web"
+        except PortInUse as e:
+            raise Exit(2, str(e)) from None
+    from esr_cli.play.terminal import NotATerminal, Terminal
+
+    try:
+        return Terminal(out), "terminal"
+    except NotATerminal as e:
+        raise Exit(2, str(e)) from None
+
+
+# Options a study file sets itself: beside --study they would change nothing.
+STUDY_SETS = ("budget", "set_", "robots", "episodes", "fps", "seed", "seed_index", "countdown")
+
+
+def _play_study(ctx: typer.Context, path: Path, target: Optional[str], participant: Optional[str], web: bool,
+                port: int) -> None:
+    from click.core import ParameterSource
+
+    from esr_cli.play import session as ps, study_session as ss
+    from esr_cli.play.study import load_study, participant_problem
+
+    if target is not None:
+        raise Exit(2, f"--study: the study file names the environment and robots; leave out {target!r}")
+    for name in STUDY_SETS:
+        if ctx.get_parameter_source(name) == ParameterSource.COMMANDLINE:
+            option = next(p.opts[0] for p in ctx.command.params if p.name == name)
+            raise Exit(2, f"{option}: the study file sets this; change it there")
+    if participant is not None and participant_problem(participant):
+        raise Exit(2, f"--participant: {participant_problem(participant)}")
+    the_study = load_study(path)
+    front, name = _front(web, port)
+    robots = ss.load_robots(the_study, ctx.obj.store)
+    ps.recover_abandoned(ctx.obj.store, err)
+    if web and participant is None:
+        err.print("the participant's id: add &participant=ID to the address below, or the page asks for it", highlight=False)
+    with front:
+        outcome = ss.StudySession(the_study, robots, front, name, ctx.obj.store).run(participant)
+    for p in [*(e["path"] for e in outcome.episodes), *map(str, outcome.records)]:
+        out.print(p, highlight=False)
+    who = f"participant {outcome.participant or '(no id given)'}, session {outcome.session}"
+    if outcome.consent is False:
+        err.print(f"study {the_study.name}: {who}: consent declined; only that is recorded", highlight=False)
+    elif outcome.ended_early:
+        err.print(f"study {the_study.name}: {who}: ended early after {len(outcome.episodes)} episode(s); "
+                  "what was played and answered is kept", highlight=False)
+        raise Exit(130)
+    else:
+        err.print(f"study {the_study.name}: {who}: finished, {len(outcome.episodes)} episode(s); "
+                  f"esr plays --study {the_study.name}", highlight=False)
 
 
 @app.command()

@@ -107,9 +107,10 @@ def _spec_of(target: str, budget: str, sets, store: Store, need_run: bool):
 FRONT_CLOCKS = {"web": "performance.now() of the page", "terminal": "monotonic, at read time"}
 
 def episode_recipe(spec, opponent: Opponent, participant: str, session: str, episode: int, seed: int, front,
-                   front_name: str, fps: float, title: str, countdown_s: float) -> Recipe:
+                   front_name: str, fps: float, title: str, countdown_s: float, extra: dict | None = None) -> Recipe:
+    """`extra`: fields that mark the episode (a study's name, practice, block), in its key and header."""
     components = {"kind": "play", "session": session, "episode": episode, "participant": participant,
-                  "robot": opponent.ref, "env": spec.training_part()["env"], "seed": seed}
+                  "robot": opponent.ref, "env": spec.training_part()["env"], "seed": seed, **(extra or {})}
 
     front_clock = f"{front_name}, {FRONT_CLOCKS.get(front_name, 'monotonic')}"
 
@@ -118,7 +119,7 @@ def episode_recipe(spec, opponent: Opponent, participant: str, session: str, epi
                   "robot_label": opponent.label, "env": components["env"], "seed": seed, "front_end": front_name,
                   "episode_steps": spec.env.episode_steps,
                   "fps": fps if board_for(spec.env.kind).idle_action is not None else None, "countdown_s": countdown_s,
-                  "started_at": time.time(),
+                  "started_at": time.time(), **(extra or {}),
                   # the clocks of the steps' stamps (docs/play.md)
                   "clocks": {"frame_sent_at": "esr, monotonic", "key_received_at": "esr, monotonic",
                              **dict.fromkeys(("frame_shown_at", "key_pressed_at"), front_clock)}}
@@ -172,7 +173,7 @@ def recover_abandoned(store: Store, console: Console) -> list[Path]:
         except LockBusy:
             continue  # being played now, by another process
         components = entry.manifest.get("key_components")
-        if not components:
+        if not components or components.get("kind") != "play":  # a study's record (a questionnaire) is no episode
             continue
         def build(out: Path, store: Store) -> dict:
             return summarize(out, False)

@@ -21,6 +21,8 @@ import numpy as np
 from rich.console import Console, Group
 from rich.text import Text
 
+from esr_cli.common.printing import printable
+from esr_cli.play import pages
 from esr_cli.play.game import CLOSED, QUIT, KeyPress, View
 
 ARROWS = {"A": "up", "B": "down", "C": "right", "D": "left"}
@@ -133,6 +135,103 @@ class Terminal:
         self.console.print(Group(header, Text(""), body, Text(""), legend, message))
         self.console.file.flush()
         self.frame, self.frame_shown_at = view.seq, time.monotonic()
+
+
+    # ---------------------------------------------------------------- a study's pages
+    def ask(self, page: pages.Page) -> dict | None:
+        """Show `page` and return the reply (pages.py); None when the terminal went away. Keys
+        typed before the page was drawn are dropped. A button is a key (y, n, space), answers
+        are typed lines (Enter ends one), and q twice ends the session."""
+        if self.gone:
+            return None
+        self._drop_typed_ahead()
+        if page.items:
+            return self._fill(page)
+        keys = "   ".join(f"{'space' if b.key == 'space' else b.key}: {b.text}" for b in page.buttons)
+        self._draw(page, [Text(f"press {keys}", style="bold yellow")] if page.buttons else [])
+        return self._choose(page) if page.buttons else {}
+
+    def _drop_typed_ahead(self) -> None:
+        termios.tcflush(self.fd, termios.TCIFLUSH)
+        self.waiting.clear()
+        self.buffer = b""
+
+    def _choose(self, page: pages.Page) -> dict | None:
+        buttons, asked = {b.key: b.name for b in page.buttons}, False
+        while True:
+            press = self.key(None)
+            if press.name == CLOSED or (press.name == QUIT and asked):
+                return None
+            asked = press.name == QUIT
+            if asked:
+                self.console.print(Text("end the session? press q again to end it, any other key to go on", style="yellow"))
+            elif press.name in buttons:
+                return {"button": buttons[press.name]}
+
+    def _fill(self, page: pages.Page) -> dict | None:
+        """Each question in turn, its answer a typed line (the terminal's own line editing)."""
+        answers, problem = {}, page.error
+        termios.tcsetattr(self.fd, termios.TCSADRAIN, self.saved)  # lines, echoed, before the question shows
+        self.console.show_cursor(True)
+        try:
+            for item in page.items:
+                while True:
+                    self._draw(page, [*item_text(item), Text(problem, style="yellow"), Text(item_prompt(item), style="bold")])
+                    line = self._line()
+                    if line is None:
+                        return None
+                    value = int(line) if line.strip().isdigit() and item["kind"] == "likert" else line
+                    answers[item["id"]], problem = pages.check_item(item, value)
+                    if not problem:
+                        break
+        finally:
+            tty.setcbreak(self.fd)
+            self.console.show_cursor(False)
+        return {"button": page.buttons[0].name if page.buttons else "", "answers": answers}
+
+    def _line(self) -> str | None:
+        """One typed line (without its newline); None at end of input."""
+        data = b""
+        while not data.endswith(b"\n") and len(data) < 65536:
+            try:
+                chunk = os.read(self.fd, 4096)
+            except OSError:
+                chunk = b""
+            if not chunk:
+                self.gone = True
+                return None
+            data += chunk
+        return data.decode(errors="replace").rstrip("\r\n")
+
+    def _draw(self, page: pages.Page, below: list) -> None:
+        self.console.file.write("\x1b[H\x1b[2J")
+        body = [Text(printable(page.title), style="bold"), Text("")]
+        for kind, text in page.blocks:
+            body.append(Text(("  • " if kind == "li" else "") + printable(text), style="bold" if kind == "h" else ""))
+        if page.code:
+            body.append(Text(printable(page.code), style="bold green"))
+        if page.error and not page.items:
+            body.append(Text(printable(page.error), style="yellow"))
+        self.console.print(Group(*body, Text(""), *below))
+        self.console.file.flush()
+
+
+def item_text(item: dict) -> list[Text]:
+    """A question as the terminal shows it: its text, and a Likert scale's points and anchors."""
+    lines = [Text(printable(item["text"]), style="bold")]
+    if item["kind"] == "likert":
+        anchors, scale = item["anchors"], item["scale"]
+        named = {1: anchors[0], scale: anchors[-1]} if len(anchors) == 2 else dict(enumerate(anchors, 1))
+        lines.append(Text("   ".join(f"{v} = {printable(named[v])}" if v in named else str(v) for v in range(1, scale + 1))))
+    return lines
+
+
+def item_prompt(item: dict) -> str:
+    if item["kind"] == "likert":
+        return f"type a number from 1 to {item['scale']} and press Enter" + ("" if item["required"] else " (Enter alone: skip)")
+    what = "your participant id" if item["kind"] == "participant" else "your answer"
+    return (f"type {what} (at most {item['max_chars']} characters) and press Enter"
+            + ("" if item["required"] else " (Enter alone: skip)"))
 
 
 def grid_text(rows: list[str]) -> Text:

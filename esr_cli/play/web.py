@@ -29,6 +29,7 @@ import secrets
 import socket
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import uvicorn
@@ -40,6 +41,7 @@ from starlette.routing import Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from esr_cli.play.game import CLOSED, KeyPress, View
+from esr_cli.play.study import MAX_TEXT_ANSWER
 
 HOST = "127.0.0.1"  # never reachable from another machine
 HOST_NAMES = (HOST, "localhost", "[::1]")  # the names a browser on this machine may give it
@@ -58,12 +60,20 @@ PAGE = """<!doctype html>
  #frame { image-rendering: pixelated; display: block; margin: 1em 0; border: 1px solid #444; }
  #message { color: #e6c84f; min-height: 1.4em; } #legend { color: #aaa; }
  body[data-over="true"] #message { color: #7fdc4f; }
+ #page { max-width: 46em; line-height: 1.45; } #page-error { color: #e6c84f; }
+ #page-code { font: bold 2em monospace; color: #7fdc4f; } #page button { font-size: 1em; margin-right: 1em; padding: .4em 1em; }
+ fieldset { border: 1px solid #444; margin: 1em 0; } .scale label { display: inline-block; text-align: center; margin: 0 .4em; }
+ .scale small { display: block; color: #aaa; } textarea, input[type=text] { width: 100%; font-size: 1em; }
 </style></head>
 <body data-steps-left="" data-over="false" data-connected="false">
+<div id="game">
 <h2 id="title">connecting...</h2>
 <div id="status"><span>score <b id="score">0</b></span><span>steps left <b id="steps">-</b></span></div>
 <img id="frame" alt="the game">
 <p id="legend"></p><p id="message"></p>
+</div>
+<div id="page" hidden><h2 id="page-title"></h2><div id="page-body"></div><div id="page-items"></div>
+<p id="page-code"></p><p id="page-error"></p><div id="page-buttons"></div></div>
 <script>
 const KEYS = {ArrowUp: "up", ArrowDown: "down", ArrowLeft: "left", ArrowRight: "right", " ": "space", q: "quit", Q: "quit"};
 const IGNORED = ["Shift", "Control", "Alt", "Meta", "CapsLock", "Tab"];
@@ -71,10 +81,74 @@ const $ = (id) => document.getElementById(id);
 const token = new URLSearchParams(location.search).get("token") ?? "";
 const ws = new WebSocket(`ws://${location.host}/ws?token=${encodeURIComponent(token)}`);
 let onScreen = null, paintedAt = null;  // the frame number on screen and when it was painted
+let form = null, items = [];  // a study's page on screen (its number) and its questions
+const fromUrl = new URLSearchParams(location.search).get("participant");
+let triedUrl = false;
+const make = (tag, text, attrs = {}) => {  // an element whose text is text, never markup
+  const el = Object.assign(document.createElement(tag), attrs);
+  if (text !== undefined) el.textContent = text;
+  return el;
+};
+function itemBox(item) {
+  const box = make("fieldset", undefined, {id: "item-" + item.id});
+  box.append(make("legend", item.text));
+  if (item.kind === "likert") {
+    const scale = make("div", undefined, {className: "scale"});
+    for (let v = 1; v <= item.scale; v++) {
+      const label = make("label");
+      label.append(make("input", undefined, {type: "radio", name: item.id, value: String(v)}), make("span", " " + v));
+      const anchor = item.anchors.length === item.scale ? item.anchors[v - 1] :
+        v === 1 ? item.anchors[0] : v === item.scale ? item.anchors[1] : "";
+      label.append(make("small", anchor));
+      scale.append(label);
+    }
+    box.append(scale);
+  } else if (item.kind === "text") {
+    box.append(make("textarea", undefined, {name: item.id, maxLength: item.max_chars, rows: 3}));
+  } else {
+    box.append(make("input", undefined, {type: "text", name: item.id, maxLength: item.max_chars}));
+  }
+  return box;
+}
+function valueOf(item) {
+  if (item.kind === "likert") {
+    const checked = document.querySelector(`input[name="${item.id}"]:checked`);
+    return checked ? Number(checked.value) : null;
+  }
+  return document.querySelector(`[name="${item.id}"]`).value;
+}
+function submit(button) {
+  if (form === null || ws.readyState !== WebSocket.OPEN) return;
+  for (const item of items) ws.send(JSON.stringify({form: form, item: item.id, value: valueOf(item)}));
+  ws.send(JSON.stringify({form: form, button: button}));
+  form = null;  // one reply per page: the server sends the next page, or this one again with what was wrong
+  for (const b of document.querySelectorAll("#page-buttons button")) b.disabled = true;
+}
+function showPage(m) {
+  const p = m.page;
+  form = m.form; items = p.items; document.body.dataset.page = p.kind;
+  $("game").hidden = true; $("page").hidden = false;
+  $("page-title").textContent = p.title;
+  $("page-body").replaceChildren(...p.blocks.map(([kind, text]) => make(kind === "h" ? "h3" : kind === "li" ? "li" : "p", text)));
+  $("page-items").replaceChildren(...p.items.map(itemBox));
+  $("page-code").textContent = p.code; $("page-error").textContent = p.error;
+  $("page-buttons").replaceChildren(...p.buttons.map((b) => {
+    const el = make("button", b.text, {type: "button", id: "button-" + b.name});
+    el.onclick = () => submit(b.name);
+    return el;
+  }));
+  if (p.kind === "participant" && fromUrl !== null && !triedUrl) {  // as a recruitment platform passes it
+    triedUrl = true;
+    document.querySelector('[name="participant"]').value = fromUrl;
+    submit("continue");
+  }
+}
 ws.onopen = () => { document.body.dataset.connected = "true"; $("title").textContent = "connected: waiting for the game"; };
 ws.onmessage = (event) => {
   const m = JSON.parse(event.data);
+  if (m.page) { showPage(m); return; }
   if (m.frame) {
+    form = null; delete document.body.dataset.page; $("page").hidden = true; $("game").hidden = false;
     const img = new Image();
     img.onload = () => {
       $("frame").src = img.src; $("frame").style.width = m.width + "px";
@@ -97,9 +171,12 @@ ws.onmessage = (event) => {
 // Leaving the page must end the episode even where the browser keeps the page alive in its
 // back-forward cache (which would keep the socket open): close the socket on the way out.
 window.addEventListener("pagehide", () => ws.close());
-ws.onclose = () => { document.body.dataset.connected = "closed"; $("message").textContent += "  (the game has ended; you can close this tab)"; };
+ws.onclose = () => {
+  document.body.dataset.connected = "closed"; $("message").textContent += "  (the game has ended; you can close this tab)";
+  if (document.body.dataset.page && document.body.dataset.page !== "end") $("page-error").textContent = "The session has ended; you can close this tab.";
+};
 document.addEventListener("keydown", (e) => {
-  if (IGNORED.includes(e.key) || ws.readyState !== WebSocket.OPEN) return;
+  if (document.body.dataset.page || IGNORED.includes(e.key) || ws.readyState !== WebSocket.OPEN) return;
   e.preventDefault();
   ws.send(JSON.stringify({key: KEYS[e.key] ?? e.key, frame: onScreen, t: e.timeStamp, shown: paintedAt}));
 });
@@ -145,6 +222,32 @@ def key_of(message: dict) -> KeyPress | None:
         return None
     return KeyPress(str(message["key"])[:MAX_KEY_TEXT], _frame(message.get("frame")), _stamp(message.get("t")),
                     _stamp(message.get("shown")), time.monotonic())
+
+
+@dataclass(frozen=True)
+class FormReply:
+    """Part of the reply to a study's page: one question's answer, or the button (the last part)."""
+
+    form: int  # the page's number
+    item: str | None = None
+    value: object = None  # an int, text of at most MAX_TEXT_ANSWER characters, or None
+    button: str | None = None
+
+
+def form_of(message: dict) -> FormReply | None:
+    """The reply part a page's message names ({"form": 3, "item": "q1", "value": 5} or {"form": 3,
+    "button": "submit"}); None for any other object. Values are checked again by the flow."""
+    form = _frame(message.get("form"))
+    if form is None or "key" in message:
+        return None
+    button, item, value = message.get("button"), message.get("item"), message.get("value")
+    if isinstance(button, str) and len(button) <= MAX_KEY_TEXT and "item" not in message:
+        return FormReply(form, button=button)
+    is_number = isinstance(value, int) and not isinstance(value, bool) and abs(value) < 2**31
+    is_text = isinstance(value, str) and len(value) <= MAX_TEXT_ANSWER
+    if isinstance(item, str) and len(item) <= MAX_KEY_TEXT and (value is None or is_number or is_text):
+        return FormReply(form, item, value)
+    return None
 
 
 def shown_of(message: dict) -> tuple[int, float] | None:
@@ -193,6 +296,8 @@ class Web:
         self.socket: WebSocket | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
         self.connected = threading.Event()
+        self.form = 0  # the number of the last study page sent
+        self.asking = False  # page replies are taken only once a study has shown a page
         app = Starlette(routes=[Route("/", self._page), WebSocketRoute("/ws", self._play)])
         config = uvicorn.Config(app, host=HOST, port=port, log_level="warning", lifespan="off", ws="websockets-sansio",
                                 ws_max_size=MAX_MESSAGE_BYTES, log_config=None)  # logs: OneLine, while served
@@ -282,6 +387,9 @@ class Web:
                 while len(self.painted) > SHOWN_KEPT:
                     del self.painted[next(iter(self.painted))]
                 continue
+            if parsed is not None and self.asking and (reply := form_of(parsed)) is not None:
+                self.keys.put(reply)
+                continue
             key = key_of(parsed) if parsed is not None else None
             if key is None:
                 self._bad_message("binary data" if message.get("bytes") is not None else "text that is not a key")
@@ -320,10 +428,35 @@ class Web:
                     "legend": view.legend, "message": view.message, "over": view.over})
 
     def key(self, timeout: float | None) -> KeyPress | None:
-        try:
-            return self.keys.get(timeout=timeout) if timeout is not None else self.keys.get()
-        except queue.Empty:
-            return None
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            try:
+                got = self.keys.get(timeout=max(0.0, deadline - time.monotonic())) if deadline is not None else self.keys.get()
+            except queue.Empty:
+                return None
+            if isinstance(got, KeyPress):
+                return got  # (a page's late reply, sent twice say, is no key)
+
+    def ask(self, page) -> dict | None:
+        """Show a study's page (pages.py) and wait for its reply; None when the tab has gone."""
+        self.asking = True
+        self.form += 1
+        self._send({"page": page.message(), "form": self.form})
+        if not page.buttons:
+            return {}
+        wanted, buttons, answers = {i["id"] for i in page.items}, {b.name for b in page.buttons}, {}
+        while True:
+            got = self.keys.get()
+            if isinstance(got, KeyPress):
+                if got.name == CLOSED:
+                    return None
+                continue  # keys do nothing on a page
+            if got.form != self.form:
+                continue  # a reply to an earlier page
+            if got.button is None and got.item in wanted:
+                answers[got.item] = got.value
+            elif got.button in buttons:
+                return {"button": got.button, "answers": answers}
 
     def shown_at(self, frame: int) -> float | None:
         return self.painted.get(frame)
