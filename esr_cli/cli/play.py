@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import re
 from pathlib import Path
 from typing import List, Optional
 
@@ -162,19 +163,33 @@ def plays(
     by_robot: bool = typer.Option(False, "--by-robot", help="a table per robot instead: participants, episodes, and the "
                                   "return and success of completed episodes (per participant, then mean ± SE and IQM across participants)"),
     csv_file: Optional[Path] = typer.Option(None, "--csv", help="also write one row per episode shown (participant, "
-                                            "robot, return, success, keys, reaction time...) to this CSV file"),
+                                            "robot, return, success, keys, reaction time...) to this CSV file; with "
+                                            "--study, the study's table"),
+    study: Optional[str] = typer.Option(None, "--study", help="a study's sessions (its name): per robot, return, success "
+                                        "and each questionnaire item across participants, practice left out"),
+    answers: Optional[Path] = typer.Option(None, "--answers", help="with --study: write every answer, free text included, "
+                                           "one row each, to this CSV file"),
 ):
-    """List the played episodes (`esr play`), sum them up per robot, and export them."""
+    """List the played episodes (`esr play`), sum them up per robot or per study, and export them."""
     from esr_cli.play import results, session as ps
 
+    if study is not None and by_robot:
+        raise Exit(2, "--by-robot: --study prints its own table per robot")
+    if answers is not None and study is None:
+        raise Exit(2, "--answers: only with --study NAME")
     if export is not None and export.suffix not in (".jsonl", ".pickle", ".pkl", ".csv"):
         raise Exit(2, f"--export: {export} should end in .jsonl (steps), .pickle or .csv (Overcooked human data)")
-    for path, option in ((export, "--export"), (csv_file, "--csv")):
+    for path, option in ((export, "--export"), (csv_file, "--csv"), (answers, "--answers")):
         if path is not None:
             refuse_inside_store(path, option, ctx.obj.store)
             check_output_file(path, option)
     if export is not None and csv_file is not None and export.resolve() == csv_file.resolve():
         raise Exit(2, "--export and --csv name the same file")
+    if study is not None:
+        found = _plays_study(ctx.obj.store, study, participant, session, csv_file, answers)
+        if export is not None:
+            _export(found, export, ctx.obj.store)
+        return
     found = ps.played_episodes(ctx.obj.store, participant, session)
     if not found:
         raise Exit(1, f"no played episodes in {ctx.obj.store.root}" + (" for that selection" if participant or session else ""))
@@ -187,15 +202,78 @@ def plays(
         csv_file.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(csv_file, results.episodes_csv(rows).encode())
         err.print(tagged("written", "green", f" {len(rows)} episode(s): {csv_file}"))
-    if export is not None and export.suffix == ".jsonl":
-        from esr_cli.play.step_export import export_jsonl
+    if export is not None:
+        _export(found, export, ctx.obj.store)
 
-        text, count = export_jsonl([ctx.obj.store.lookup(PLAY_KIND, k) for k, _, _ in found])
-        export.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(export, text.encode())
-        err.print(tagged("exported", "green", f" {len(found)} episode(s), {count} steps: {export}"))
-    elif export is not None:
-        _export_overcooked(found, export, ctx.obj.store)
+
+def _export(found, export: Path, store: Store) -> None:
+    if export.suffix != ".jsonl":
+        _export_overcooked(found, export, store)
+        return
+    from esr_cli.play.step_export import export_jsonl
+
+    text, count = export_jsonl([store.lookup(PLAY_KIND, k) for k, _, _ in found])
+    export.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(export, text.encode())
+    err.print(tagged("exported", "green", f" {len(found)} episode(s), {count} steps: {export}"))
+
+
+def _write(path: Path, text: str, what: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, text.encode())
+    err.print(tagged("written", "green", f" {what}: {path}"))
+
+
+def _plays_study(store: Store, study: str, participant: Optional[str], session: Optional[str],
+                 csv_file: Optional[Path], answers: Optional[Path]) -> list:
+    """`esr plays --study NAME`: the study's table per robot and its sessions; -> its episodes."""
+    from esr_cli.play import results, session as ps, study_session as ss
+    from esr_cli.play.study import NAME
+
+    if not re.fullmatch(NAME, study):
+        raise Exit(2, f"--study: a study's name (the `name:` of its file), not {study[:60]!r}")
+    found = [f for f in ps.played_episodes(store, participant, session) if f[1].get("study") == study]
+    records = [r for r in ss.study_records(store, study)
+               if participant in (None, r["participant"]) and session in (None, r["session"])]
+    if not found and not records:
+        raise Exit(1, f"no sessions of study {study!r} in {store.root}" + (" for that selection" if participant or session else ""))
+    rows = results.episode_rows(found)
+    table, items = results.study_table(rows, records), results.study_items(records)
+    _print_study(study, table, items)
+    _print_study_sessions(results.study_sessions(rows, records))
+    if csv_file is not None:
+        _write(csv_file, results.study_csv(table, items), f"{len(table)} robot(s)")
+    if answers is not None:
+        text = results.answers_csv(records)
+        _write(answers, text, f"{text.count(chr(10)) - 1} answer(s)")
+    return found
+
+
+def _print_study(study: str, table: list[dict], items: list[dict]) -> None:
+    from esr_cli.common.stats import format_summary
+
+    title = (f"study {study} per robot (practice left out): completed episodes and answers averaged per participant, "
+             "then mean ± SE and IQM [95% bootstrap CI] across participants; free text: --answers FILE")
+    t = Table(title=title)
+    for col in ("robot", "run", "participants", "episodes", "return", "success", *(i["id"] for i in items)):
+        t.add_column(col, no_wrap=col == "robot")
+    for r in table:
+        cells = [format_summary(r[i["id"]], 2, "participant") if i["kind"] == "likert" else f"{r[i['id']]['answers']} answer(s)"
+                 for i in items]
+        t.add_row(r["robot"], " ".join(k[:12] for k in r["runs"]), str(r["participants"]),
+                  f"{r['completed']} of {r['episodes']} completed", format_summary(r["return"], 2, "participant"),
+                  format_summary(r["success"], 2, "participant"), *cells)
+    print_table(out, t)
+
+
+def _print_study_sessions(sessions: list[dict]) -> None:
+    t = Table(title="sessions")
+    for col in ("participant", "session", "consent", "practice", "episodes", "questionnaires", "completion code"):
+        t.add_column(col)
+    for e in sessions:
+        t.add_row(str(e["participant"]), str(e["session"]), e["consent"], str(e["practice"]),
+                  f"{e['completed']} of {e['episodes']} completed", str(e["questionnaires"]), e["code"] or "not finished")
+    print_table(out, t)
 
 
 def _print_by_robot(rows: list[dict]) -> None:
