@@ -117,15 +117,14 @@ STUDY_SETS = ("budget", "set_", "robots", "episodes", "fps", "seed", "seed_index
 
 def _play_study(ctx: typer.Context, path: Path, target: Optional[str], participant: Optional[str], web: bool,
                 port: int) -> None:
-    from click.core import ParameterSource
-
     from esr_cli.play import session as ps, study_session as ss
     from esr_cli.play.study import load_study, participant_problem
 
     if target is not None:
         raise Exit(2, f"--study: the study file names the environment and robots; leave out {target!r}")
     for name in STUDY_SETS:
-        if ctx.get_parameter_source(name) == ParameterSource.COMMANDLINE:
+        source = ctx.get_parameter_source(name)  # (the CLI library's own enum: compared by name)
+        if source is not None and source.name in ("COMMANDLINE", "ENVIRONMENT"):
             option = next(p.opts[0] for p in ctx.command.params if p.name == name)
             raise Exit(2, f"{option}: the study file sets this; change it there")
     if participant is not None and participant_problem(participant):
@@ -227,12 +226,12 @@ def _write(path: Path, text: str, what: str) -> None:
 def _plays_study(store: Store, study: str, participant: Optional[str], session: Optional[str],
                  csv_file: Optional[Path], answers: Optional[Path]) -> list:
     """`esr plays --study NAME`: the study's table per robot and its sessions; -> its episodes."""
-    from esr_cli.play import results, session as ps, study_session as ss
+    from esr_cli.play import results, study_session as ss
     from esr_cli.play.study import NAME
 
     if not re.fullmatch(NAME, study):
         raise Exit(2, f"--study: a study's name (the `name:` of its file), not {study[:60]!r}")
-    found = [f for f in ps.played_episodes(store, participant, session) if f[1].get("study") == study]
+    found = ss.played_episodes_of(store, study, participant, session)
     records = [r for r in ss.study_records(store, study)
                if participant in (None, r["participant"]) and session in (None, r["session"])]
     if not found and not records:

@@ -238,10 +238,15 @@ def validate(raw: dict, source: str) -> StudyModel:
             msg = f"kind {err.get('ctx', {}).get('tag')!r} is not one of likert, text"
         elif err["type"] == "union_tag_not_found":
             msg = "needs a `kind`: likert or text"
+        elif err["type"] == "string_pattern_mismatch":
+            rule = PATTERN_RULES.get(loc[-1], f"a name here is {PARTICIPANT_RULE}")
+            msg = f"{str(err['input'])[:40]!r}: {rule}"
         raise StudyError(source, format_loc(loc), msg + specs.other_problems(e)) from None
 
 
 ITEM_MODELS = {"likert": LikertItem, "text": TextItem}
+PATTERN_RULES = {"run": "a run's key or key prefix (4 to 32 hex digits), or random",
+                 "code": "a completion code is 1 to 40 letters, digits, '_' or '-'"}
 
 
 def _names_at(loc: tuple) -> list[str]:

@@ -21,7 +21,7 @@ from esr_cli.model.envs import make_env
 from esr_cli.play import pages
 from esr_cli.play.game import RANDOM_ROBOT, Robot, SessionEnded
 from esr_cli.play.session import Opponent, episode_recipe, latin_square, load_opponents, new_session_id, \
-    participant_number, robot_labels
+    participant_number, played_episodes, robot_labels
 from esr_cli.play.study import Study
 from esr_cli.storage.artifacts import Recipe, ensure
 from esr_cli.storage.store import PLAY_KIND, Store, StoreError, atomic_write_text
@@ -92,6 +92,11 @@ def study_records(store: Store, study: str) -> list[dict]:
         if components.get("study") == study and (entry.path / RECORD_FILE).is_file():
             found.append(json.loads((entry.path / RECORD_FILE).read_text()) | {"key": entry.key})
     return sorted(found, key=lambda r: r.get("recorded_at", 0))
+
+
+def played_episodes_of(store: Store, study: str, participant: str | None = None, session: str | None = None) -> list:
+    """(key, header, summary) of the study's committed episodes, practice included, in order."""
+    return [f for f in played_episodes(store, participant, session) if f[1].get("study") == study]
 
 
 # ---------------------------------------------------------------- the session

@@ -245,7 +245,7 @@ def form_of(message: dict) -> FormReply | None:
         return FormReply(form, button=button)
     is_number = isinstance(value, int) and not isinstance(value, bool) and abs(value) < 2**31
     is_text = isinstance(value, str) and len(value) <= MAX_TEXT_ANSWER
-    if isinstance(item, str) and len(item) <= MAX_KEY_TEXT and (value is None or is_number or is_text):
+    if "button" not in message and isinstance(item, str) and len(item) <= MAX_KEY_TEXT and (value is None or is_number or is_text):
         return FormReply(form, item, value)
     return None
 
