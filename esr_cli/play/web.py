@@ -62,8 +62,9 @@ PAGE = """<!doctype html>
  body[data-over="true"] #message { color: #7fdc4f; }
  #page { max-width: 46em; line-height: 1.45; } #page-error { color: #e6c84f; }
  #page-code { font: bold 2em monospace; color: #7fdc4f; } #page button { font-size: 1em; margin-right: 1em; padding: .4em 1em; }
- fieldset { border: 1px solid #444; margin: 1em 0; } .scale label { display: inline-block; text-align: center; margin: 0 .4em; }
- .scale small { display: block; color: #aaa; } textarea, input[type=text] { width: 100%; font-size: 1em; }
+ fieldset { border: 1px solid #444; margin: 1em 0; } .scale { display: flex; gap: .5em; }
+ .scale label { flex: 1; text-align: center; } .scale small { display: block; min-height: 1.2em; color: #aaa; }
+ textarea, input[type=text] { width: 100%; box-sizing: border-box; font-size: 1em; }
 </style></head>
 <body data-steps-left="" data-over="false" data-connected="false">
 <div id="game">
