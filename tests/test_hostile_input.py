@@ -781,7 +781,7 @@ def test_a_compile_cache_that_is_not_a_folder_is_named_before_any_work(tmp_path,
 
 
 # ---------------------------------------------------------------- text from a store reaches no terminal raw
-HOSTILE = "a\x1b[2J\u202eb"  # clears the screen; turns the rest of the line around
+HOSTILE = "a\x1b[2J\u202e\nb"  # clears the screen; turns the rest of the line around; starts a line
 
 
 def _hostile_store(root: Path) -> tuple[str, str]:
@@ -814,8 +814,32 @@ def test_control_characters_from_a_store_are_printed_as_escapes(tmp_path):
         proc = esr(*args, store=tmp_path / "store", check=False, COLUMNS="300")
         printed = proc.stdout + proc.stderr
         assert "\x1b" not in printed and "\u202e" not in printed, args
-        assert "a\\x1b[2J\\u202eb" in printed or "a\\u001b[2J\\u202eb" in printed, (args, printed)
+        assert "a\\x1b[2J\\u202e\\nb" in printed or "a\\u001b[2J\\u202e\\nb" in printed, (args, printed)
+        assert "\\u202e\n" not in printed, (args, printed)  # the newline after it is an escape too
     assert esr("verify", store=tmp_path / "store", check=False).returncode == 1  # the extra file
+
+
+@pytest.mark.slow
+def test_a_file_name_holding_a_newline_cannot_forge_a_line_of_verify(tmp_path, capsys):
+    """A newline read from a store is an escape, so a file named `x\\nok FORGED-LINE` in an
+    artifact cannot print an `ok` line of its own; esr's own message of several lines (the
+    commands a figure needs) still prints line by line."""
+    from esr_cli.storage.store import Store, content_key
+
+    components = {"kind": "runs", "spec": {"name": "x"}}
+    key = content_key(components)
+    store = Store(tmp_path / "store")
+    store.begin("runs", key, {"name": "x", "key": key, "key_components": components})
+    path = store.commit("runs", key, {"kind": "runs", "name": "x", "key": key, "key_components": components})
+    (path / "x\nok FORGED-LINE").write_text("")
+    assert main(["--store", str(tmp_path / "store"), "verify"]) == 1
+    err = capsys.readouterr().err
+    assert "unexpected file x\\nok FORGED-LINE" in err
+    assert not any(line.strip().startswith("ok FORGED-LINE") for line in err.splitlines()), err
+    assert main(["--store", str(tmp_path / "empty"), "plot", "greedy", "--budget", "smoke"]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert "needs 12 run(s) the store lacks; make them with:" in lines[0] and lines[1].startswith("  esr ")
+    assert lines[-1].startswith("or all at once: make paper-figures"), lines
 
 
 def test_a_fifo_given_as_a_spec_is_refused_without_waiting(tmp_path, monkeypatch):
@@ -899,3 +923,24 @@ def test_an_archive_written_into_the_store_s_artifacts_is_refused(tmp_path, caps
         assert main(["--store", str(tmp_path / "store"), "export", key[:8], "--out", str(out)]) == 2
         assert "inside the store's runs/ folder" in capsys.readouterr().err
     assert store.verify(path) == [] and not list(tmp_path.rglob("*.tar.gz"))
+
+
+def test_an_archive_without_out_is_refused_where_the_current_folder_is_in_the_store_s_artifacts(tmp_path, capsys, monkeypatch):
+    """`esr export KEY` writes ./KEY8.tar.gz: from inside an artifact (or a kind's folder) that
+    would change the store under its manifests, so it is refused as `--out` there is."""
+    from esr_cli.storage.store import Store, content_key
+
+    components = {"kind": "runs", "spec": {"name": "x"}}
+    key = content_key(components)
+    store = Store(tmp_path / "store")
+    store.begin("runs", key, {"name": "x", "key": key, "key_components": components})
+    path = store.commit("runs", key, {"kind": "runs", "name": "x", "key": key, "key_components": components})
+    for here in (path, tmp_path / "store" / "runs"):
+        monkeypatch.chdir(here)
+        assert main(["--store", str(tmp_path / "store"), "export", key[:8]]) == 2
+        err = " ".join(capsys.readouterr().err.split())
+        assert f"--out (not given: the current folder): {key[:8]}.tar.gz lies inside the store's runs/ folder" in err
+    assert store.verify(path) == [] and not list(tmp_path.rglob("*.tar.gz"))
+    monkeypatch.chdir(tmp_path)
+    assert main(["--store", str(tmp_path / "store"), "export", key[:8]]) == 0
+    assert capsys.readouterr().out.strip() == f"{key[:8]}.tar.gz" and (tmp_path / f"{key[:8]}.tar.gz").is_file()

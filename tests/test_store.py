@@ -1,6 +1,7 @@
 """The artifact store: keys, atomic commit, locking, verification."""
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -340,6 +341,20 @@ def test_one_bad_manifest_never_breaks_listing_the_others(tmp_path):
     assert esr("show", good.name[:8], store=tmp_path).returncode == 0
 
 
+@pytest.mark.slow
+def test_the_reproduction_report_is_written_from_a_store_holding_damaged_manifests(tmp_path):
+    """A manifest that is garbage and one nested 10,000 levels deep cost `esr paper --report`
+    those two artifacts only (tests/test_reproduction.py drives it with runs): it writes the
+    report and exits 0."""
+    made = make_artifacts(Store(tmp_path / "store"), ["garbage", "deep"])
+    (made["garbage"] / "manifest.json").write_bytes(b"\x00garbage{")
+    (made["deep"] / "manifest.json").write_bytes(b"[" * 10_000 + b"]" * 10_000)
+    out = tmp_path / "docs" / "report.md"
+    proc = esr("paper", "--report", "--out", str(out), "--no-exact", store=tmp_path / "store", timeout=300)
+    assert proc.returncode == 0 and proc.stdout.strip() == str(out) and "Traceback" not in proc.stderr
+    assert "**Summary:** 38 statements" in out.read_text()
+
+
 @pytest.mark.parametrize("bad", [b'{"epoch": 2, "x": "' + b"y" * (1 << 20) + b'"}', b'{"epoch": 2, "x": ' + b"[" * 100 + b"]" * 100 + b"}",
                                  b"[" * 10_000, b"3", b'{"epoch": 2'])
 def test_a_metrics_line_too_long_too_deep_or_not_an_object_ends_the_reading(tmp_path, bad):
@@ -348,3 +363,54 @@ def test_a_metrics_line_too_long_too_deep_or_not_an_object_ends_the_reading(tmp_
 
     (tmp_path / "metrics.jsonl").write_bytes(b'{"epoch": 1}\n' + bad + b'\n{"epoch": 3}\n')
     assert read_jsonl(tmp_path / "metrics.jsonl") == [{"epoch": 1}]
+
+
+@pytest.mark.slow
+def test_a_fifo_in_place_of_a_runs_metrics_is_named_not_waited_on(tmp_path):
+    """A FIFO where a committed run's metrics.jsonl belongs would block a reader until something
+    wrote to it: `esr ls`, `esr show` and `esr verify` name it and go on, and `ls` lists the rest."""
+    made = make_artifacts(Store(tmp_path), ["good", "piped"])
+    good, piped = made["good"], made["piped"]
+    (piped / "metrics.jsonl").unlink()
+    os.mkfifo(piped / "metrics.jsonl")
+    listed = esr("ls", store=tmp_path, timeout=60)
+    assert listed.returncode == 0
+    assert any("good" in line and good.name[:12] in line for line in listed.stdout.splitlines())
+    assert listed.stderr.strip() == f"unreadable metrics: {piped / 'metrics.jsonl'} is not a regular file"
+    shown = esr("show", piped.name[:8], store=tmp_path, timeout=60)
+    assert shown.returncode == 0 and f"unreadable: {piped / 'metrics.jsonl'} is not a regular file" in shown.stdout
+    verified = esr("verify", store=tmp_path, check=False, timeout=60)
+    err = " ".join(verified.stderr.split())
+    assert verified.returncode == 1 and f"CORRUPT {piped} metrics.jsonl is not a plain file" in err and f"ok {good}" in err
+
+
+def test_json_readers_open_only_regular_files_and_read_a_bounded_amount(tmp_path, monkeypatch):
+    """A FIFO (a played episode's steps.jsonl here) or a link is refused on the open file, at
+    once; a JSON-lines file larger than MAX_JSONL_BYTES is refused unread, and one that grows past
+    it while it is read is read up to it."""
+    import signal
+
+    from esr_cli.common import jsonl
+    from esr_cli.storage.play_log import STEPS_FILE, read_steps
+
+    os.mkfifo(tmp_path / STEPS_FILE)
+    signal.alarm(20)  # a regression would block here; the alarm ends the test instead
+    try:
+        with pytest.raises(jsonl.JsonInputError, match="^not a regular file$"):
+            read_steps(tmp_path)
+        with pytest.raises(jsonl.JsonInputError, match="^not a regular file$"):
+            jsonl.read_json(tmp_path / STEPS_FILE, 1 << 20)
+    finally:
+        signal.alarm(0)
+    real = tmp_path / "metrics.jsonl"
+    real.write_text('{"epoch": 1}\n' * 3)  # 39 bytes
+    (tmp_path / "link.jsonl").symlink_to(real)
+    for read in (jsonl.read_jsonl, lambda p: jsonl.read_json(p, 1 << 20)):
+        with pytest.raises(jsonl.JsonInputError, match="^a link, not a regular file$"):
+            read(tmp_path / "link.jsonl")
+    assert jsonl.read_jsonl(real) == [{"epoch": 1}] * 3 and jsonl.read_jsonl(tmp_path / "none.jsonl") == []
+    monkeypatch.setattr(jsonl, "MAX_JSONL_BYTES", 30)
+    with pytest.raises(jsonl.JsonInputError, match="^39 bytes, more than the 30 esr reads$"):
+        jsonl.read_jsonl(real)
+    monkeypatch.setattr(jsonl, "_too_large", lambda f, limit: None)  # as if it grew after its size was read
+    assert jsonl.read_jsonl(real) == [{"epoch": 1}] * 2  # 26 bytes, then 4 of a line: not an object

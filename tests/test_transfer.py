@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from conftest import ROOT, esr
 from hypothesis import HealthCheck, event, given, settings, strategies as st
-from test_reliability import SMOKE, final_arrays, partials
+from test_reliability import SMOKE, final_arrays, partials, rename_checkpoint
 
 from esr_cli.common import specs, tar_reader
 from esr_cli.storage import signing
@@ -125,6 +125,59 @@ def test_an_unfinished_run_moves_and_resumes_to_the_uninterrupted_result(smoke_r
     for a, b in zip(final_arrays(path), final_arrays(reference)):
         np.testing.assert_array_equal(a, b)
 
+
+
+@pytest.mark.slow
+def test_an_archive_relabelled_to_a_later_epoch_never_replaces_the_local_unfinished_run(tmp_path):
+    """Of two unfinished copies of a run, the one further along is kept: an archive whose
+    checkpoint folder was renamed to a later epoch, its digests and metrics edited to agree,
+    would pass for it. The epoch its training state holds is read before the two are compared,
+    so it is refused, naming both epochs, and the store's own unfinished run is left as it was."""
+    here = tmp_path / "here"
+    assert esr(*SMOKE, store=here, check=False, ESR_FAULT="after_checkpoint@1").returncode == -signal.SIGKILL
+    (part,) = partials(here)
+    forged = tmp_path / "forger" / part.relative_to(here)
+    shutil.copytree(part, forged)
+    rename_checkpoint(forged, 1, 2)
+    row = json.loads((forged / "metrics.jsonl").read_text().splitlines()[0])
+    with open(forged / "metrics.jsonl", "a") as f:
+        f.write(json.dumps({**row, "epoch": 2}) + "\n")
+    archive = tmp_path / "relabelled.tar.gz"
+    esr("export", part.name[:8], "--out", str(archive), store=tmp_path / "forger")
+    before = {p.relative_to(part): p.read_bytes() for p in part.rglob("*") if p.is_file()}
+
+    proc = esr("import", str(archive), store=here, check=False)
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    said = " ".join(proc.stderr.split())
+    assert "checkpoint folder says epoch 2 but its state holds epoch 1 and metrics end at 2" in said
+    assert "nothing imported (this store's unfinished run, at epoch 1, is kept)" in said
+    assert partials(here) == [part] and {p.relative_to(part): p.read_bytes() for p in part.rglob("*") if p.is_file()} == before
+    assert not [p for p in part.parent.iterdir() if p.name.startswith(STAGING_PREFIX)]
+
+
+@pytest.mark.slow
+def test_a_store_that_cannot_be_written_to_exports_all_the_same(tmp_path):
+    """Exporting only reads the store: it stages beside the archive, so a store the user cannot
+    write to (another's, a read-only mount) exports, leaving nothing beside the archive."""
+    components = {"kind": "runs", "spec": {"name": "x"}}
+    key = content_key(components)
+    root = tmp_path / "store"
+    store = Store(root)
+    (store.begin("runs", key, {"name": "x", "key": key, "key_components": components}) / "metrics.jsonl").write_text('{"epoch": 1}\n')
+    store.commit("runs", key, {"kind": "runs", "name": "x", "key": key, "key_components": components})
+    archive = tmp_path / "out" / "x.tar.gz"
+    archive.parent.mkdir()
+    subprocess.run(["chmod", "-R", "a-w", str(root)], check=True)
+    try:
+        if os.access(root, os.W_OK):
+            pytest.skip("permissions do not stop this user's writes (root)")
+        proc = esr("export", key[:8], "--out", str(archive), store=root)
+        assert Path(proc.stdout.strip()) == archive
+        assert [p.name for p in archive.parent.iterdir()] == ["x.tar.gz"]  # no staging folder or part left
+    finally:
+        subprocess.run(["chmod", "-R", "u+w", str(root)], check=True)
+    esr("import", str(archive), store=tmp_path / "other")
+    assert esr("verify", store=tmp_path / "other").returncode == 0
 
 def _archive(tmp_path, members, name="bad.tar.gz"):
     """A gzipped tar of (name, bytes | None for a folder | ('symlink', target))."""

@@ -43,11 +43,12 @@ err = plain_console(stderr=True)
 
 
 class Exit(Failure):
-    """A command's own ending: `code` and the line to print (none: nothing to add)."""
+    """A command's own ending: `code` and the line to print (none: nothing to add); with
+    own_lines, esr's own text over several lines, printed with its newlines."""
 
-    def __init__(self, code: int, message: str = ""):
+    def __init__(self, code: int, message: str = "", own_lines: bool = False):
         super().__init__(message)
-        self.exit_code, self.message = code, message
+        self.exit_code, self.message, self.own_lines = code, message, own_lines
 
     def one_line(self) -> str:
         return self.message

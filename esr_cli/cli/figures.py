@@ -83,7 +83,7 @@ def plot(
         try:
             recipe = paper.figure_recipe(ctx.obj.store, budget, figure, figs.PaperInputs(ctx.obj.store, budget, unfinished=unfinished))
         except figs.MissingRuns as e:
-            raise Exit(2, f"{e}\nor all at once: make paper-figures BUDGET={budget}") from None
+            raise Exit(2, f"{e}\nor all at once: make paper-figures BUDGET={budget}", own_lines=True) from None
         if recipe.unfinished:
             draw_preview(recipe, out_file or Path(f"{figure}-{budget}-unfinished"), ctx.obj.store)
             return

@@ -10,7 +10,7 @@ import typer
 from rich.table import Table
 
 from esr_cli.cli.app import BudgetOpt, Exit, SetOpt, app, err, load_spec, out
-from esr_cli.common.printing import printable, tagged
+from esr_cli.common.printing import own, printable, tagged
 from esr_cli.storage.artifacts import ensure
 from esr_cli.storage.store import Store
 
@@ -78,7 +78,7 @@ def human_calibrate(
                                    "human_seeds": human_seeds, "episodes": episodes}))
         return
     if markdown:
-        out.print(hc.markdown(rows, human_seeds, episodes), highlight=False, markup=False)
+        out.print(own(hc.markdown(rows, human_seeds, episodes)), highlight=False, markup=False)
         return
     table = Table(title=f"the human with a uniform random, a staying and a self partner ({human_seeds} human(s), "
                         f"{episodes} episodes each; mean ± SE over humans)")

@@ -13,7 +13,7 @@ import sys
 from esr_cli.cli import figures, humans, play, runs, store, sweeps  # noqa: F401 (each registers its commands on the app)
 from esr_cli.cli.app import app, err
 from esr_cli.common.failures import Failure
-from esr_cli.common.printing import tagged
+from esr_cli.common.printing import own, tagged
 from esr_cli.runner.stop_signals import StopSignals, Terminated, stop_signals_raise
 
 # `esr --help` lists the commands in the order of a study: train and examine, run suites, draw,
@@ -86,7 +86,8 @@ def _run(argv: list[str], debug: bool, stops: StopSignals) -> int:
         else:
             code, msg = 1, f"{type(e).__name__}: {e} (run with --debug for a traceback)"
         if msg:
-            err.print(tagged("error:", "red", f" {msg}"), highlight=False)
+            own_lines = isinstance(e, Failure) and e.own_lines  # esr's hint below the error, not a name from a store
+            err.print(tagged("error:", "red", " ", own(msg) if own_lines else msg), highlight=False)
         return code
 
 

@@ -56,9 +56,11 @@ def ls(
                       "" if r["final_return"] is None else f"{r['final_return']:.2f}", (r["created"] or "")[:16].replace("T", " "),
                       printable(r["method"] or ""), printable(overrides))
     print_table(out, table)  # piped, every cell in full
-    for _, entry in found:  # one line each; the others are listed above all the same
+    for r, entry in found:  # one line each; the others are listed above all the same
         if listing.status_of(entry) == "damaged":
             err.print(f"damaged manifest: {entry.problem}")
+        elif entry.kind == RUN_KIND and not r["epochs"] and (problem := listing.metrics_problem(entry.path)):
+            err.print(f"unreadable metrics: {problem}")
 
 
 @app.command()
@@ -113,8 +115,13 @@ def _show_lines(r: dict, manifest: dict) -> list[tuple[str, object]]:
     if r["kind"] == RUN_KIND:
         from esr_cli.storage.finals import run_finals
 
+        from esr_cli.report.listing import metrics_problem
+
+        problem = metrics_problem(r["path"])  # a FIFO, a link, a file too large: said, not waited on
+        if problem:
+            lines.append(("metrics", f"unreadable: {problem}"))
         try:
-            finals = run_finals(Path(r["path"]))["return"]
+            finals = None if problem else run_finals(Path(r["path"]))["return"]
         except (OSError, KeyError, TypeError, ValueError):
             finals = None
         n = finals["seeds"] - finals.get("missing", 0) if finals else 0
@@ -187,11 +194,14 @@ def export_(
     from esr_cli.storage import signing
 
     key = signing.archive_key() if sign else None  # a missing key is named before any work
-    if out_file is not None:
-        if not out_file.name.endswith((".tar.gz", ".tgz")):
-            raise Exit(2, f"--out: {out_file} would hold a gzipped tar archive: name it with .tar.gz")
-        check_output_file(out_file, "--out")
-        refuse_inside_store(out_file, "--out", ctx.obj.store)
+    option = "--out"
+    if out_file is None:  # ./KEY8.tar.gz, checked as --out is: the current folder may be an artifact's
+        option = "--out (not given: the current folder)"
+        out_file = Path(f"{ctx.obj.store.find(ref, include_partial=True).key[:8]}.tar.gz")
+    elif not out_file.name.endswith((".tar.gz", ".tgz")):
+        raise Exit(2, f"--out: {out_file} would hold a gzipped tar archive: name it with .tar.gz")
+    check_output_file(out_file, option)
+    refuse_inside_store(out_file, option, ctx.obj.store)
     from esr_cli.storage.transfer import export
 
     moved = export(ctx.obj.store, ref, out_file, without_checkpoint)

@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 
 from esr_cli.cli.app import BudgetOpt, Exit, app, check_budget, check_executor, check_output_file, draw_preview, err, out
-from esr_cli.common.printing import tagged
+from esr_cli.common.printing import own, tagged
 from esr_cli.storage.artifacts import ensure
 
 
@@ -86,7 +86,7 @@ def sweep(
             if as_json:
                 out.print_json(json.dumps(rows))
             elif markdown:
-                out.print(sw.results_markdown(suite, rows, metrics), highlight=False)
+                out.print(own(sw.results_markdown(suite, rows, metrics)), highlight=False)
             else:
                 out.print(sw.results_table(suite, rows, metrics))
             if plot:
@@ -95,7 +95,7 @@ def sweep(
                 try:
                     recipe = paper.suite_figure_recipe(suite, ctx.obj.store, unfinished)
                 except figs.MissingRuns as e:
-                    raise Exit(2, f"{e}\nor all at once: esr sweep {suite_file} --budget {budget}") from None
+                    raise Exit(2, f"{e}\nor all at once: esr sweep {suite_file} --budget {budget}", own_lines=True) from None
                 if recipe.unfinished:
                     draw_preview(recipe, out_dir or Path(f"suite-{suite.name}-{budget}-unfinished"), ctx.obj.store, print_path=False)
                 else:
@@ -175,7 +175,8 @@ def paper_(
             if differences:
                 err.print(f"{report_out} differs from what the store's runs give now "
                           f"(esr paper --report --out {report_out} brings it up to date):", highlight=False)
-                err.print("\n".join(differences), highlight=False)
+                for line in differences:  # each line escaped: the file on disk may hold anything
+                    err.print(line, highlight=False)
                 raise Exit(1, f"{report_out} is stale")
             err.print(tagged("reproduction report", "green", f": {report_out} is what the store's runs give"))
             return
@@ -184,7 +185,7 @@ def paper_(
         err.print(reproduction.summary_line(findings))
         err.print(tagged("reproduction report", "green", f": {report_out}"))
         if as_json:
-            out.print(json.dumps(reproduction.findings_json(findings), indent=2), highlight=False)
+            out.print(own(json.dumps(reproduction.findings_json(findings), indent=2)), highlight=False)
         else:
             out.print(str(report_out), highlight=False)
         return
@@ -193,7 +194,7 @@ def paper_(
     except sw.SuiteError as e:
         raise Exit(2, f"bad suite: {e}") from None
     except (sw.SweepError, figs.MissingRuns) as e:
-        raise Exit(1, str(e)) from None
+        raise Exit(1, str(e), own_lines=isinstance(e, figs.MissingRuns)) from None
     err.print(tagged("report", "green", f": {path / 'report.md'}"))
     out.print(str(path / "report.md"), highlight=False)
 

@@ -13,6 +13,9 @@ class Failure(Exception):
     terminal is told after "error:" (an empty line: nothing more to say)."""
 
     exit_code: int = 1
+    # True where `one_line()` is esr's own text over several lines (a hint below the error),
+    # printed with its newlines; otherwise a newline in it (a name from a store) is an escape.
+    own_lines: bool = False
 
     def one_line(self) -> str:
         return str(self)

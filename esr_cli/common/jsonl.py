@@ -1,17 +1,24 @@
 """Reading the JSON esr writes into a store (manifests, pending.json, checkpoint digests) and the
 JSON-lines files appended as work goes (metrics, played steps), with bounded work: a file or
 line larger than esr ever writes is refused unread, and so is nesting deeper than MAX_DEPTH, so
-one damaged or hostile artifact costs a listing one line, never its memory or its stack."""
+one damaged or hostile artifact costs a listing one line, never its memory or its stack. Each
+file is opened without blocking and without following a link, and read only once the open file
+is known to be a regular one: a FIFO or a device put in a file's place is refused, never waited
+on (nor is a name checked first and opened after, when something else may lie there)."""
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import json
+import os
 import stat
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 MAX_DEPTH = 64  # a manifest nests about 6 levels (key components, spec, section, list)
 MAX_LINE_BYTES = 1 << 20  # a metrics line of 1,024 seeds is about 250 KiB
+MAX_JSONL_BYTES = 1 << 30  # a whole JSON-lines file: a paper run's metrics are a few MiB
 
 
 class JsonInputError(ValueError):
@@ -44,16 +51,41 @@ def parse(data: bytes) -> Any:
     return value
 
 
+def open_regular(path: Path) -> BinaryIO:
+    """`path` open for reading, once the open file is known to be a regular one. Opened without
+    blocking (a FIFO does not wait for a writer) and without following a link, then made blocking
+    again. OSError where it cannot be opened (FileNotFoundError where nothing is there);
+    JsonInputError where it is a link or not a regular file."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except OSError as e:
+        if e.errno == errno.ELOOP:  # O_NOFOLLOW met a link
+            raise JsonInputError("a link, not a regular file") from None
+        raise
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):  # a FIFO would block the reader, a device never end
+            raise JsonInputError("not a regular file")
+        flags = fcntl.fcntl(fd, fcntl.F_GETFL)
+        if flags & os.O_NONBLOCK:
+            fcntl.fcntl(fd, fcntl.F_SETFL, flags & ~os.O_NONBLOCK)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def _too_large(f: BinaryIO, max_bytes: int) -> JsonInputError | None:
+    size = os.fstat(f.fileno()).st_size
+    return JsonInputError(f"{size:,} bytes, more than the {max_bytes:,} esr reads") if size > max_bytes else None
+
+
 def read_json(path: Path, max_bytes: int) -> Any:
     """The JSON value of file `path`. OSError where it cannot be read; JsonInputError where it is
-    larger than `max_bytes`, not UTF-8 JSON or nested too deeply."""
-    st = Path(path).stat()
-    if not stat.S_ISREG(st.st_mode):  # a FIFO would block the reader, a device never end
-        raise JsonInputError("not a regular file")
-    size = st.st_size
-    if size > max_bytes:
-        raise JsonInputError(f"{size:,} bytes, more than the {max_bytes:,} esr reads")
-    with open(path, "rb") as f:
+    a link, not a regular file, larger than `max_bytes`, not UTF-8 JSON or nested too deeply."""
+    with open_regular(path) as f:
+        too_large = _too_large(f, max_bytes)
+        if too_large:
+            raise too_large
         data = f.read(max_bytes + 1)  # a size the system misreports cannot make esr read more
     if len(data) > max_bytes:
         raise JsonInputError(f"more than the {max_bytes:,} bytes esr reads")
@@ -63,14 +95,21 @@ def read_json(path: Path, max_bytes: int) -> Any:
 def read_jsonl(path: Path) -> list[dict]:
     """One dict per line; [] where the file does not exist yet. A line cut short by a kill ends
     the reading: everything after it is untrusted, as is everything after a line that is not a
-    JSON object, is longer than MAX_LINE_BYTES or nests too deeply."""
+    JSON object, is longer than MAX_LINE_BYTES or nests too deeply, and after the first
+    MAX_JSONL_BYTES (a file that grew past them while it was read). JsonInputError where the file
+    is a link, not a regular file or larger than MAX_JSONL_BYTES; OSError where it cannot be read."""
     try:
-        f = open(path, "rb")
+        f = open_regular(path)
     except FileNotFoundError:
         return []
     rows = []
     with f:
-        while line := f.readline(MAX_LINE_BYTES + 1):
+        too_large = _too_large(f, MAX_JSONL_BYTES)
+        if too_large:
+            raise too_large
+        left = MAX_JSONL_BYTES
+        while left and (line := f.readline(min(MAX_LINE_BYTES + 1, left))):
+            left -= len(line)
             if len(line) > MAX_LINE_BYTES:
                 break
             try:

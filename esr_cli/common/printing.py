@@ -3,11 +3,14 @@
 Consoles print text as written: a store path, spec name, suite label, participant or error
 message that looks like rich markup (`[bold]`, `[/x]`) is neither styled away nor a crash, and a
 path printed for scripts to read is the path. The one exception is a control character (an
-escape sequence, a bidirectional override): names, keys, messages and paths read from a store,
-an archive or a played episode can hold any, so every text a console prints, a table's cells and
-titles included, shows them as escapes (`printable`), and JSON is printed in ASCII. Style is
-added explicitly, as `Text` spans (`tagged` escapes the text beside its tag), so a new print
-site is safe without escaping anything; a `Text` made elsewhere is printed as it is made.
+escape sequence, a bidirectional override, a newline, a tab): names, keys, messages and paths
+read from a store, an archive or a played episode can hold any, so every text a console prints,
+a table's cells and titles included, shows them as escapes (`printable`), and JSON is printed in
+ASCII. A newline is escaped too: a file named `x\nok FORGED` would otherwise print a line esr
+never wrote. esr's own text of several lines (a report in markdown, a hint below an error) is
+printed with its newlines as `own(text)`. Style is added explicitly, as `Text` spans (`tagged`
+escapes the text beside its tag), so a new print site is safe without escaping anything; a
+`Text` made elsewhere is printed as it is made.
 """
 
 from __future__ import annotations
@@ -51,10 +54,10 @@ def print_table(console: Console, table) -> None:
         console.width = width
 
 
-def tagged(tag: str, style: str, *rest: str) -> Text:
+def tagged(tag: str, style: str, *rest: str | Text) -> Text:
     """`tag` in `style`, then `rest` as written but for control characters (`printable`):
-    tagged("ok", "green", " ", str(path))."""
-    return Text.assemble((tag, style), *map(printable, rest))
+    tagged("ok", "green", " ", str(path)); a `Text` in `rest` (`own`) is kept as it is made."""
+    return Text.assemble((tag, style), *(r if isinstance(r, Text) else printable(r) for r in rest))
 
 
 def train_line(esr: str, spec_path, budget: str, sets) -> str:
@@ -64,8 +67,16 @@ def train_line(esr: str, spec_path, budget: str, sets) -> str:
     return " ".join([esr, *map(shlex.quote, words)])
 
 
-def printable(text: str, keep: str = "\n\t") -> str:
+def printable(text: str, keep: str = "") -> str:
     """`text` with every control character except those in `keep` shown as an escape (\\x1b,
-    \\u202e): names, keys and messages read from a store or archive never drive the terminal."""
+    \\u202e, \\n, \\t): names, keys and messages read from a store or archive never drive the
+    terminal, nor start a line of their own. Only esr's own text keeps its newlines (`own`)."""
     return "".join(c if c in keep or (c.isprintable() and not unicodedata.category(c).startswith("C"))
                    else c.encode("unicode_escape").decode("ascii") for c in text)
+
+
+def own(text: str) -> Text:
+    """esr's own text of several lines (a table in markdown, JSON it indents, a hint below an
+    error), printed with its newlines and tabs; any other control character is still an escape.
+    Nothing read from a store, an archive or a played episode belongs in it unescaped."""
+    return Text(printable(text, keep="\n\t"))

@@ -37,6 +37,7 @@ from esr_cli.runner.stop_requests import StopRequests
 from esr_cli.storage.checkpoint_files import (
     CHECKPOINT_DIGESTS,
     CHECKPOINT_DIR,
+    epochs_of,
     epochs_problem,
     read_digests,
     record_digests,
@@ -125,8 +126,7 @@ def _check_epochs(trainer: Trainer, run_dir: Path, step: int, state: TrainState,
     """Refuse a checkpoint whose folder's number (only a name: an archive's folder can be
     renamed) is not the epoch its state holds, an epoch its metrics logged, or within the run:
     resuming from it would skip or repeat epochs and commit a run that never trained them."""
-    held = sorted({int(e) for e in np.asarray(jax.device_get(state.epoch)).ravel()})
-    problem = epochs_problem(run_dir, step, trainer.spec.train.epochs, held)
+    problem = epochs_problem(run_dir, step, trainer.spec.train.epochs, epochs_of(jax.device_get(state.epoch)))
     if problem:
         what = f"remove {run_dir} to start this run over" if repair else "see `esr verify`"
         raise CorruptCheckpoint(f"{Path(run_dir) / CHECKPOINT_DIR / str(step)}: {problem}; {what}")

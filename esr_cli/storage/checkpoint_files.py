@@ -1,5 +1,6 @@
 """A run's checkpoint files and their digests, without JAX: which checkpoints are intact, and
-whether a checkpoint's epoch agrees with the run's metrics and length.
+whether a checkpoint's epoch agrees with the run's metrics and length. Only reading the epoch a
+checkpoint's training state holds (`held_epochs`) imports orbax, and JAX with it.
 
 Digests of every checkpoint's files are written after the checkpoint is saved; a resume, an
 export and a report use only checkpoints that verify, so a damaged newest checkpoint falls
@@ -96,6 +97,54 @@ def epochs_problem(run_dir: Path, step: int, total: int | None, held: list[int] 
     facts.append(f"metrics end at {logged[-1]}" if logged else "no epoch is logged")
     return (f"checkpoint folder says epoch {step} but {' and '.join(facts)}"
             + (f", in a run of {total} epochs" if beyond else ""))
+
+
+def epochs_of(epoch) -> list[int]:
+    """The epochs a training state's `epoch` (one per seed, any array-like) holds, each once, in
+    order: what `epochs_problem` compares with a checkpoint's folder."""
+    import numpy as np
+
+    return sorted({int(e) for e in np.asarray(epoch).ravel()})
+
+
+STATE_ITEM = "default"  # the folder of a checkpoint's state, as the run's orbax CheckpointManager saves it
+
+
+def held_epochs(run_dir: Path, step: int) -> list[int] | None:
+    """The epochs the training state in checkpoint `step` of `run_dir` holds, read from its files
+    alone (the `epoch` array, not the whole state, and no spec needed); None where that array
+    cannot be read or is not one small array of integers (an edited or foreign checkpoint)."""
+    import numpy as np
+    import orbax.checkpoint as ocp
+    from etils import epath
+
+    from esr_cli.model.spec import MAX_SEEDS
+
+    folder = epath.Path(Path(run_dir).absolute() / CHECKPOINT_DIR / str(step) / STATE_ITEM)
+    handler = ocp.PyTreeCheckpointHandler()
+    try:
+        saved = handler.metadata(folder).tree.get("epoch")
+        shape = getattr(saved, "shape", None)
+        if not (isinstance(shape, tuple) and len(shape) <= 1 and int(np.prod(shape)) <= MAX_SEEDS
+                and np.issubdtype(np.dtype(saved.dtype), np.integer)):
+            return None  # checked before a byte of it is read: a declared size is only a claim
+        restored = handler.restore(folder, args=ocp.args.PyTreeRestore(
+            item={"epoch": np.zeros(shape, saved.dtype)}, restore_args={"epoch": ocp.RestoreArgs(restore_type=np.ndarray)},
+            partial_restore=True))
+        return epochs_of(restored["epoch"])
+    except Exception:  # noqa: BLE001 - orbax and tensorstore raise many kinds; all mean it cannot be read
+        return None
+    finally:
+        handler.close()
+
+
+def state_epochs_problem(run_dir: Path, step: int, total: int | None) -> str | None:
+    """`epochs_problem` with the epoch checkpoint `step`'s state holds, read from its files
+    (`held_epochs`): why the checkpoint is not where its folder says, naming both, or None."""
+    held = held_epochs(run_dir, step)
+    if held is None:
+        return f"the training state in checkpoint folder {step} cannot be read"
+    return epochs_problem(run_dir, step, total, held)
 
 
 def run_epochs_problem(run_dir: Path, manifest: dict) -> str | None:

@@ -431,7 +431,7 @@ def _file_problem(path: Path, rel: str, want) -> str | None:
         return f"{rel} is a link, not a plain file"
     f = path / rel
     if not f.is_file():
-        return f"missing file {rel}"
+        return f"missing file {rel}" if not f.exists() else f"{rel} is not a plain file (a folder, a FIFO or a device)"
     try:
         same = digest_file(f) == want
     except OSError as e:

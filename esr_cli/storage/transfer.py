@@ -17,6 +17,7 @@ removes the folders it made; a killed one's staging folder is removed by the nex
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import tarfile
@@ -27,7 +28,7 @@ from pathlib import Path, PurePosixPath
 from typing import BinaryIO, Iterator
 
 from esr_cli.common import faults, tar_reader, yamlio
-from esr_cli.storage.checkpoint_files import CHECKPOINT_DIR, epochs_problem, run_length, verified_steps, verify_artifact
+from esr_cli.storage.checkpoint_files import CHECKPOINT_DIR, epochs_problem, run_length, state_epochs_problem, verified_steps, verify_artifact
 from esr_cli.storage.finals import read_rows
 from esr_cli.storage.store import KINDS, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, load_manifest, parse_dirname, read_pending
 
@@ -69,7 +70,9 @@ def export(store: Store, ref: str, out: Path | None = None, without_checkpoint: 
     if not out.parent.is_dir():
         raise StoreError(f"no directory {out.parent} to write {out.name} into")
     arcroot = PurePosixPath(kind, key[:2], src.name)
-    with tempfile.TemporaryDirectory(prefix=".export-", dir=store.root) as tmp:
+    # Staged beside the archive, never in the store: exporting only reads the store, so a store
+    # the user cannot write to (another's, a read-only mount) exports all the same.
+    with tempfile.TemporaryDirectory(prefix=".export-", dir=out.parent) as tmp:
         stage = Path(tmp) / arcroot  # laid out as in a store: verify checks the kind folder
         if status == "complete":
             shutil.copytree(src, stage, ignore=_without_checkpoint(src) if without_checkpoint else None)
@@ -107,7 +110,7 @@ def snapshot_partial(src: Path, stage: Path) -> None:
     """Copy an unfinished run with only its newest verified checkpoint. The run may be saving a
     newer one meanwhile (and deleting the oldest), so a copy that changed under it is retried."""
     for _ in range(SNAPSHOT_TRIES):
-        shutil.rmtree(stage, ignore_errors=True)
+        _remove_copy(stage)
         steps = verified_steps(src)
         if not steps:
             raise StoreError(f"{src} has no verified checkpoint yet: nothing that could resume")
@@ -119,6 +122,18 @@ def snapshot_partial(src: Path, stage: Path) -> None:
         if verified_steps(stage) == [step]:
             return
     raise StoreError(f"{src} kept changing while it was copied ({SNAPSHOT_TRIES} tries); try again")
+
+
+def _remove_copy(tree: Path) -> None:
+    """Remove a copy made by an earlier try, whose folders are read-only where the store's are."""
+    if not tree.exists():
+        return
+
+    def writable_then_again(func, path, _):
+        os.chmod(os.path.dirname(path), 0o700)
+        func(path)
+
+    shutil.rmtree(tree, onerror=writable_then_again)
 
 
 def _without_checkpoint(src: Path):
@@ -221,6 +236,13 @@ def _import(store: Store, f: BinaryIO, archive: Path, made: list[Path], without_
             # other (the local run is not training now: this process holds its lock).
             local_epoch = _checkpoint_epoch(partial) if partial.exists() else None
             if status != "complete" and local_epoch is not None:
+                # How far the archive's run got decides whether the local one stays: its folder's
+                # number is only a name (folder, digests and metrics can be edited to agree), so
+                # the epoch its training state holds must be that number too.
+                problem = stage_epoch and state_epochs_problem(stage, stage_epoch, run_length(read_pending(stage) or {}))
+                if problem:
+                    raise StoreError(f"{archive}: unfinished run {key[:12]}: {problem}; nothing imported (this store's "
+                                     f"unfinished run, at epoch {local_epoch}, is kept)")
                 if local_epoch >= stage_epoch:
                     return Moved(kind, key, status, 0, partial, local_epoch=local_epoch)
                 # Moved aside into the staging folder (removed with it) only now, just before the
