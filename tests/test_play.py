@@ -713,6 +713,7 @@ def test_bad_frames_end_the_connection_with_one_line_each():
     sent = [(b"\x00\x01", websocket.ABNF.OPCODE_BINARY, "binary data"),
             ("not json", websocket.ABNF.OPCODE_TEXT, "text that is not a key"),
             ('["up"]', websocket.ABNF.OPCODE_TEXT, "text that is not a key"),
+            ('{"form": 1, "button": "agree"}', websocket.ABNF.OPCODE_TEXT, "text that is not a key"),  # no study page shown
             (b"\xff\xfe", websocket.ABNF.OPCODE_TEXT, "text that is not UTF-8"),
             ("x" * (MAX_MESSAGE_BYTES + 1), websocket.ABNF.OPCODE_TEXT, f"a message over {MAX_MESSAGE_BYTES:,} bytes")]
     with web:

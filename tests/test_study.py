@@ -19,7 +19,7 @@ from play_script import Scripted
 from test_play import ARROW, Pty, browser, free_port, grid_keys, logged_steps, press_and_wait, serve, wait_for  # noqa: F401
 
 from esr_cli.cli.main import main
-from esr_cli.play import pages, results
+from esr_cli.play import pages
 from esr_cli.play import study_session as ss
 from esr_cli.play.study import MAX_TEXT_FILE_BYTES, StudyError, blocks_of, load_study, participant_problem
 from esr_cli.storage.store import PLAY_KIND, Store

@@ -235,7 +235,8 @@ def _plays_study(store: Store, study: str, participant: Optional[str], session: 
     records = [r for r in ss.study_records(store, study)
                if participant in (None, r["participant"]) and session in (None, r["session"])]
     if not found and not records:
-        raise Exit(1, f"no sessions of study {study!r} in {store.root}" + (" for that selection" if participant or session else ""))
+        narrowed = " for that selection" if participant or session else ""
+        raise Exit(1, f"no sessions of study {study!r} in {store.root}{narrowed}")
     rows = results.episode_rows(found)
     table, items = results.study_table(rows, records), results.study_items(records)
     _print_study(study, table, items)

@@ -9,7 +9,7 @@ a browser page can send anything.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 from esr_cli.play.study import MAX_TEXT_ANSWER, PARTICIPANT_RULE, blocks_of, participant_problem
 
@@ -109,10 +109,3 @@ def item_dicts(questionnaire) -> tuple[dict, ...]:
     """A study's questionnaire items (pydantic models) as the pages carry them."""
     return tuple(item.model_dump(mode="json") for item in questionnaire)
 
-
-@dataclass
-class Asked:
-    """What the flow got from a page: the button pressed and the checked answers."""
-
-    button: str
-    answers: dict = field(default_factory=dict)
