@@ -147,7 +147,7 @@ class Terminal:
         self._drop_typed_ahead()
         if page.items:
             return self._fill(page)
-        keys = "   ".join(f"{'space' if b.key == 'space' else b.key}: {b.text}" for b in page.buttons)
+        keys = " or ".join(f"{b.key} ({b.text})" for b in page.buttons)
         self._draw(page, [Text(f"press {keys}", style="bold yellow")] if page.buttons else [])
         return self._choose(page) if page.buttons else {}
 
