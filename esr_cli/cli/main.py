@@ -20,7 +20,14 @@ from esr_cli.runner.stop_signals import StopSignals, Terminated, stop_signals_ra
 # look into the store, play.
 HELP_ORDER = ("train", "eval", "exact", "diagnose", "ablate", "sweep", "paper", "plot", "ls", "show", "verify", "export",
               "import", "play", "plays")
-app.registered_commands.sort(key=lambda c: HELP_ORDER.index(c.name or c.callback.__name__))
+
+
+def _help_place(command) -> int:
+    name = command.name or command.callback.__name__
+    return HELP_ORDER.index(name) if name in HELP_ORDER else len(HELP_ORDER)  # a new command: last
+
+
+app.registered_commands.sort(key=_help_place)
 
 GLOBAL_FLAGS, GLOBAL_VALUED = ("--debug",), ("--store",)
 

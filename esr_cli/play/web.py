@@ -418,7 +418,8 @@ class Web:
     # ---------------------------------------------------------------- the game side
     def ready(self) -> None:
         """Wait for the browser (Ctrl-C gives up)."""
-        self.console.print(f"open this address in a browser to play (Ctrl-C ends); its token lets only you in:\n  {self.url}")
+        self.console.print("open this address in a browser to play (Ctrl-C ends); its token lets only you in:")
+        self.console.print(f"  {self.url}")
         while not self.connected.wait(timeout=0.2):
             pass
 
