@@ -26,6 +26,7 @@ import json
 import os
 import re
 import stat
+import subprocess
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -52,9 +53,10 @@ MAX_RECORD_BYTES = 1 << 20  # far above any state file or outcome record esr wri
 _JOB_ID = re.compile(r"\w[\w+-]*")  # a SLURM job (4242, 4242_0) or a local pid: never a path
 
 # SLURM job states (sacct) grouped by what they mean for a run that is not committed.
-# UNKNOWN (sacct unreachable) counts as queued: a sweep then does not submit the run twice.
+# UNKNOWN (neither sacct nor squeue answers) counts as queued: a sweep then does not submit the run twice.
 _QUEUED = {"PENDING", "REQUEUED", "REQUEUE_FED", "REQUEUE_HOLD", "CONFIGURING", "SUSPENDED", "RESIZING", "UNKNOWN"}
 _ALIVE = {"RUNNING", "COMPLETING", "STAGE_OUT", "SIGNALING"}
+WAIT_POLL_S = 2.0  # how often a waiting sweep looks at a job that has not ended
 
 
 class SweepError(Exception):
@@ -196,6 +198,8 @@ def _from_outcome(outcome: dict) -> tuple[str, str]:
         return "SUCCESS", ""
     if kind == "stopped" and isinstance(epoch, int) and isinstance(total, int):
         return "STOPPED", str(JobStopped(epoch, total))
+    if kind == "interrupted" and isinstance(epoch, int):
+        return "STOPPED", f"interrupted (SIGTERM: cancelled?) after epoch {epoch:,}; sweep again to continue"
     if kind == "error":
         return "ERROR", _last_line(str(outcome.get("error", "")), "job raised")
     return "ENDED", "its outcome record is unreadable"
@@ -227,18 +231,41 @@ def _job_outcome(store: Store, rec: object) -> tuple[str, str]:
         return "RUNNING", ""
 
 
-def _slurm_state(folder: str, job_id: str) -> tuple[str, str]:
+def _quiet_submitit() -> None:
+    """Off the cluster, or on one without accounting, submitit warns on every sacct call, on
+    stdout (where a sweep prints its artifact paths); the states below say it once per run."""
     import logging
 
+    logging.getLogger("submitit").setLevel(logging.ERROR)
+
+
+def _slurm_state(folder: str, job_id: str) -> tuple[str, str]:
     import submitit
 
-    # Off the cluster submitit warns on every sacct call; UNKNOWN below says it once per run.
-    logging.getLogger("submitit").setLevel(logging.ERROR)
+    _quiet_submitit()
     try:
         state = str(submitit.SlurmJob(folder=folder, job_id=job_id).state).upper()
     except Exception:  # noqa: BLE001 - sacct missing or refusing: the state is unknown
         state = "UNKNOWN"
-    return state, "SLURM state unknown here (no sacct?)" if state == "UNKNOWN" else ""
+    if state == "UNKNOWN":  # a cluster without accounting: sacct refuses, slurmctld still knows the job
+        return _squeue_state(job_id)
+    return state, ""
+
+
+def _squeue_state(job_id: str) -> tuple[str, str]:
+    """(state, detail) of a job from squeue, which asks slurmctld: it knows a job until MinJobAge
+    (5 minutes by default) after it ended, and one it no longer knows is GONE. UNKNOWN where squeue
+    cannot be asked (no SLURM here)."""
+    try:
+        proc = subprocess.run(["squeue", "-h", "-t", "all", "-j", job_id, "-o", "%T"],
+                              capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.SubprocessError):
+        proc = None
+    if proc is not None and proc.returncode == 0 and proc.stdout.split():
+        return proc.stdout.split()[0].upper(), ""
+    if proc is not None and (proc.returncode == 0 or "Invalid job id" in proc.stderr):
+        return "GONE", "SLURM no longer knows the job, which left no outcome record"
+    return "UNKNOWN", "SLURM state unknown here (no sacct or squeue?)"
 
 
 _OVER = {"SUCCESS", "STOPPED", "GONE", "ENDED"}  # ended, not in error: the run's own files say more
@@ -437,8 +464,13 @@ def train_job(spec_path: str, budget: str, sets: list[str], store_root: str,
     in-process. -> the artifact path, or JobStopped if the time budget came first (the run is
     saved at a chunk boundary). Module-level so that submitit pickles it by reference. How it
     ended is also written as the job's outcome record, which is what status reads."""
+    from esr_cli.common.stops import Interrupted
+
     try:
         result = _train(spec_path, budget, sets, store_root, stop_after_s)
+    except Interrupted as e:  # SIGTERM (scancel, preemption): saved at a chunk boundary, resumable
+        _record_outcome({"outcome": "interrupted", "epoch": e.epoch})
+        raise
     except Exception as e:
         _record_outcome({"outcome": "error", "error": f"{type(e).__name__}: {e}"[-2000:]})
         raise
@@ -608,9 +640,14 @@ def _submit(todo, executor, opts, suite, store, console, result, wait) -> None:
     console.print(f"submitted {len(jobs)} job(s) ({executor}): {', '.join(j.job_id for j in jobs)}; logs under {logs}")
     if not wait:
         return
+    _quiet_submitit()
     for s, j in zip(todo, jobs):
-        j.wait()  # until it ends; its outcome comes from its own record, as for --status
-        state, detail = _job_outcome(store, {"job_id": j.job_id, "folder": str(logs / "%j"), "executor": executor})
+        # Until it ends; its outcome comes from its own record, as for --status. submitit alone
+        # would wait for ever on a job cancelled before it wrote a result where sacct is refused.
+        rec = {"job_id": j.job_id, "folder": str(logs / "%j"), "executor": executor}
+        while not j.done() and _job_outcome(store, rec)[0] in _QUEUED | _ALIVE:
+            time.sleep(WAIT_POLL_S)
+        state, detail = _job_outcome(store, rec)
         if state == "SUCCESS":
             console.print(tagged("done", "green", f": {s.run.label} (job {j.job_id})"))
         elif state == "STOPPED":
