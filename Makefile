@@ -9,7 +9,7 @@ comma  := ,
 STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 DEMO_SET := --budget quick --set train.epochs=40
 
-.PHONY: install browser demo test test-fast bench sweep paper-figures report-store report report-check clean-venv
+.PHONY: install browser slurm demo test test-fast bench sweep paper-figures report-store report report-check clean-venv
 BUDGET   ?= paper
 EXECUTOR ?= local
 
@@ -39,9 +39,21 @@ browser:
 	  $$SUDO apt-get update -q && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -q chromium chromium-driver; \
 	fi
 
+# The SLURM tests (tests/test_slurm.py) start munged, slurmctld and slurmd on localhost; on Debian
+# or Ubuntu they are installed here when missing. Never fatal: without them those tests skip.
+slurm:
+	@export PATH="$$PATH:/usr/sbin:/sbin"; \
+	if ! command -v slurmctld >/dev/null || ! command -v slurmd >/dev/null || ! command -v sbatch >/dev/null \
+	    || ! command -v munged >/dev/null; then \
+	  SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+	  { $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends \
+	      slurm-wlm munge; } >/dev/null 2>&1 \
+	    || echo "make slurm: apt-get could not install slurm-wlm and munge; tests/test_slurm.py will skip"; \
+	fi
+
 # Compiling dominates the suite and XLA compiles on one thread: one worker per core (xdist).
 # A module's tests go to one worker, so the trained runs its module fixtures share are made once.
-test: install browser
+test: install browser slurm
 	$(BIN)/python -m pytest -n auto --dist loadscope
 
 # The unit tests alone (tests marked slow left out): under 3 minutes on 2 cores.
