@@ -395,7 +395,7 @@ def test_a_sweep_whose_jobs_stopped_at_their_time_budget_exits_75(tmp_path, monk
     assert main(["--store", str(tmp_path / "store"), "sweep", str(path), "--budget", "smoke",
                  "--executor", "submitit-local"]) == 75
     err = " ".join(capsys.readouterr().err.split())
-    assert "0 of 2 run(s) done" in err and "2 run(s) stopped at their jobs' time budget, saved; run the same sweep again" in err
+    assert "0 of 2 run(s) done" in err and "2 run(s) stopped and saved (" in err and "stopped at its time budget" in err and "run the same sweep again to continue them" in err
 
 
 def test_a_run_stopped_on_purpose_is_stopped_not_failed(tmp_path):

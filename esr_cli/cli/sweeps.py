@@ -123,9 +123,9 @@ def sweep(
                      f"{'run' if executor == 'local' else 'submitted'} this time; `{ctx.obj.store.invocation()} sweep --status {suite_file} --budget {budget}` shows each"))
     if result.failed:
         raise Exit(1, f"{len(result.failed)} run(s) failed: " + "; ".join(f"{r.label}: {m}" for r, m in result.failed))
-    if result.stopped:  # saved at their jobs' time budgets: resumable, like `esr train --stop-after`
-        raise Exit(75, f"{len(result.stopped)} run(s) stopped at their jobs' time budget, saved; "
-                       f"run the same sweep again to continue them")
+    if result.stopped:  # saved at a time budget or when cancelled: resumable, like `esr train --stop-after`
+        raise Exit(75, f"{len(result.stopped)} run(s) stopped and saved (" + "; ".join(f"{r.label}: {why}" for r, why in result.stopped)
+                   + "); run the same sweep again to continue them")
 
 
 @app.command("paper")
