@@ -433,3 +433,17 @@ def test_browser_study_from_participant_id_to_completion_code(browser, tmp_path)
     assert all(h["front_end"] == "web" for h in headers)
     steps = logged_steps(Store(store).lookup(PLAY_KIND, stored(store, "t_study")[0][0][0]))
     assert [s["key"] for s in steps if s["key"]] == grid_keys(seed)  # the practice episode as played
+
+
+def test_free_text_that_looks_like_a_formula_opens_as_text_in_a_spreadsheet():
+    """A participant's answer `=HYPERLINK(...)` is written with a leading quote, so a spreadsheet
+    shows the text rather than running it; numbers (a negative return) are untouched."""
+    from esr_cli.play.results import answers_csv, episodes_csv
+
+    record = {"record": "questionnaire", "study": "s", "participant": "p1", "session": "x", "block": 0,
+              "study_robot": "A", "robot": "random", "robot_label": "A", "items": [{"id": "why", "kind": "text"}],
+              "answers": {"why": '=HYPERLINK("http://example.com","x")'}}
+    (row,) = csv.DictReader(io.StringIO(answers_csv([record])))
+    assert row["value"] == "'" + record["answers"]["why"]
+    (episode,) = csv.DictReader(io.StringIO(episodes_csv([{"participant": "@p", "return": -1.5}])))
+    assert episode["participant"] == "'@p" and episode["return"] == "-1.5"

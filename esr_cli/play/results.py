@@ -41,11 +41,20 @@ def episode_rows(found: list[tuple[str, dict, dict]]) -> list[dict]:
     return rows
 
 
+# A text cell that begins with one of these is read as a formula by spreadsheet programs; a
+# participant's free text must open as the text it is, so such a cell gets a leading quote.
+FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+
+
+def _as_text(row: dict) -> dict:
+    return {k: "'" + v if isinstance(v, str) and v.startswith(FORMULA_STARTS) else v for k, v in row.items()}
+
+
 def episodes_csv(rows: list[dict]) -> str:
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=EPISODE_FIELDS, lineterminator="\n")
     writer.writeheader()
-    writer.writerows(rows)
+    writer.writerows(_as_text(r) for r in rows)
     return buffer.getvalue()
 
 
@@ -133,7 +142,7 @@ def study_csv(table: list[dict], items: list[dict]) -> str:
             d = entry.get(m, {})
             row |= {f"{m}_{c}": d.get(c) for c in SUMMARY_COLUMNS} | {f"{m}_participants": d.get("seeds", 0) - d.get("missing", 0)}
         row |= {f"{t}_answers": entry.get(t, {}).get("answers", 0) for t in texts}
-        writer.writerow(row)
+        writer.writerow(_as_text(row))
     return buffer.getvalue()
 
 
@@ -150,9 +159,9 @@ def answers_csv(records: list[dict]) -> str:
             continue
         kinds = {i["id"]: i["kind"] for i in r["items"]}
         for item, value in r["answers"].items():
-            writer.writerow({"study": r["study"], "participant": r["participant"], "session": r["session"],
-                             "block": r["block"], "robot": r["study_robot"], "run": r["robot"],
-                             "robot_label": r["robot_label"], "item": item, "kind": kinds.get(item), "value": value})
+            writer.writerow(_as_text({"study": r["study"], "participant": r["participant"], "session": r["session"],
+                                      "block": r["block"], "robot": r["study_robot"], "run": r["robot"],
+                                      "robot_label": r["robot_label"], "item": item, "kind": kinds.get(item), "value": value}))
     return buffer.getvalue()
 
 
