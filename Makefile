@@ -32,14 +32,14 @@ demo: install
 	$(BIN)/esr eval experiments/grid_2.yaml $(DEMO_SET)
 
 # The browser tests of `esr play` drive the system's headless Chromium and its driver
-# (tests/test_play.py); on Debian or Ubuntu they are installed here when missing.
+# (tests/play/test_play.py); on Debian or Ubuntu they are installed here when missing.
 browser:
 	@if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; then \
 	  SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
 	  $$SUDO apt-get update -q && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -q chromium chromium-driver; \
 	fi
 
-# The SLURM tests (tests/test_slurm.py) start munged, slurmctld and slurmd on localhost; on Debian
+# The SLURM tests (tests/recipes/test_slurm.py) start munged, slurmctld and slurmd on localhost; on Debian
 # or Ubuntu they are installed here when missing. Never fatal: without them those tests skip.
 slurm:
 	@export PATH="$$PATH:/usr/sbin:/sbin"; \
@@ -48,7 +48,7 @@ slurm:
 	  SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
 	  { $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends \
 	      slurm-wlm munge; } >/dev/null 2>&1 \
-	    || echo "make slurm: apt-get could not install slurm-wlm and munge; tests/test_slurm.py will skip"; \
+	    || echo "make slurm: apt-get could not install slurm-wlm and munge; tests/recipes/test_slurm.py will skip"; \
 	fi
 
 # Compiling dominates the suite and XLA compiles on one thread: one worker per core (xdist).

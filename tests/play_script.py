@@ -1,4 +1,4 @@
-"""A scripted person for `esr play`'s game loop (tests/test_play.py, tests/test_overcooked_e2e.py)."""
+"""A scripted person for `esr play`'s game loop (tests/play/test_play.py, tests/recipes/test_overcooked_e2e.py)."""
 
 import time
 

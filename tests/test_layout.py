@@ -91,3 +91,13 @@ def test_every_module_is_in_a_package_of_the_layers():
     layered = {name for names in LAYERS for name in names}
     assert {_package(f) for f in _files()} == layered | {""}
     assert [f.name for f in _files() if _package(f) == ""] == ["__init__.py"]
+
+
+def test_the_tests_mirror_the_packages():
+    """Each package's tests are in tests/<package>/ (this file, about the whole, at the top)."""
+    tests = Path(__file__).resolve().parent
+    layered = {name for names in LAYERS for name in names}
+    for f in tests.rglob("test_*.py"):
+        parts = f.relative_to(tests).parts
+        assert parts == ("test_layout.py",) or (len(parts) == 2 and parts[0] in layered), f"{f.relative_to(tests)}: not in a package's folder"
+    assert {d.name for d in tests.iterdir() if d.is_dir() and d.name != "__pycache__"} <= layered

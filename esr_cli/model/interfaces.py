@@ -2,7 +2,7 @@
 
 Each is a `typing.Protocol`; implementations are frozen NamedTuples of static facts with pure
 methods (so jitted code can close over them) and declare every optional capability as an
-explicit member rather than leaving the runner to probe for it. tests/test_interfaces.py
+explicit member rather than leaving the runner to probe for it. tests/model/test_interfaces.py
 checks every implementation against these.
 """
 

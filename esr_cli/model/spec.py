@@ -483,7 +483,7 @@ class OracleMethodSpec(_MethodModel):
 
 
 # Every method's spec model, once: the union below and KIND_MODELS derive from it, and
-# methods/registry.py has the class of each kind (tests/test_interfaces.py checks they agree).
+# methods/registry.py has the class of each kind (tests/model/test_interfaces.py checks they agree).
 METHOD_SPECS = (ESRMethodSpec, RandomMethodSpec, AvEMethodSpec, GoalInferenceMethodSpec, IQLearnMethodSpec, OracleMethodSpec)
 
 

@@ -344,7 +344,7 @@ def test_one_bad_manifest_never_breaks_listing_the_others(tmp_path):
 @pytest.mark.slow
 def test_the_reproduction_report_is_written_from_a_store_holding_damaged_manifests(tmp_path):
     """A manifest that is garbage and one nested 10,000 levels deep cost `esr paper --report`
-    those two artifacts only (tests/test_reproduction.py drives it with runs): it writes the
+    those two artifacts only (tests/report/test_reproduction.py drives it with runs): it writes the
     report and exits 0."""
     made = make_artifacts(Store(tmp_path / "store"), ["garbage", "deep"])
     (made["garbage"] / "manifest.json").write_bytes(b"\x00garbage{")

@@ -13,7 +13,7 @@ from esr_cli.model.interfaces import Environment, Method
 from esr_cli.model.methods import registry
 from esr_cli.model.train import make_trainer
 
-PAGE = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
+PAGE = Path(__file__).resolve().parents[2] / "docs" / "extending.md"
 
 
 def _page_block(marker: str) -> dict:

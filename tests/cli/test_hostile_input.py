@@ -242,7 +242,7 @@ def test_fuzzed_specs_are_a_clean_spec_or_a_one_line_error(tmp_path, text):
 
 def test_published_ave_on_overcooked_validates():
     spec = specs.load(ROOT / "experiments/cramped_room_ave.yaml", "smoke", ["method.variant=original"])
-    assert spec.method.variant == "original"  # tests/test_baselines.py checks what it computes
+    assert spec.method.variant == "original"  # tests/model/test_baselines.py checks what it computes
 
 
 # ---------------------------------------------------------------- types, bounds, blame

@@ -1,7 +1,7 @@
 """Every method trains end to end at the smoke budget on the paper's smallest and largest
 gridworld (N = 2 and 10; in-process, through the same run recipe as `esr train`), and its
 metrics are finite where defined. N only changes array shapes, so the two ends cover the code;
-every spec file at every N is validated by tests/test_spec.py, and the CI's smoke paper suite
+every spec file at every N is validated by tests/model/test_spec.py, and the CI's smoke paper suite
 (`make paper-figures BUDGET=smoke`) trains all 24."""
 
 import json
