@@ -156,6 +156,12 @@ def _valid_names(loc: tuple) -> list[str]:
     return []
 
 
+def did_you_mean(name, known) -> str:
+    """"; did you mean `KEY`?" naming the known key closest to a misspelt `name`, else ""."""
+    close = difflib.get_close_matches(str(name), list(known), n=1, cutoff=0.6)
+    return f"; did you mean `{close[0]}`?" if close else ""
+
+
 def first_problem(e: ValidationError) -> tuple[dict, str]:
     """The mistake to name first and its message in plain words (no pydantic prefix or URL):
     an unknown key first (a typo usually also makes a required key 'missing', which is its
@@ -208,13 +214,12 @@ def validate(raw: dict, source: str = "") -> Spec:
         err, msg = first_problem(e)
         loc = tuple(err["loc"])
         if err["type"] == "extra_forbidden":
-            close = difflib.get_close_matches(str(loc[-1]), _valid_names(loc), n=1, cutoff=0.6)
             head, _, rest = str(loc[-1]).partition(".")
             if rest and head:  # `train.epochs: 5` written in a file, as --set and budgets write it
                 msg += (f": a dotted key path is for --set and budgets; in a file, nest it: "
                         f"`{head}: {{{rest}: ...}}`")
-            elif close:
-                msg += f"; did you mean `{close[0]}`?"
+            else:
+                msg += did_you_mean(loc[-1], _valid_names(loc))
         section = KIND_MODELS.get(str(loc[0]) if loc else "", {})
         if err["type"] == "union_tag_not_found":
             msg = f"needs a `kind`: one of {', '.join(section)}"

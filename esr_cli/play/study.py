@@ -26,7 +26,6 @@ instruction files must lie in the study file's folder (a study file from elsewhe
 
 from __future__ import annotations
 
-import difflib
 import json
 import os
 import re
@@ -232,8 +231,7 @@ def validate(raw: dict, source: str) -> StudyModel:
         err, msg = specs.first_problem(e)
         loc = tuple(err["loc"])
         if err["type"] == "extra_forbidden":
-            close = difflib.get_close_matches(str(loc[-1]), _names_at(loc), n=1, cutoff=0.6)
-            msg += f"; did you mean `{close[0]}`?" if close else ""
+            msg += specs.did_you_mean(loc[-1], _names_at(loc))
         elif err["type"] == "union_tag_invalid":
             msg = f"kind {err.get('ctx', {}).get('tag')!r} is not one of likert, text"
         elif err["type"] == "union_tag_not_found":

@@ -20,7 +20,6 @@ A suite expands to at most `MAX_RUNS` runs; the count is checked before any run 
 
 from __future__ import annotations
 
-import difflib
 import itertools
 import json
 import math
@@ -186,8 +185,7 @@ def _validate(raw: Any, source: str) -> SuiteModel:
         err, msg = specs.first_problem(e)
         loc = tuple(err["loc"])
         if err["type"] == "extra_forbidden":
-            close = difflib.get_close_matches(str(loc[-1]), _suite_names(loc), n=1, cutoff=0.6)
-            msg += f"; did you mean `{close[0]}`?" if close else ""
+            msg += specs.did_you_mean(loc[-1], _suite_names(loc))
         raise SuiteError(source, _format_loc(loc), msg + specs.other_problems(e)) from None
 
 
