@@ -158,7 +158,7 @@ def plays(
     session: Optional[str] = typer.Option(None, "--session", help="only this session's episodes"),
     export: Optional[Path] = typer.Option(None, "--export", help="write the episodes shown: .jsonl, every step of any "
                                           "environment (docs/play.md); .pickle (a pandas DataFrame) or .csv, the "
-                                          "Overcooked ones in overcooked-ai's human-data schema"),
+                                          "Overcooked ones as overcooked-ai's 2019 human trials (their columns and dtypes)"),
     by_robot: bool = typer.Option(False, "--by-robot", help="a table per robot instead: participants, episodes, and the "
                                   "return and success of completed episodes (per participant, then mean ± SE and IQM across participants)"),
     csv_file: Optional[Path] = typer.Option(None, "--csv", help="also write one row per episode shown (participant, "

@@ -895,7 +895,8 @@ def test_a_port_left_in_time_wait_is_free_to_serve_on():
 @pytest.mark.slow
 def test_overcooked_episodes_export_to_the_human_data_schema_and_replay(tmp_path):
     """A played Overcooked episode, exported as overcooked-ai rows, converts back to the logged
-    JaxMARL states, and each row's joint action steps its state to its next state."""
+    JaxMARL states, and each row's joint action steps its state to its next state (the 2019
+    trials' columns, dtypes and overcooked-ai's loader: tests/play/test_export.py)."""
     import numpy as np
 
     from esr_cli.model.humans import overcooked_data as od
@@ -913,7 +914,7 @@ def test_overcooked_episodes_export_to_the_human_data_schema_and_replay(tmp_path
     assert summary["completed"] and summary["steps"] == 40 and summary["keys"] == 40
     frame = export.trajectory_frame([built.path], env)
     assert list(frame.columns) == list(export.COLUMNS) and len(frame) == 40
-    assert frame["player_1_is_human"].all() and frame["layout_name"].eq("cramped_room").all()
+    assert frame.attrs["esr"]["episodes"][0]["human_player"] == 1 and frame["layout_name"].eq("cramped_room").all()
     logged = [state_from_record(env, s["state"]) for s in logged_steps(built.path)]
     back = od.to_jaxmarl(env, list(frame["state"]))
     for field in ("agent_pos", "agent_dir_idx", "agent_inv", "maze_map"):
