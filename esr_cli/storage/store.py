@@ -427,16 +427,17 @@ def _file_problem(path: Path, rel: str, want) -> str | None:
     inside = PurePosixPath(rel)
     if inside.is_absolute() or ".." in inside.parts:
         return f"{MANIFEST} lists {rel[:80]!r}, which is not a file inside the artifact"
-    if any((path / PurePosixPath(*inside.parts[:i])).is_symlink() for i in range(1, len(inside.parts) + 1)):
-        return f"{rel} is a link, not a plain file"
-    f = path / rel
-    if not f.is_file():
-        return f"missing file {rel}" if not f.exists() else f"{rel} is not a plain file (a folder, a FIFO or a device)"
-    try:
+    shown = rel if len(rel) <= 200 else rel[:200] + "..."
+    try:  # a name the file system cannot hold (too long) is a problem of this file, not a crash
+        if any((path / PurePosixPath(*inside.parts[:i])).is_symlink() for i in range(1, len(inside.parts) + 1)):
+            return f"{shown} is a link, not a plain file"
+        f = path / rel
+        if not f.is_file():
+            return f"missing file {shown}" if not f.exists() else f"{shown} is not a plain file (a folder, a FIFO or a device)"
         same = digest_file(f) == want
     except OSError as e:
-        return f"unreadable file {rel} ({e.strerror or e})"
-    return None if same else f"changed file {rel} (digest differs from the manifest)"
+        return f"unreadable file {shown} ({e.strerror or e})"
+    return None if same else f"changed file {shown} (digest differs from the manifest)"
 
 
 def components_problem(record: dict, name: str) -> str | None:

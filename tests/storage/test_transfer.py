@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from conftest import ROOT, esr
 from hypothesis import HealthCheck, event, given, settings, strategies as st
-from test_reliability import SMOKE, final_arrays, partials, rename_checkpoint
+from run_helpers import SMOKE, final_arrays, partials, rename_checkpoint
 
 from esr_cli.common import specs, tar_reader
 from esr_cli.storage import signing
