@@ -27,7 +27,7 @@ from esr_cli.play.game import RANDOM_ROBOT, Game, Robot, play_episode
 from esr_cli.recipes.runs import find_run, load_run, seed_slice
 from esr_cli.recipes.targets import run_spec
 from esr_cli.storage.artifacts import Recipe, ensure
-from esr_cli.storage.play_log import EPISODE_FILE, FINAL_STATE_FILE, STEPS_FILE, read_steps
+from esr_cli.storage.play_log import EPISODE_FILE, FINAL_STATE_FILE, STEPS_FILE, read_header, read_steps
 from esr_cli.storage.store import PLAY_KIND, LockBusy, Store, StoreError, atomic_write_text, digest_bytes
 
 
@@ -192,7 +192,7 @@ def played_episodes(store: Store, participant: str | None = None, session: str |
     for entry in store.entries():
         if entry.kind != PLAY_KIND or entry.status != "complete" or not (entry.path / EPISODE_FILE).exists():
             continue
-        header = json.loads((entry.path / EPISODE_FILE).read_text())
+        header = read_header(entry.path)
         if (participant and header.get("participant") != participant) or (session and header.get("session") != session):
             continue
         found.append((entry.key, header, (entry.manifest or {}).get("summary", {})))

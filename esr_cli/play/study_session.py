@@ -17,13 +17,14 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from esr_cli.common.jsonl import read_json
 from esr_cli.model.envs import make_env
 from esr_cli.play import pages
 from esr_cli.play.game import RANDOM_ROBOT, Robot, SessionEnded
-from esr_cli.play.session import Opponent, episode_recipe, latin_square, load_opponents, new_session_id, \
-    participant_number, played_episodes, robot_labels
+from esr_cli.play.session import Opponent, episode_recipe, latin_square, load_opponents, new_session_id, participant_number, played_episodes, robot_labels
 from esr_cli.play.study import Study
 from esr_cli.storage.artifacts import Recipe, ensure
+from esr_cli.storage.play_log import MAX_RECORD_BYTES
 from esr_cli.storage.store import PLAY_KIND, Store, StoreError, atomic_write_text
 
 RECORD_FILE = "record.json"
@@ -90,7 +91,7 @@ def study_records(store: Store, study: str) -> list[dict]:
         if entry.kind != PLAY_KIND or entry.status != "complete" or components.get("kind") != STUDY_RECORD:
             continue
         if components.get("study") == study and (entry.path / RECORD_FILE).is_file():
-            found.append(json.loads((entry.path / RECORD_FILE).read_text()) | {"key": entry.key})
+            found.append(read_json(entry.path / RECORD_FILE, MAX_RECORD_BYTES) | {"key": entry.key})
     return sorted(found, key=lambda r: r.get("recorded_at", 0))
 
 

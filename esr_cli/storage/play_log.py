@@ -16,7 +16,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from esr_cli.common.jsonl import read_jsonl
+from esr_cli.common.jsonl import read_json, read_jsonl
 
 STEPS_FILE, EPISODE_FILE, FINAL_STATE_FILE = "steps.jsonl", "episode.json", "final_state.json"
 
@@ -36,8 +36,12 @@ def state_from_record(env, record: dict):
     return jax.tree_util.tree_unflatten(treedef, values)
 
 
+# A played episode's header and a study's record are a few KiB; a larger file is not esr's.
+MAX_RECORD_BYTES = 1 << 20
+
+
 def read_header(path: Path) -> dict:
-    return json.loads((Path(path) / EPISODE_FILE).read_text())
+    return read_json(Path(path) / EPISODE_FILE, MAX_RECORD_BYTES)
 
 
 def read_steps(path: Path) -> list[dict]:

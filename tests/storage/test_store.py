@@ -425,3 +425,23 @@ def test_a_manifest_listing_a_name_too_long_for_the_file_system_is_a_problem_not
     problem = _file_problem(tmp_path, "n" * 300, "0" * 64)
     assert problem.startswith("unreadable file " + "n" * 200 + "...") and "too long" in problem.lower()
     assert _file_problem(tmp_path, "d/" + "n" * 300, "0" * 64).startswith("missing file d/")  # no such folder
+
+
+def test_a_played_episodes_header_is_read_bounded(tmp_path):
+    """episode.json of a played episode (and a study's record) is read up to MAX_RECORD_BYTES,
+    never whole: a planted huge or non-regular file is refused in one line."""
+    import os
+
+    from esr_cli.common.jsonl import JsonInputError
+    from esr_cli.storage.play_log import EPISODE_FILE, MAX_RECORD_BYTES, read_header
+
+    (tmp_path / EPISODE_FILE).write_text('{"participant": "' + "p" * MAX_RECORD_BYTES + '"}')
+    with pytest.raises(JsonInputError, match="bytes"):
+        read_header(tmp_path)
+    fifo = tmp_path / "fifo"
+    fifo.mkdir()
+    os.mkfifo(fifo / EPISODE_FILE)
+    with pytest.raises(JsonInputError):
+        read_header(fifo)
+    (tmp_path / EPISODE_FILE).write_text('{"participant": "p1"}')
+    assert read_header(tmp_path) == {"participant": "p1"}
