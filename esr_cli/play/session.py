@@ -145,7 +145,7 @@ def episode_recipe(spec, opponent: Opponent, participant: str, session: str, epi
 def summarize(path: Path, completed: bool) -> dict:
     """The episode's summary, from its log (the same for a finished and a recovered episode)."""
     steps = read_steps(path)
-    header = json.loads((Path(path) / EPISODE_FILE).read_text()) if (Path(path) / EPISODE_FILE).exists() else {}
+    header = read_header(path) if (Path(path) / EPISODE_FILE).exists() else {}
     episode_steps = header.get("episode_steps")
     ret = float(sum(s["reward"] for s in steps))
     reactions = [s["reaction_s"] for s in steps if s["reaction_s"] is not None]

@@ -10,7 +10,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import jax
@@ -36,7 +35,7 @@ def state_from_record(env, record: dict):
     return jax.tree_util.tree_unflatten(treedef, values)
 
 
-# A played episode's header and a study's record are a few KiB; a larger file is not esr's.
+# A played episode's header, its final state and a study's record are a few KiB; a larger file is not esr's.
 MAX_RECORD_BYTES = 1 << 20
 
 
@@ -54,5 +53,5 @@ def read_states(path: Path, env) -> list:
     states = [state_from_record(env, s["state"]) for s in read_steps(path)]
     final = Path(path) / FINAL_STATE_FILE
     if final.exists():
-        states.append(state_from_record(env, json.loads(final.read_text())))
+        states.append(state_from_record(env, read_json(final, MAX_RECORD_BYTES)))
     return states
