@@ -146,7 +146,9 @@ def check_executor(executor: str, known: tuple[str, ...]) -> None:
 def refuse_inside_store(path: Path, option: str, store: Store) -> None:
     """An output file must not land in the store's artifact folders: inside an artifact it would be
     a file its manifest does not list (`esr verify` fails it), and a committed artifact never changes."""
-    here = nearest_existing(path.parent).resolve()
+    parent = Path(path.parent).absolute()
+    existing = nearest_existing(parent)
+    here = existing.resolve() / parent.relative_to(existing)  # folders yet to be made count too
     for kind in KINDS:
         folder = (store.root / kind).resolve()
         if here == folder or folder in here.parents:

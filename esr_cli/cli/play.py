@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import io
+import ipaddress
 import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Optional
 
@@ -33,7 +35,15 @@ def play(
                                               "names of the robots); default: anonymous, or with --study asked first"),
     fps: float = typer.Option(6.0, "--fps", help="Overcooked: steps per second (a tick without a key is stay)"),
     web: bool = typer.Option(False, "--web", help="play in a browser: serve the game on localhost"),
-    port: int = typer.Option(8765, "--port", help="--web: the port on 127.0.0.1"),
+    port: int = typer.Option(8765, "--port", help="--web: the port to serve on"),
+    host: str = typer.Option("127.0.0.1", "--host", help="--web: the address to listen on; beyond localhost (a lab's "
+                             "network, 0.0.0.0) the page's token guards it, and an online study belongs behind HTTPS"),
+    public_url: Optional[str] = typer.Option(None, "--public-url", help="--web: the address participants reach the "
+                                             "server at (an HTTPS proxy in front of it), the base of the links printed"),
+    participants: Optional[int] = typer.Option(None, "--participants", help="--study --web: serve this many participants, "
+                                               "several at once, each on a single-use link of their own"),
+    links: Optional[Path] = typer.Option(None, "--links", help="--participants: write the links to this file (readable "
+                                         "by you only) rather than the console"),
     seed: int = typer.Option(0, "--seed", help="the first episode's environment seed (episode i: seed + i)"),
     seed_index: int = typer.Option(0, "--seed-index", help="which seed of each trained run acts"),
     countdown: float = typer.Option(3.0, "--countdown", help="seconds counted down after the person presses space to "
@@ -46,8 +56,9 @@ def play(
 
     if not 1024 <= port <= 65535:
         raise Exit(2, f"--port: between 1024 and 65535 (got {port})")
+    serving = _serving(ctx, web, host, public_url, participants, links, study, participant)
     if study is not None:
-        return _play_study(ctx, study, target, participant, web, port)
+        return _play_study(ctx, study, target, participant, web, port, serving)
     if target is None:
         raise Exit(2, "esr play: name a trained run or a spec (or give --study STUDY.yaml)")
     participant = "anonymous" if participant is None else participant
@@ -66,7 +77,7 @@ def play(
         raise Exit(2, "--robots: name at least one robot (a run key, path or spec, or `random`)")
     if not any(targets.is_spec_file(r) for r in [target, *refs]):
         refuse_spec_options(target, budget, set_)
-    front, name = _front(web, port)
+    front, name = _front(web, port, serving)
     spec, opponents = ps.load_opponents(target, refs, budget, set_, seed_index, ctx.obj.store, participant)
     ps.recover_abandoned(ctx.obj.store, err)
     session = ps.new_session_id()
@@ -94,15 +105,71 @@ def play(
         raise Exit(130)
 
 
-def _front(web: bool, port: int):
+MAX_PARTICIPANTS = 1000  # links of one server
+HOST_NAME = re.compile(r"[A-Za-z0-9]([A-Za-z0-9.-]{0,251}[A-Za-z0-9])?")
+PUBLIC_URL = re.compile(r"https?://[A-Za-z0-9.\-\[\]:]{1,260}(/[A-Za-z0-9._~\-/]{0,200})?")
+
+
+@dataclass(frozen=True)
+class Serving:
+    """Where and for how many the browser's server listens (`--host`, `--public-url`, `--participants`)."""
+
+    host: str = "127.0.0.1"
+    public_url: str | None = None
+    participants: int | None = None  # None: one participant at a time on one token
+    links: Path | None = None
+
+
+def _serving(ctx: typer.Context, web: bool, host: str, public_url: Optional[str], participants: Optional[int],
+             links: Optional[Path], study: Optional[Path], participant: Optional[str]) -> Serving:
+    """The web server's options, checked before any work."""
+    for name, given in (("host", host != "127.0.0.1"), ("public_url", public_url is not None),
+                        ("participants", participants is not None)):
+        if given and not web:
+            raise Exit(2, f"--{name.replace('_', '-')}: only with --web")
+    if participants is not None:
+        if study is None:
+            raise Exit(2, "--participants: only with --study (each participant's session is the study's)")
+        if not 1 <= participants <= MAX_PARTICIPANTS:
+            raise Exit(2, f"--participants: between 1 and {MAX_PARTICIPANTS:,} (got {participants:,})")
+        if participant is not None:
+            raise Exit(2, "--participant: with --participants each person gives their own id (the link's "
+                          "&participant=ID, or the page's form)")
+    if links is not None:
+        if participants is None:
+            raise Exit(2, "--links: only with --participants N")
+        refuse_inside_store(links, "--links", ctx.obj.store)
+        check_output_file(links, "--links")
+    try:
+        ipaddress.ip_address(host.strip("[]"))
+    except ValueError:
+        if not HOST_NAME.fullmatch(host):
+            raise Exit(2, f"--host: an IP address or a host name (got {host[:80]!r})") from None
+    if public_url is not None and not PUBLIC_URL.fullmatch(public_url):
+        raise Exit(2, f"--public-url: an http:// or https:// address with no query (got {public_url[:80]!r})")
+    base = None if public_url is None else public_url.rstrip("/") + "/"
+    return Serving(host, base, participants, links)
+
+
+def _warn_if_plain(serving: Serving) -> None:
+    from esr_cli.play.web import is_loopback
+
+    if not is_loopback(serving.host) and not (serving.public_url or "").startswith("https://"):
+        err.print(f"esr play: listening on {serving.host}: the page and its token travel unencrypted; "
+                  "an online study belongs behind an HTTPS proxy (--public-url https://...)", highlight=False)
+
+
+def _front(web: bool, port: int, serving: Serving):
     """(the front end, its name): the browser's server on `port`, or this terminal."""
     if web:
         from esr_cli.play.web import PortInUse, Web
 
         try:
-            return Web(port, err), "web"
+            front = Web(port, err, serving.host, serving.public_url)
         except PortInUse as e:
             raise Exit(2, str(e)) from None
+        _warn_if_plain(serving)
+        return front, "web"
     from esr_cli.play.terminal import NotATerminal, Terminal
 
     try:
@@ -116,7 +183,7 @@ STUDY_SETS = ("budget", "set_", "robots", "episodes", "fps", "seed", "seed_index
 
 
 def _play_study(ctx: typer.Context, path: Path, target: Optional[str], participant: Optional[str], web: bool,
-                port: int) -> None:
+                port: int, serving: Serving) -> None:
     from esr_cli.play import session as ps, study_session as ss
     from esr_cli.play.study import load_study, participant_problem
 
@@ -130,7 +197,9 @@ def _play_study(ctx: typer.Context, path: Path, target: Optional[str], participa
     if participant is not None and participant_problem(participant):
         raise Exit(2, f"--participant: {participant_problem(participant)}")
     the_study = load_study(path)
-    front, name = _front(web, port)
+    if serving.participants is not None:
+        return _serve_study(ctx, the_study, port, serving)
+    front, name = _front(web, port, serving)
     robots = ss.load_robots(the_study, ctx.obj.store)
     ps.recover_abandoned(ctx.obj.store, err)
     if web and participant is None:
@@ -149,6 +218,34 @@ def _play_study(ctx: typer.Context, path: Path, target: Optional[str], participa
     else:
         err.print(f"study {the_study.name}: {who}: finished, {len(outcome.episodes)} episode(s); "
                   f"esr plays --study {the_study.name}", highlight=False)
+
+
+def _serve_study(ctx: typer.Context, the_study, port: int, serving: Serving) -> None:
+    """`--participants N`: several participants at once, one single-use link each."""
+    from esr_cli.play import session as ps, study_session as ss
+    from esr_cli.play.study_server import StudyServer
+    from esr_cli.play.web import PortInUse
+
+    try:
+        server = StudyServer(the_study, [], ctx.obj.store, err, serving.participants, port, serving.host, serving.public_url)
+    except PortInUse as e:
+        raise Exit(2, str(e)) from None
+    _warn_if_plain(serving)
+    server.robots = ss.load_robots(the_study, ctx.obj.store)
+    ps.recover_abandoned(ctx.obj.store, err)
+    err.print("a participant's id: add &participant=ID to their link, or the page asks for it", highlight=False)
+    served, stopped = server.serve(serving.links)
+    for s in served:
+        if s.outcome is not None:
+            for p in [*(e["path"] for e in s.outcome.episodes), *map(str, s.outcome.records)]:
+                out.print(p, highlight=False)
+    finished = sum(1 for s in served if s.outcome is not None and s.outcome.code is not None)
+    err.print(f"study {the_study.name}: {len(served)} of {serving.participants} link(s) used, {finished} session(s) "
+              f"finished; esr plays --study {the_study.name}", highlight=False)
+    if stopped and any(s.outcome is None or s.outcome.ended_early for s in served):
+        raise Exit(130)
+    if any(s.outcome is None for s in served):
+        raise Exit(1)
 
 
 @app.command()

@@ -65,14 +65,18 @@ class Robot:
         else:
             self._act(state, jax.random.PRNGKey(0))
 
-    def start(self, state) -> None:
-        self.memory = self._start(state) if self.by_rule else None
+    # The robot holds no episode's state (a rule's memory goes back to the caller): one robot
+    # serves every participant of a study server at once.
+    def start(self, state):
+        """-> the memory an episode starts with (None for a policy)."""
+        return self._start(state) if self.by_rule else None
 
-    def act(self, state, key, prev_human_action: int) -> int:
+    def act(self, memory, state, key, prev_human_action: int) -> tuple[int, object]:
+        """-> (the robot's action, the memory after it)."""
         if self.by_rule:
-            action, self.memory = self._rule(self.memory, state, jnp.int32(prev_human_action), key)
-            return int(action)
-        return int(self._act(state, key))
+            action, memory = self._rule(memory, state, jnp.int32(prev_human_action), key)
+            return int(action), memory
+        return int(self._act(state, key)), memory
 
 
 @dataclass(frozen=True)
@@ -122,7 +126,7 @@ class Game:
         self.key = jax.random.PRNGKey(seed)
         self.key, k_reset = jax.random.split(self.key)
         self.state = self.env.reset(k_reset)
-        self.robot.start(self.state)
+        self.memory = self.robot.start(self.state)
         self.t, self.score, self.prev_human = 0, 0.0, 0
         self._step = jax.jit(self.env.step)
         self.robot.warm(self.state)  # compiled before the first frame is shown
@@ -161,7 +165,7 @@ class Game:
             raise RuntimeError("the episode is over")
         before = state_record(self.state)
         self.key, k_robot = jax.random.split(self.key)
-        robot_action = self.robot.act(self.state, k_robot, self.prev_human)
+        robot_action, self.memory = self.robot.act(self.memory, self.state, k_robot, self.prev_human)
         self.state, reward = self._step(self.state, jnp.int32(robot_action), jnp.int32(human_action))
         self.t, self.score, self.prev_human = self.t + 1, self.score + float(reward), human_action
         timing = dict(frame or {})

@@ -1,9 +1,11 @@
 """The browser front end of `esr play --web`: a Starlette page and websocket served by uvicorn
-on localhost only, in a thread beside the game loop.
+in a thread beside the game loops, on localhost unless `--host` says otherwise.
 
-The page draws each state as a PNG from esr's own renderer and sends the keys; the loop, the
-robot and the log stay in Python (esr_cli/play/game.py). One browser tab plays at a time.
-Closing the tab ends the episode (kept as incomplete), as does Ctrl-C in the terminal.
+The page draws each state as a PNG from esr's own renderer and sends the keys; the loops, the
+robots and the logs stay in Python (esr_cli/play/game.py). Each tab plays on its own Channel:
+`Web` is one participant at a time on one token (`esr play --web`), `Links` a study server
+with one single-use link per participant, several playing at once (`--participants N`).
+Closing a tab ends its episode (kept as incomplete), as does Ctrl-C in the terminal.
 
 Timing is measured in the browser (`performance.now()`): the page reports when each numbered
 frame was painted, and each key carries the event's time stamp, the frame on screen and that
@@ -11,17 +13,18 @@ frame's paint time. A key pressed before any frame was painted names no frame.
 
 Any web page the participant has open can reach 127.0.0.1, so the server answers only its own
 page: the address esr prints carries a random token that the page and its websocket must send,
-the Host header must name this server (a DNS-rebound name reaches 127.0.0.1 under another), and
-the websocket must come from this server's page (its Origin). Anything else is refused with
-one line on the console and never plays.
+on localhost the Host header must name this server (a DNS-rebound name reaches 127.0.0.1 under
+another), and the websocket must come from this server's page (its Origin). Anything else is
+refused with one line on the console and never plays.
 """
-
 from __future__ import annotations
 
+import abc
 import asyncio
 import base64
 import hmac
 import io
+import ipaddress
 import json
 import logging
 import queue
@@ -80,7 +83,10 @@ const KEYS = {ArrowUp: "up", ArrowDown: "down", ArrowLeft: "left", ArrowRight: "
 const IGNORED = ["Shift", "Control", "Alt", "Meta", "CapsLock", "Tab"];
 const $ = (id) => document.getElementById(id);
 const token = new URLSearchParams(location.search).get("token") ?? "";
-const ws = new WebSocket(`ws://${location.host}/ws?token=${encodeURIComponent(token)}`);
+const wsUrl = new URL(`ws?token=${encodeURIComponent(token)}`, location.href);  // beside the page (a proxy's path too)
+wsUrl.protocol = location.protocol === "https:" ? "wss:" : "ws:";
+const ws = new WebSocket(wsUrl);
+let everOpen = false;
 let onScreen = null, paintedAt = null;  // the frame number on screen and when it was painted
 let form = null, items = [];  // a study's page on screen (its number) and its questions
 const fromUrl = new URLSearchParams(location.search).get("participant");
@@ -144,7 +150,7 @@ function showPage(m) {
     submit("continue");
   }
 }
-ws.onopen = () => { document.body.dataset.connected = "true"; $("title").textContent = "connected: waiting for the game"; };
+ws.onopen = () => { everOpen = true; document.body.dataset.connected = "true"; $("title").textContent = "connected: waiting for the game"; };
 ws.onmessage = (event) => {
   const m = JSON.parse(event.data);
   if (m.page) { showPage(m); return; }
@@ -173,7 +179,8 @@ ws.onmessage = (event) => {
 // back-forward cache (which would keep the socket open): close the socket on the way out.
 window.addEventListener("pagehide", () => ws.close());
 ws.onclose = () => {
-  document.body.dataset.connected = "closed"; $("message").textContent += "  (the game has ended; you can close this tab)";
+  document.body.dataset.connected = "closed";
+  if (!everOpen) $("title").textContent = "this address cannot play now: its session has begun elsewhere, or the server has stopped"; $("message").textContent += "  (the game has ended; you can close this tab)";
   if (document.body.dataset.page && document.body.dataset.page !== "end") $("page-error").textContent = "The session has ended; you can close this tab.";
 };
 document.addEventListener("keydown", (e) => {
@@ -273,93 +280,27 @@ def png_base64(frame: np.ndarray) -> str:
     return base64.b64encode(buf.getvalue()).decode()
 
 
-class Web:
-    """`with Web(port, console) as front:` -> ready(), show(View), key(timeout), finish(lines)."""
+class Channel:
+    """One browser tab's connection: the front end (FrontEnd) a game loop or a study session
+    drives: ready(), show(View), key(timeout), ask(page), shown_at(frame), finish(lines)."""
 
     draws_text = False  # every environment as its picture
 
-    def __init__(self, port: int, console):
-        self.port, self.console = port, console
-        probe = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        # As the server's own socket does: a port whose last connections are in TIME_WAIT (a
-        # session just ended) is free to listen on.
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            probe.bind((HOST, port))
-        except OSError as e:
-            raise PortInUse(f"port {port} on {HOST} is not free ({e.strerror}): choose another with --port") from None
-        finally:
-            probe.close()
-        self.token = secrets.token_urlsafe(32)  # only who reads esr's console can open the page
+    def __init__(self, console):
+        self.console = console
         self.keys: queue.Queue = queue.Queue()
         self.painted: dict[int, float] = {}  # frame -> the browser's paint time (the latest SHOWN_KEPT)
         self.latest: str | None = None
         self.socket: WebSocket | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
         self.connected = threading.Event()
+        self.closed = threading.Event()  # the connection has gone (or never came: the server stopped)
         self.form = 0  # the number of the last study page sent
         self.asking = False  # page replies are taken only once a study has shown a page
-        app = Starlette(routes=[Route("/", self._page), WebSocketRoute("/ws", self._play)])
-        config = uvicorn.Config(app, host=HOST, port=port, log_level="warning", lifespan="off", ws="websockets-sansio",
-                                ws_max_size=MAX_MESSAGE_BYTES, log_config=None)  # logs: OneLine, while served
-        self.server = uvicorn.Server(config)
-        self.thread = threading.Thread(target=self.server.run, name="esr-play-web", daemon=True)
-
-    @property
-    def url(self) -> str:
-        return f"http://{HOST}:{self.port}/?token={self.token}"
-
-    def __enter__(self):
-        # uvicorn's records go to OneLine only: a handler on the root logger would print tracebacks.
-        self.log, uvicorn_log = OneLine(self.console), logging.getLogger("uvicorn")
-        self.propagate, uvicorn_log.propagate = uvicorn_log.propagate, False
-        uvicorn_log.addHandler(self.log)
-        self.thread.start()
-        deadline = time.monotonic() + 20
-        while not self.server.started:
-            if not self.thread.is_alive() or time.monotonic() > deadline:
-                raise PortInUse(f"the web server did not start on {self.url}")
-            time.sleep(0.05)
-        return self
-
-    def __exit__(self, *exc):
-        self.server.should_exit = True
-        self.thread.join(timeout=10)
-        logging.getLogger("uvicorn").removeHandler(self.log)
-        logging.getLogger("uvicorn").propagate = self.propagate
-        return False
 
     # ---------------------------------------------------------------- the server side
-    def _refusal(self, conn: HTTPConnection) -> str | None:
-        """Why a request is not this session's page or its websocket, or None."""
-        host = conn.headers.get("host", "")
-        if host not in {f"{name}:{self.port}" for name in HOST_NAMES}:
-            return f"its Host {host[:80]!r} is not this server"
-        if not hmac.compare_digest(conn.query_params.get("token", "").encode(), self.token.encode()):
-            return "it has no token, or not this session's"
-        origin = conn.headers.get("origin", "")
-        if conn.scope["type"] == "websocket" and origin != f"http://{host}":
-            return f"its Origin {origin[:80]!r} is not this server's page"
-        return None
-
-    def _refuse(self, conn: HTTPConnection, why: str) -> None:
-        self.console.print(f"esr play: refused a {'websocket' if conn.scope['type'] == 'websocket' else 'page request'}: {why}")
-
-    async def _page(self, request):
-        if why := self._refusal(request):
-            self._refuse(request, why)
-            return PlainTextResponse("forbidden: open the address esr play printed", status_code=403)
-        return HTMLResponse(PAGE)
-
-    async def _play(self, websocket: WebSocket):
-        if why := self._refusal(websocket):
-            self._refuse(websocket, why)
-            await websocket.close(code=1008)  # before the handshake: an HTTP 403
-            return
-        if self.socket is not None:  # one player at a time
-            await websocket.close(code=1013)
-            return
-        await websocket.accept()
+    async def attach(self, websocket: WebSocket) -> None:
+        """Serve an accepted websocket until it closes; a closed tab ends the episode."""
         self.socket, self.loop = websocket, asyncio.get_running_loop()
         try:
             if self.latest is not None:
@@ -370,7 +311,12 @@ class Web:
             pass  # the browser left while esr was sending
         finally:
             self.socket = None
-            self.keys.put(KeyPress(CLOSED, received_at=time.monotonic()))  # a closed tab ends the episode
+            self.end()
+
+    def end(self) -> None:
+        """The connection has gone, or the server stops: whoever waits for a key gets CLOSED."""
+        self.closed.set()
+        self.keys.put(KeyPress(CLOSED, received_at=time.monotonic()))
 
     async def _receive_keys(self, websocket: WebSocket) -> None:
         """Queue each key the page sends until it closes; anything but a key message (a binary
@@ -417,10 +363,8 @@ class Web:
 
     # ---------------------------------------------------------------- the game side
     def ready(self) -> None:
-        """Wait for the browser (Ctrl-C gives up)."""
-        self.console.print("open this address in a browser to play (Ctrl-C ends); its token lets only you in:")
-        self.console.print(f"  {self.url}")
-        while not self.connected.wait(timeout=0.2):
+        """Wait for the browser (Ctrl-C gives up; a connection that never came leaves CLOSED queued)."""
+        while not self.connected.wait(timeout=0.2) and not self.closed.is_set():
             pass
 
     def show(self, view: View) -> None:
@@ -465,3 +409,184 @@ class Web:
 
     def finish(self, lines: list[str]) -> None:
         self._send({"message": "  ".join(lines), "over": True, "finished": True})
+
+
+def is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return host == "localhost"
+
+
+class Server(abc.ABC):
+    """The page and its websocket served by uvicorn in a thread beside the game loops. Each
+    admission token lets one participant in: `admit(token)` -> the Channel its tab plays on."""
+
+    def __init__(self, port: int, console, host: str = HOST, public_url: str | None = None):
+        self.host, self.port, self.console = host, port, console
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        probe = socket.socket(family, socket.SOCK_STREAM)
+        # As the server's own socket does: a port whose last connections are in TIME_WAIT (a
+        # session just ended) is free to listen on.
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host.strip("[]"), port))
+        except OSError as e:
+            raise PortInUse(f"port {port} on {host} is not free ({e.strerror}): choose another with --port") from None
+        finally:
+            probe.close()
+        self.local = is_loopback(host)
+        self.base = public_url or f"http://{host if host not in ('0.0.0.0', '::') else socket.gethostname()}:{port}/"
+        app = Starlette(routes=[Route("/", self._page), WebSocketRoute("/ws", self._play)])
+        config = uvicorn.Config(app, host=host.strip("[]"), port=port, log_level="warning", lifespan="off",
+                                ws="websockets-sansio", ws_max_size=MAX_MESSAGE_BYTES, log_config=None)  # logs: OneLine
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, name="esr-play-web", daemon=True)
+
+    def link(self, token: str) -> str:
+        return f"{self.base}?token={token}"
+
+    @abc.abstractmethod
+    def admit(self, token: str) -> Channel | str:
+        """The channel for this (known) token's tab, or why it may not play now."""
+
+    @abc.abstractmethod
+    def known(self, token: str) -> bool:
+        """Whether the token is one this server gave out."""
+
+    def __enter__(self):
+        # uvicorn's records go to OneLine only: a handler on the root logger would print tracebacks.
+        self.log, uvicorn_log = OneLine(self.console), logging.getLogger("uvicorn")
+        self.propagate, uvicorn_log.propagate = uvicorn_log.propagate, False
+        uvicorn_log.addHandler(self.log)
+        self.thread.start()
+        deadline = time.monotonic() + 20
+        while not self.server.started:
+            if not self.thread.is_alive() or time.monotonic() > deadline:
+                raise PortInUse(f"the web server did not start on {self.base}")
+            time.sleep(0.05)
+        return self
+
+    def __exit__(self, *exc):
+        self.server.should_exit = True
+        self.thread.join(timeout=10)
+        logging.getLogger("uvicorn").removeHandler(self.log)
+        logging.getLogger("uvicorn").propagate = self.propagate
+        return False
+
+    def _refusal(self, conn: HTTPConnection) -> str | None:
+        """Why a request is not one of this server's pages or websockets, or None. Off localhost
+        (`--host`) any Host may name the server (a proxy's, a lab machine's), the tokens guard it."""
+        host = conn.headers.get("host", "")
+        if self.local and host not in {f"{name}:{self.port}" for name in HOST_NAMES}:
+            return f"its Host {host[:80]!r} is not this server"
+        if not self.known(conn.query_params.get("token", "")):
+            return "it has no token, or not one of this server's"
+        origin = conn.headers.get("origin", "")
+        if conn.scope["type"] == "websocket" and origin not in (f"http://{host}", f"https://{host}"):
+            return f"its Origin {origin[:80]!r} is not this server's page"
+        return None
+
+    def _refuse(self, conn: HTTPConnection, why: str) -> None:
+        self.console.print(f"esr play: refused a {'websocket' if conn.scope['type'] == 'websocket' else 'page request'}: {why}")
+
+    async def _page(self, request):
+        if why := self._refusal(request):
+            self._refuse(request, why)
+            return PlainTextResponse("forbidden: open the address esr play printed", status_code=403)
+        return HTMLResponse(PAGE)
+
+    async def _play(self, websocket: WebSocket):
+        if why := self._refusal(websocket):
+            self._refuse(websocket, why)
+            await websocket.close(code=1008)  # before the handshake: an HTTP 403
+            return
+        channel = self.admit(websocket.query_params.get("token", ""))
+        if isinstance(channel, str):  # one tab per token at a time; a used link stays used
+            self.console.print(f"esr play: refused a websocket: {channel}")
+            await websocket.close(code=1013)
+            return
+        await websocket.accept()
+        await channel.attach(websocket)
+
+
+class Web(Server):
+    """`with Web(port, console) as front:` one participant at a time on one token, the front end
+    of `esr play --web`: ready(), show(View), key(timeout), ask(page), shown_at(frame), finish(lines)."""
+
+    draws_text = False
+
+    def __init__(self, port: int, console, host: str = HOST, public_url: str | None = None):
+        super().__init__(port, console, host, public_url)
+        self.token = secrets.token_urlsafe(32)  # only who reads esr's console can open the page
+        self.channel = Channel(console)
+
+    @property
+    def url(self) -> str:
+        return self.link(self.token)
+
+    def known(self, token: str) -> bool:
+        return hmac.compare_digest(token.encode(), self.token.encode())
+
+    def admit(self, token: str) -> Channel | str:
+        return "a tab is already playing on this address" if self.channel.socket is not None else self.channel
+
+    @property
+    def painted(self) -> dict[int, float]:
+        return self.channel.painted
+
+    def ready(self) -> None:
+        self.console.print("open this address in a browser to play (Ctrl-C ends); its token lets only you in:")
+        self.console.print(f"  {self.url}")
+        self.channel.ready()
+
+    def show(self, view: View) -> None:
+        self.channel.show(view)
+
+    def key(self, timeout: float | None) -> KeyPress | None:
+        return self.channel.key(timeout)
+
+    def ask(self, page) -> dict | None:
+        return self.channel.ask(page)
+
+    def shown_at(self, frame: int) -> float | None:
+        return self.channel.shown_at(frame)
+
+    def finish(self, lines: list[str]) -> None:
+        self.channel.finish(lines)
+
+
+class Links(Server):
+    """A study server: one single-use link per participant (its own token), each admitted tab a
+    new Channel handed to `start(channel)` (a study session in its own thread). A link whose
+    session has begun lets nobody in again, the same person after closing the tab included."""
+
+    def __init__(self, port: int, console, count: int, start, host: str = HOST, public_url: str | None = None):
+        super().__init__(port, console, host, public_url)
+        self.tokens = [secrets.token_urlsafe(32) for _ in range(count)]
+        self.channels: dict[str, Channel] = {}
+        self.start = start
+        self.lock = threading.Lock()
+
+    @property
+    def links(self) -> list[str]:
+        return [self.link(t) for t in self.tokens]
+
+    def known(self, token: str) -> bool:
+        return any(hmac.compare_digest(token.encode(), t.encode()) for t in self.tokens)
+
+    def admit(self, token: str) -> Channel | str:
+        with self.lock:
+            if token in self.channels:
+                return f"link {self.tokens.index(token) + 1} has been used (a session began on it)"
+            channel = self.channels[token] = Channel(self.console)
+        self.start(channel, self.tokens.index(token) + 1)
+        return channel
+
+    @property
+    def used(self) -> int:
+        return len(self.channels)
+
+    def end_all(self) -> None:
+        for channel in list(self.channels.values()):
+            channel.end()

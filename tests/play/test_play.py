@@ -272,8 +272,8 @@ def test_overcooked_frames_are_the_board_as_the_human_plays(cramped_board):
     env, _ = cramped_board
 
     class StayingRobot(Robot):  # stays put: the human's way to the pot is free
-        def act(self, state, key, prev_human_action):
-            return STAY
+        def act(self, memory, state, key, prev_human_action):
+            return STAY, memory
 
     game = Game("overcooked", StayingRobot("stay", env), 0)
     assert np.array_equal(game.frame(), ob.draw_env(env, game.state))
@@ -512,8 +512,8 @@ def test_an_episode_left_by_a_killed_process_is_kept_as_incomplete(tmp_path, sto
 CHROMIUM, DRIVER = shutil.which("chromium"), shutil.which("chromedriver")
 
 
-@pytest.fixture(scope="module")
-def browser():
+def chromium():
+    """A headless Chromium under Selenium (the caller quits it)."""
     assert CHROMIUM and DRIVER, "the browser tests need Chromium and its driver (Debian: chromium chromium-driver; .ci/run installs them)"
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
@@ -522,7 +522,12 @@ def browser():
     options.binary_location = CHROMIUM
     for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--window-size=900,700"):
         options.add_argument(arg)
-    driver = webdriver.Chrome(service=Service(DRIVER), options=options)
+    return webdriver.Chrome(service=Service(DRIVER), options=options)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    driver = chromium()
     yield driver
     driver.quit()
 
@@ -699,6 +704,43 @@ def test_only_the_printed_address_plays(tmp_path):
     (path,) = played(tmp_path)
     assert [s["key"] for s in logged_steps(path)] == keys[:1]
     assert not json.loads((path / "summary.json").read_text())["completed"]
+
+
+def test_off_localhost_any_host_name_reaches_the_server_but_only_with_the_token_and_from_its_page():
+    """`--host`: a lab machine's name or a proxy's stands in the Host header; the token and the
+    websocket's Origin (the page's own, http or https behind a proxy) still decide."""
+    from rich.console import Console
+
+    from esr_cli.play.web import Web
+
+    port = free_port()
+    with Web(port, Console(file=io.StringIO()), host="0.0.0.0", public_url="https://lab.example/study/") as web:
+        assert web.url == f"https://lab.example/study/?token={web.token}"
+        page, ws, lab = f"http://127.0.0.1:{port}/", f"ws://127.0.0.1:{port}/ws", f"lab-pc.example:{port}"
+        assert refused(f"{page}?token={web.token}", Host=lab) == 200
+        assert refused(page, Host=lab) == 403 and refused(f"{page}?token=wrong", Host=lab) == 403
+        assert refused(f"{ws}?token={web.token}", host=lab, origin="http://attacker.example") == 403
+        for scheme in ("http", "https"):
+            assert refused(f"{ws}?token={web.token}", host=lab, origin=f"{scheme}://{lab}") == 200
+            assert web.key(timeout=10).name == CLOSED  # that tab has gone
+
+
+def test_a_study_link_lets_one_tab_in_once():
+    from rich.console import Console
+
+    from esr_cli.play.web import Links
+
+    said, started = io.StringIO(), []
+    port = free_port()
+    links = Links(port, Console(file=said, width=300), 2, lambda channel, link: started.append(link))
+    origin = f"http://127.0.0.1:{port}"
+    with links:
+        first, second = (u.replace("http://", "ws://").replace("/?token=", "/ws?token=") for u in links.links)
+        assert refused(first, origin=origin) == 200 and started == [1]
+        assert refused(first, origin=origin) == 403 and started == [1]  # used: its session has begun
+        assert refused(second, origin=origin) == 200 and started == [1, 2]
+        assert refused(first.split("?")[0] + "?token=made-up", origin=origin) == 403
+    assert "link 1 has been used" in said.getvalue()
 
 
 def test_bad_frames_end_the_connection_with_one_line_each():

@@ -4,23 +4,25 @@ each robot's episodes and questionnaire, the completion code) driven as a person
 pseudo-terminal and in headless Chromium, down to `esr plays --study`."""
 
 import csv
+import dataclasses
 import io
 import json
 import os
 import select
+import subprocess
+import sys
 import threading
 import time
 import urllib.parse
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, esr
+from conftest import ROOT, esr, esr_env
 from play_script import Scripted
-from test_play import ARROW, Pty, browser, free_port, grid_keys, logged_steps, press_and_wait, serve, wait_for  # noqa: F401
+from test_play import ARROW, Pty, browser, chromium, free_port, grid_keys, logged_steps, press_and_wait, refused, serve, wait_for  # noqa: F401
 
 from esr_cli.cli.main import main
-from esr_cli.play import pages
-from esr_cli.play import study_session as ss
+from esr_cli.play import pages, study_session as ss
 from esr_cli.play.study import MAX_TEXT_FILE_BYTES, StudyError, blocks_of, load_study, participant_problem
 from esr_cli.storage.store import PLAY_KIND, Store
 
@@ -165,6 +167,18 @@ def test_the_cli_refuses_a_bad_study_in_one_line_before_any_work(tmp_path, capsy
         (["play"], "name a trained run or a spec (or give --study STUDY.yaml)"),
         (["plays", "--study", "no such/study"], "--study: a study's name"),
         (["plays", "--answers", str(tmp_path / "a.csv")], "--answers: only with --study NAME"),
+        (["play", "--study", str(good), "--participants", "2"], "--participants: only with --web"),
+        (["play", "experiments/grid_2.yaml", "--web", "--participants", "2"], "--participants: only with --study"),
+        (["play", "--study", str(good), "--web", "--participants", "0"], "--participants: between 1 and 1,000"),
+        (["play", "--study", str(good), "--web", "--participants", "2", "--participant", "a1"],
+         "--participant: with --participants each person gives their own id"),
+        (["play", "--study", str(good), "--web", "--links", str(tmp_path / "l.txt")], "--links: only with --participants N"),
+        (["play", "--study", str(good), "--web", "--participants", "2", "--links", str(store / PLAY_KIND / "l.txt")],
+         "lies inside the store's play/ folder"),
+        (["play", "--study", str(good), "--host", "10.0.0.1"], "--host: only with --web"),
+        (["play", "--study", str(good), "--web", "--host", "bad host!"], "--host: an IP address or a host name"),
+        (["play", "--study", str(good), "--web", "--public-url", "ftp://lab.example/"], "--public-url: an http:// or https://"),
+        (["play", "--study", str(good), "--web", "--public-url", "https://lab.example/?x=1"], "--public-url: an http:// or https://"),
     ]:
         capsys.readouterr()
         assert main(["--store", str(store), *args]) == 2, args
@@ -286,6 +300,39 @@ def test_a_person_who_leaves_mid_study_keeps_what_was_played(tmp_path):
     assert outcome.ended_early and outcome.consent and len(outcome.episodes) == 2 and outcome.code is None
     assert [e["completed"] for e in outcome.episodes] == [True, True]
     assert not [r for r in ss.study_records(store, "t_study") if r["record"] != "consent declined"]
+
+
+@pytest.mark.slow
+def test_an_overcooked_study_in_a_fixed_order_exports_as_human_data(tmp_path):
+    """`order: fixed` plays the robots as written for every participant (p1 and p2 stand in
+    different rows of the counterbalancing); Overcooked ticks at the study's rate; the study's
+    episodes, practice included, export as overcooked-ai's human data."""
+    import pandas as pd
+
+    study = load_study(write_study(tmp_path / "s", study_dict(
+        environment=str(ROOT / "experiments" / "cramped_room_random.yaml"), set={"env.episode_steps": 6},
+        order="fixed", fps=60, questionnaire=QUESTIONS[:1])))
+    store = Store(tmp_path / "store")
+    robots = ss.load_robots(study, store)
+    episode = ["space", "up", *[None] * 6]  # up, taken at the first tick, then five ticks of staying
+    for who in ("p1", "p2"):
+        replies = [{"button": "agree"}, {"button": "continue"}, *({"answers": {"helpful": v}, "button": "submit"} for v in (4, 5))]
+        person = Person(episode * 3, replies)
+        outcome = ss.StudySession(study, robots, person, "test", store).run(who)
+        assert outcome.code == "TESTCODE1" and [e["steps"] for e in outcome.episodes] == [6, 6, 6]
+    episodes, records = stored(store.root, "t_study")
+    assert [ss.block_order(study, who) for who in ("p1", "p2")] == [[0, 1], [0, 1]]
+    balanced = dataclasses.replace(study, model=study.model.model_copy(update={"order": "counterbalanced"}))
+    assert ss.block_order(balanced, "p1") != ss.block_order(balanced, "p2")
+    for who in ("p1", "p2"):
+        mine = [h for _, h, _ in episodes if h["participant"] == who]
+        assert [h["study_robot"] for h in mine] == [None, "first", "second"] and mine[0]["env"]["kind"] == "overcooked"
+    assert [r["study_robot"] for r in records if r["record"] == "questionnaire"] == ["first", "second"] * 2
+    out = tmp_path / "trials.pickle"
+    assert main(["--store", str(store.root), "plays", "--study", "t_study", "--export", str(out)]) == 0
+    frame = pd.read_pickle(out)
+    assert len(frame) == 2 * 3 * 6 and frame["workerid_num"].nunique() == 2
+    assert frame.groupby(["workerid_num", "round_num"]).size().tolist() == [6] * 6  # an episode per round
 
 
 # ---------------------------------------------------------------- the flow, as a person plays it
@@ -433,6 +480,86 @@ def test_browser_study_from_participant_id_to_completion_code(browser, tmp_path)
     assert all(h["front_end"] == "web" for h in headers)
     steps = logged_steps(Store(store).lookup(PLAY_KIND, stored(store, "t_study")[0][0][0]))
     assert [s["key"] for s in steps if s["key"]] == grid_keys(seed)  # the practice episode as played
+
+
+def serve_links(args, store, port, links: Path):
+    """`esr play --study ... --web --participants N --links FILE` started -> (the process, the links)."""
+    proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli.main", "play", *args, "--web", "--port", str(port),
+                             "--links", str(links)], cwd=ROOT, env=esr_env(store), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 240
+    while not links.is_file() or not links.read_text().endswith("\n"):
+        assert proc.poll() is None, proc.communicate()
+        assert time.time() < deadline, "the study server did not start"
+        time.sleep(0.2)
+    return proc, links.read_text().split()
+
+
+def participant_in_browser(driver, url: str, seed: int, likert: list[str]):
+    """One person through the whole study in one browser, a stage per next(): the pages, the
+    practice episode, each robot's episode and questionnaire, the end page."""
+    page_is = lambda kind: wait_for(driver, f"return document.body.dataset.page === '{kind}'", timeout=240)  # noqa: E731
+    driver.get(url)
+    page_is("consent")  # the id came with the link
+    yield
+    driver.find_element("id", "button-agree").click()
+    page_is("instructions")
+    driver.find_element("id", "button-continue").click()
+    for keys, answer in ((grid_keys(seed), None), (grid_keys(seed + 1), likert[0]), (grid_keys(seed + 1), likert[1])):
+        wait_for(driver, "return !document.body.dataset.page && document.body.dataset.frame === '1' && "
+                         "document.getElementById('message').textContent === 'press space to start'", timeout=240)
+        press_and_wait(driver, "space")
+        for k in keys:
+            press_and_wait(driver, k)
+        yield
+        if answer is not None:
+            page_is("questionnaire")
+            driver.find_element("css selector", f"input[name=helpful][value='{answer}']").click()
+            driver.find_element("id", "button-submit").click()
+    page_is("end")
+    wait_for(driver, "return document.getElementById('page-code').textContent.length === 8")
+    yield driver.find_element("id", "page-code").text
+
+
+@pytest.mark.slow
+def test_two_browsers_at_once_are_two_participants_with_separate_sessions(browser, tmp_path):  # noqa: F811
+    """One server, two single-use links: two people play the study side by side, each with their
+    own id, robot order, episodes and answers; a used link lets nobody in again."""
+    seed = open_seed()
+    path = write_study(tmp_path / "s", study_dict(seed=seed, completion={"generated": True, "text": "Thanks!"}))
+    store, port = tmp_path / "store", free_port()
+    proc, links = serve_links(["--study", str(path), "--participants", "2"], store, port, tmp_path / "links.txt")
+    assert len(links) == 2 and oct((tmp_path / "links.txt").stat().st_mode & 0o777) == "0o600"
+    second = chromium()
+    try:
+        # p1 and p2 stand in the first and second row of the two robots' counterbalanced order.
+        people = {"p1": participant_in_browser(browser, links[0] + "&participant=p1", seed, ["6", "3"]),
+                  "p2": participant_in_browser(second, links[1] + "&participant=p2", seed, ["1", "7"])}
+        codes = {}
+        for _ in range(5):  # stage by stage, in turn: both sessions are open at once throughout
+            for who, person in people.items():
+                codes[who] = next(person)
+        # The first link again (another tab, or the same person back): refused, its session is begun.
+        ws = links[0].replace("http://", "ws://").replace("/?token=", "/ws?token=")
+        assert refused(ws, origin=f"http://127.0.0.1:{port}") == 403
+    finally:
+        second.quit()
+    _, errs = proc.communicate(timeout=120)  # every link's session has ended: the server stops by itself
+    assert proc.returncode == 0, errs
+    assert "link 1 has been used" in errs and "2 of 2 link(s) used, 2 session(s) finished" in errs
+    episodes, records = stored(store, "t_study")
+    completions = {r["participant"]: r for r in records if r["record"] == "completion"}
+    assert {who: c["code"] for who, c in completions.items()} == codes and codes["p1"] != codes["p2"]
+    assert completions["p1"]["session"] != completions["p2"]["session"]
+    for who, likert in (("p1", [6, 3]), ("p2", [1, 7])):
+        mine = [h for _, h, _ in episodes if h["participant"] == who]
+        assert [h["practice"] for h in mine] == [True, False, False]
+        assert {h["session"] for h in mine} == {completions[who]["session"]}
+        asked = sorted((r for r in records if r["record"] == "questionnaire" and r["participant"] == who), key=lambda r: r["block"])
+        assert [r["answers"]["helpful"] for r in asked] == likert
+        assert [r["study_robot"] for r in asked] == [h["study_robot"] for h in mine[1:]]
+    orders = {who: [h["study_robot"] for _, h, _ in episodes if h["participant"] == who and not h["practice"]] for who in codes}
+    assert sorted(orders.values()) == [["first", "second"], ["second", "first"]]  # counterbalanced per participant
 
 
 def test_free_text_that_looks_like_a_formula_opens_as_text_in_a_spreadsheet():
