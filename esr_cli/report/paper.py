@@ -11,7 +11,6 @@
 
 from __future__ import annotations
 
-import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +24,7 @@ from esr_cli.common.stats import format_summary
 from esr_cli.recipes import sweep
 from esr_cli.report import figures as figs
 from esr_cli.storage import provenance
-from esr_cli.storage.artifacts import Recipe, ensure
+from esr_cli.storage.artifacts import Recipe, ensure, read_summary
 from esr_cli.storage.store import FIGURE_KIND, RUN_KIND, Store, atomic_write_text, content_key
 
 PLOT_SOURCES = ("report/figures.py", "common/plots.py", "report/paper.py", "analysis")
@@ -75,7 +74,7 @@ def ensure_report(store: Store, budget: str, console: Console) -> Path:
                  f"Made by `make paper-figures BUDGET={budget}` from the runs of `experiments/suites/paper.yaml`. "
                  "Each figure's sidecar JSON lists the training-run keys it read; `esr show KEY` prints a run's spec.", ""]
         for figure, path in made.items():
-            summary = json.loads((path / "summary.json").read_text())
+            summary = read_summary(path)
             (out / figure).mkdir()
             for f in summary["files"]:
                 shutil.copy2(path / f, out / figure / f)

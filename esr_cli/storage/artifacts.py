@@ -23,11 +23,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, NamedTuple
 
+from esr_cli.common.jsonl import read_json
 from esr_cli.common.stops import Interrupted, TimeLimitReached
 from esr_cli.storage import provenance
 from esr_cli.storage.store import KINDS, RUN_KIND, Store, atomic_write_text, content_key, read_pending
 
 SUMMARY_FILE = "summary.json"
+MAX_SUMMARY_BYTES = 16 << 20  # a run's summary is a few KiB; a figure's lists the runs it read
 
 
 @dataclass(frozen=True)
@@ -69,12 +71,17 @@ def preview(recipe: Recipe, out_dir: Path, store: Store) -> dict:
     return summary
 
 
+def read_summary(path: Path) -> dict:
+    """An artifact's summary.json, read bounded (a store's files may come from an archive)."""
+    return read_json(path / SUMMARY_FILE, MAX_SUMMARY_BYTES)
+
+
 class Built(NamedTuple):
     path: Path
     cached: bool  # True: it was in the store already
 
     def summary(self) -> dict:
-        return json.loads((self.path / SUMMARY_FILE).read_text())
+        return read_summary(self.path)
 
 
 def ensure(recipe: Recipe, store: Store) -> Built:

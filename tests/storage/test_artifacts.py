@@ -38,6 +38,26 @@ def test_made_once_then_a_cache_hit(tmp_path):
     assert set(manifest["files"]) == {"a.txt", "summary.json"} and not store.verify(first.path)
 
 
+def test_a_summary_is_read_bounded(tmp_path):
+    """A store's summary.json may come from an archive: a pipe in its place or one larger than
+    the cap is refused, never waited on or read whole."""
+    import os
+
+    from esr_cli.common.jsonl import JsonInputError
+
+    store = Store(tmp_path / "store")
+    built = ensure(Recipe(FIGURE_KIND, "a", {"kind": "figure", "x": 2}, _writer([], "a")), store)
+    summary = built.path / "summary.json"
+    summary.unlink()
+    os.mkfifo(summary)
+    with pytest.raises(JsonInputError):
+        built.summary()
+    summary.unlink()
+    summary.write_text(" " * (artifacts.MAX_SUMMARY_BYTES + 1) + "{}")
+    with pytest.raises(JsonInputError, match="bytes"):
+        built.summary()
+
+
 def test_requires_come_first_and_a_failed_check_writes_nothing(tmp_path):
     store, calls = Store(tmp_path / "store"), []
     base = Recipe(FIGURE_KIND, "base", {"n": "base"}, _writer(calls, "base"))
