@@ -562,6 +562,52 @@ def test_two_browsers_at_once_are_two_participants_with_separate_sessions(browse
     assert sorted(orders.values()) == [["first", "second"], ["second", "first"]]  # counterbalanced per participant
 
 
+def test_a_study_server_keeps_serving_when_one_session_fails_and_stops_when_every_link_has_ended(tmp_path, monkeypatch):
+    """The server's bookkeeping, sessions stubbed: a session the store fails ends with one line
+    and the others go on; serve() returns once every link's session has ended."""
+    import websocket
+    from rich.console import Console
+
+    from esr_cli.play import study_server
+    from esr_cli.storage.store import StoreError
+
+    study = load_study(write_study(tmp_path / "s", study_dict()))
+
+    def run(self, participant=None):  # the first link's session meets a full disk; the second finishes
+        self.front.ready()
+        if self.front.ask(pages.participant_page()) is None:
+            raise StoreError("no space left on the device")
+        return ss.Outcome("ok1", "session-2", consent=True, code="CODE")
+
+    monkeypatch.setattr(ss.StudySession, "run", run)
+    said = io.StringIO()
+    server = study_server.StudyServer(study, [], Store(tmp_path / "store"), Console(file=said, width=300), 2, free_port(),
+                                      "127.0.0.1", None)
+    got = {}
+    thread = threading.Thread(target=lambda: got.update(result=server.serve(tmp_path / "links.txt")))
+    thread.start()
+    while not (tmp_path / "links.txt").is_file():
+        time.sleep(0.05)
+    origin = f"http://127.0.0.1:{server.server.port}"
+    first, second = (u.replace("http://", "ws://").replace("/?token=", "/ws?token=")
+                     for u in (tmp_path / "links.txt").read_text().split())
+    a = websocket.create_connection(first, timeout=10, origin=origin)
+    assert json.loads(a.recv())["page"]["kind"] == "participant"
+    a.close()  # the tab goes: the stubbed store fails this session
+    b = websocket.create_connection(second, timeout=10, origin=origin)
+    json.loads(b.recv())
+    b.send(json.dumps({"form": 1, "button": "continue"}))
+    thread.join(timeout=60)
+    b.close()
+    served, stopped = got["result"]
+    assert not stopped and [s.link for s in served] == [1, 2]
+    assert served[0].outcome is None and served[0].problem == "no space left on the device"
+    assert served[1].outcome.code == "CODE"
+    lines = said.getvalue().splitlines()
+    assert "study t_study: link 1: the session failed: no space left on the device" in lines
+    assert any(line.startswith("study t_study: link 2: participant ok1") and "finished" in line for line in lines)
+
+
 def test_free_text_that_looks_like_a_formula_opens_as_text_in_a_spreadsheet():
     """A participant's answer `=HYPERLINK(...)` is written with a leading quote, so a spreadsheet
     shows the text rather than running it; numbers (a negative return) are untouched."""
