@@ -9,7 +9,7 @@ comma  := ,
 STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 DEMO_SET := --budget quick --set train.epochs=40
 
-.PHONY: install browser slurm demo test test-fast bench sweep paper-figures report-store report report-check clean-venv
+.PHONY: install browser slurm demo test test-fast bench bench-human sweep paper-figures report-store report report-check clean-venv
 BUDGET   ?= paper
 EXECUTOR ?= local
 
@@ -69,6 +69,10 @@ paper-figures: install
 
 bench: install
 	$(BIN)/python benchmarks/bench.py
+
+# The PPO human's seconds per update on the three layouts (docs/overcooked.md, "Cost").
+bench-human: install
+	$(BIN)/python benchmarks/bench_human.py
 
 # Every run of a suite that the store lacks (docs/cluster.md), e.g.
 #   make sweep SUITE=experiments/suites/gridworld.yaml BUDGET=quick EXECUTOR=slurm
