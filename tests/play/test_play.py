@@ -28,7 +28,7 @@ from esr_cli.common import specs
 from esr_cli.model.envs import make_env
 from esr_cli.play import session as ps
 from esr_cli.play.boards import BOARDS
-from esr_cli.play.game import CLOSED, QUIT, Game, Robot
+from esr_cli.play.game import CLOSED, QUIT, Game, KeyPress, Robot
 from esr_cli.storage.play_log import state_from_record
 from esr_cli.storage.store import PLAY_KIND, Store
 
@@ -260,6 +260,30 @@ def test_overcooked_legend_names_every_symbol_and_colour():
 
 
 @pytest.mark.slow
+def test_one_rule_robot_plays_two_games_at_once_as_it_plays_each_alone():
+    """A study server shares each robot between its participants' sessions: a Goal Inference
+    robot's belief travels with the game, so interleaved games play as each would alone."""
+    from esr_cli.model.train import make_trainer
+
+    spec = specs.load(ROOT / "experiments" / "grid_2_goal_inference.yaml", "smoke")
+    trainer = make_trainer(spec)
+    assert trainer.acts_by_rule
+    robot = Robot("gi", trainer.env, trainer)
+    moves = {0: ["up", "up", "left", "space", "up"], 1: ["left", "left", "down", "up", "right"]}
+
+    def play(games):
+        actions = {seed: [] for seed in games}
+        for t in range(5):
+            for seed, game in games.items():
+                if not game.done:
+                    actions[seed] += [s.robot_action for s in game.act(KeyPress(moves[seed][t]))]
+        return actions
+
+    alone = {seed: play({seed: Game("gridworld", robot, seed)})[seed] for seed in moves}
+    together = play({seed: Game("gridworld", robot, seed) for seed in moves})
+    assert together == alone and all(alone.values())
+
+
 def test_overcooked_frames_are_the_board_as_the_human_plays(cramped_board):
     """Played through the game: the human turns to the onion pile, takes an onion and puts it
     in the pot; each frame is the board of the game's state."""
