@@ -51,6 +51,7 @@ HOST_NAMES = (HOST, "localhost", "[::1]")  # the names a browser on this machine
 MAX_KEY_TEXT = 40
 SHOWN_KEPT = 256  # paint times kept for the most recent frames
 MAX_MESSAGE_BYTES = 4096  # a key message is a few bytes; the server's frames go the other way
+MAX_WAITING = 1024  # messages queued and not yet taken by the game: no person types that far ahead
 # Close codes with which the websocket layer ends a connection over a bad frame from the browser.
 BAD_FRAMES = {1002: "a malformed frame", 1007: "text that is not UTF-8", 1009: f"a message over {MAX_MESSAGE_BYTES:,} bytes"}
 SCALE = {True: 3, False: 2}  # a small picture (the gridworld's) drawn larger than a large one
@@ -334,6 +335,10 @@ class Channel:
                 while len(self.painted) > SHOWN_KEPT:
                     del self.painted[next(iter(self.painted))]
                 continue
+            if self.keys.qsize() >= MAX_WAITING:  # a script, not a person: the queue stays bounded
+                self._bad_message(f"more than {MAX_WAITING:,} messages the game has not taken yet")
+                await websocket.close(code=1008)
+                return
             if parsed is not None and self.asking and (reply := form_of(parsed)) is not None:
                 self.keys.put(reply)
                 continue

@@ -793,6 +793,32 @@ def test_bad_frames_end_the_connection_with_one_line_each():
     assert len(said.getvalue().splitlines()) == len(sent) and "Traceback" not in said.getvalue()
 
 
+def test_a_flood_of_keys_the_game_has_not_taken_ends_the_connection_with_one_line():
+    """No person types a thousand keys ahead of the game: a page that does is a script, and the
+    queue stays bounded (MAX_WAITING) rather than growing with whatever it sends."""
+    import websocket
+    from rich.console import Console
+
+    from esr_cli.play.web import MAX_WAITING, Web
+
+    said, port = io.StringIO(), free_port()
+    with Web(port, Console(file=said, markup=False, soft_wrap=True, width=200)) as web:
+        conn = websocket.create_connection(f"ws://127.0.0.1:{port}/ws?token={web.token}", timeout=10,
+                                           origin=f"http://127.0.0.1:{port}")
+        try:
+            for _ in range(MAX_WAITING + 50):
+                conn.send(json.dumps({"key": "up", "frame": 1}))
+        except (OSError, websocket.WebSocketException):
+            pass  # the server closed it mid-flood
+        got = []
+        while (press := web.key(timeout=20)) is not None and press.name != CLOSED:
+            got.append(press)
+        assert press is not None and len(got) == MAX_WAITING
+        conn.close()
+    assert said.getvalue().splitlines() == [f"esr play: the browser sent more than {MAX_WAITING:,} messages the game "
+                                            "has not taken yet; its connection is closed"]
+
+
 # ---------------------------------------------------------------- fuzzed websocket messages
 WEBSOCKET_FUZZ_CASES = int(os.environ.get("ESR_WEBSOCKET_FUZZ_CASES", 200))
 FIELDS = ("key", "frame", "t", "shown")
