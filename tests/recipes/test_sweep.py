@@ -69,6 +69,23 @@ def test_paper_gridworld_suite_lists_every_method_on_the_four_settings():
     assert suite.slurm.gpus == 1
 
 
+@pytest.mark.parametrize("path", sorted((ROOT / "experiments" / "suites").glob("*.yaml")), ids=lambda p: p.stem)
+def test_every_suite_in_experiments_loads_at_the_quick_budget(path):
+    assert sweep.load_suite(path, "quick").runs
+
+
+def test_the_calibrated_human_suite_puts_the_preset_human_behind_every_robot():
+    suite = sweep.load_suite(ROOT / "experiments" / "suites" / "overcooked_calibrated.yaml", "quick")
+    kinds = {(r.spec.env.layout, r.spec.method.kind) for r in suite.runs}
+    assert kinds == {(layout, k) for layout in ("cramped_room", "coord_ring", "asymm_advantages")
+                     for k in ("random", "esr", "ave", "iq_learn")}
+    humans = {r.spec.env.layout: r.spec.human for r in suite.runs}
+    assert humans["cramped_room"].kind == "ppo" and humans["cramped_room"].random_partner == 0.5
+    assert humans["coord_ring"].kind == "bc" and humans["coord_ring"].stay_weight == 1
+    assert all(r.spec.method.variant == "original" for r in suite.runs if r.spec.method.kind == "ave")
+    assert all(len(r.spec.train.seeds) == 3 for r in suite.runs)
+
+
 def test_baselines_quick_suite_is_every_method_on_grid_2_and_grid_5_with_five_seeds():
     suite = sweep.load_suite(ROOT / "experiments" / "suites" / "baselines_quick.yaml", "quick")
     kinds = {"esr", "random", "ave", "goal_inference", "iq_learn", "oracle"}
