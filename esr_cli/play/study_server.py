@@ -3,8 +3,8 @@ one single-use link per participant, each admitted tab a StudySession in its own
 its own participant id, robot order, episodes and records; the robots are loaded once and
 shared (they hold no episode's state).
 
-The server runs until every link's session has ended, or Ctrl-C: sessions still going are
-ended as a closed tab ends them, what they played and answered is kept.
+The server runs until every link's session has ended, or Ctrl-C or SIGTERM: sessions still
+going are ended as a closed tab ends them, what they played and answered is kept.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from esr_cli.common.printing import printable
 from esr_cli.play.study import Study
 from esr_cli.play.study_session import Outcome, StudyRobot, StudySession
 from esr_cli.play.web import Links
+from esr_cli.runner.stop_signals import Terminated
 from esr_cli.storage.store import Store, StoreError
 
 JOIN_S = 30  # how long a stopping server waits for each session to write what it played
@@ -45,7 +46,8 @@ def outcome_line(study: str, served: Served) -> str:
 
 
 class StudyServer:
-    """`StudyServer(...).serve()` -> (every session served, whether Ctrl-C stopped the server)."""
+    """`StudyServer(...).serve()` -> (every session served, the stop that ended the server early:
+    KeyboardInterrupt or Terminated, None when every link's session ended)."""
 
     def __init__(self, study: Study, robots: list[StudyRobot], store: Store, console, participants: int, port: int,
                  host: str, public_url: str | None):
@@ -101,9 +103,9 @@ class StudyServer:
             try:
                 while not self._all_ended():
                     time.sleep(0.2)
-                stopped = False
-            except KeyboardInterrupt:
-                stopped = True
+                stopped = None
+            except (KeyboardInterrupt, Terminated) as e:  # Ctrl-C, or SIGTERM (kill, a service manager)
+                stopped = e
                 self.server.end_all()
                 for thread in list(self.threads):
                     thread.join(timeout=JOIN_S)

@@ -608,6 +608,45 @@ def test_a_study_server_keeps_serving_when_one_session_fails_and_stops_when_ever
     assert any(line.startswith("study t_study: link 2: participant ok1") and "finished" in line for line in lines)
 
 
+@pytest.mark.slow
+def test_sigterm_stops_a_study_server_within_seconds_keeping_the_episode_under_way(tmp_path):
+    """A service manager's stop (SIGTERM) ends every session as a closed tab would: the episode
+    being played is committed as incomplete, the server says so in one line each and exits 143."""
+    import signal
+
+    import websocket
+
+    seed = open_seed()
+    path = write_study(tmp_path / "s", study_dict(seed=seed))
+    store, port, links = tmp_path / "store", free_port(), tmp_path / "links.txt"
+    proc, urls = serve_links(["--study", str(path), "--participants", "2"], store, port, links)
+    conn = websocket.create_connection(urls[0].replace("http://", "ws://").replace("/?token=", "/ws?token="), timeout=240,
+                                       origin=f"http://127.0.0.1:{port}")
+    for kind, answers, button in (("participant", {"participant": "s1"}, "continue"), ("consent", {}, "agree"),
+                                  ("instructions", {}, "continue")):
+        message = json.loads(conn.recv())
+        assert message["page"]["kind"] == kind
+        for item, value in answers.items():
+            conn.send(json.dumps({"form": message["form"], "item": item, "value": value}))
+        conn.send(json.dumps({"form": message["form"], "button": button}))
+    message = json.loads(conn.recv())
+    while "frame" not in message:  # the practice episode's ready gate
+        message = json.loads(conn.recv())
+    conn.send(json.dumps({"key": "space", "frame": message["seq"]}))
+    message = json.loads(conn.recv())
+    conn.send(json.dumps({"key": grid_keys(seed)[0], "frame": message["seq"]}))
+    json.loads(conn.recv())  # the step is taken
+    asked = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    _, errs = proc.communicate(timeout=60)
+    assert proc.returncode == 143 and time.monotonic() - asked < 30, errs
+    assert "link 1: participant s1" in errs and "ended early after 1 episode(s)" in errs and "terminated (SIGTERM)" in errs
+    (episode,) = [e for e in Store(store).entries() if e.kind == PLAY_KIND]
+    assert episode.status == "complete"  # committed, not left for the next start to recover
+    assert not json.loads((episode.path / "summary.json").read_text())["completed"]
+    assert [s["key"] for s in logged_steps(episode.path)] == grid_keys(seed)[:1]
+
+
 def test_free_text_that_looks_like_a_formula_opens_as_text_in_a_spreadsheet():
     """A participant's answer `=HYPERLINK(...)` is written with a leading quote, so a spreadsheet
     shows the text rather than running it; numbers (a negative return) are untouched."""
