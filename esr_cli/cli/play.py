@@ -206,8 +206,7 @@ def _play_study(ctx: typer.Context, path: Path, target: Optional[str], participa
         err.print("the participant's id: add &participant=ID to the address below, or the page asks for it", highlight=False)
     with front:
         outcome = ss.StudySession(the_study, robots, front, name, ctx.obj.store).run(participant)
-    for p in [*(e["path"] for e in outcome.episodes), *map(str, outcome.records)]:
-        out.print(p, highlight=False)
+    _print_paths(outcome)
     who = f"participant {outcome.participant or '(no id given)'}, session {outcome.session}"
     if outcome.consent is False:
         err.print(f"study {the_study.name}: {who}: consent declined; only that is recorded", highlight=False)
@@ -218,6 +217,12 @@ def _play_study(ctx: typer.Context, path: Path, target: Optional[str], participa
     else:
         err.print(f"study {the_study.name}: {who}: finished, {len(outcome.episodes)} episode(s); "
                   f"esr plays --study {the_study.name}", highlight=False)
+
+
+def _print_paths(outcome) -> None:
+    """A study session's stored episodes and records, one path a line (stdout, for scripts)."""
+    for p in [*(e["path"] for e in outcome.episodes), *map(str, outcome.records)]:
+        out.print(p, highlight=False)
 
 
 def _serve_study(ctx: typer.Context, the_study, port: int, serving: Serving) -> None:
@@ -237,8 +242,7 @@ def _serve_study(ctx: typer.Context, the_study, port: int, serving: Serving) -> 
     served, stopped = server.serve(serving.links)
     for s in served:
         if s.outcome is not None:
-            for p in [*(e["path"] for e in s.outcome.episodes), *map(str, s.outcome.records)]:
-                out.print(p, highlight=False)
+            _print_paths(s.outcome)
     finished = sum(1 for s in served if s.outcome is not None and s.outcome.code is not None)
     err.print(f"study {the_study.name}: {len(served)} of {serving.participants} link(s) used, {finished} session(s) "
               f"finished; esr plays --study {the_study.name}", highlight=False)

@@ -181,7 +181,8 @@ ws.onmessage = (event) => {
 window.addEventListener("pagehide", () => ws.close());
 ws.onclose = () => {
   document.body.dataset.connected = "closed";
-  if (!everOpen) $("title").textContent = "this address cannot play now: its session has begun elsewhere, or the server has stopped"; $("message").textContent += "  (the game has ended; you can close this tab)";
+  if (!everOpen) $("title").textContent = "this address cannot play now: its session has begun elsewhere, or the server has stopped";
+  $("message").textContent += "  (the game has ended; you can close this tab)";
   if (document.body.dataset.page && document.body.dataset.page !== "end") $("page-error").textContent = "The session has ended; you can close this tab.";
 };
 document.addEventListener("keydown", (e) => {
@@ -428,7 +429,7 @@ class Server(abc.ABC):
     admission token lets one participant in: `admit(token)` -> the Channel its tab plays on."""
 
     def __init__(self, port: int, console, host: str = HOST, public_url: str | None = None):
-        self.host, self.port, self.console = host, port, console
+        self.port, self.console = port, console
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         probe = socket.socket(family, socket.SOCK_STREAM)
         # As the server's own socket does: a port whose last connections are in TIME_WAIT (a
@@ -581,11 +582,12 @@ class Links(Server):
         return any(hmac.compare_digest(token.encode(), t.encode()) for t in self.tokens)
 
     def admit(self, token: str) -> Channel | str:
+        link = self.tokens.index(token) + 1
         with self.lock:
             if token in self.channels:
-                return f"link {self.tokens.index(token) + 1} has been used (a session began on it)"
+                return f"link {link} has been used (a session began on it)"
             channel = self.channels[token] = Channel(self.console)
-        self.start(channel, self.tokens.index(token) + 1)
+        self.start(channel, link)
         return channel
 
     @property
