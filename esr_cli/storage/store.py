@@ -34,6 +34,7 @@ from typing import Callable, Iterator
 from esr_cli.common import faults
 from esr_cli.common.failures import Failure
 from esr_cli.common.jsonl import JsonInputError, read_json
+from esr_cli.common.printing import printable
 
 MANIFEST = "manifest.json"
 PENDING = "pending.json"  # an unfinished artifact's record: what it is and who has worked on it
@@ -427,7 +428,7 @@ def _file_problem(path: Path, rel: str, want) -> str | None:
     inside = PurePosixPath(rel)
     if inside.is_absolute() or ".." in inside.parts:
         return f"{MANIFEST} lists {rel[:80]!r}, which is not a file inside the artifact"
-    shown = rel if len(rel) <= 200 else rel[:200] + "..."
+    shown = printable(rel if len(rel) <= 200 else rel[:200] + "...")  # a name from an archive: escaped, one line
     try:  # a name the file system cannot hold (too long) is a problem of this file, not a crash
         if any((path / PurePosixPath(*inside.parts[:i])).is_symlink() for i in range(1, len(inside.parts) + 1)):
             return f"{shown} is a link, not a plain file"
