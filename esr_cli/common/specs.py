@@ -21,7 +21,7 @@ from pydantic import ValidationError
 
 from esr_cli.common import yamlio
 from esr_cli.common.failures import Failure
-from esr_cli.model.spec import BUDGETS, KIND_MODELS, Spec
+from esr_cli.model.spec import BUDGETS, HUMAN_PRESETS, KIND_MODELS, Spec
 
 # Budget overrides used when a spec does not define its own `budgets:` entry for that budget.
 # `paper` is the spec as written. `quick` shows learning in minutes on a laptop CPU; `smoke`
@@ -192,6 +192,8 @@ def first_problem(e: ValidationError) -> tuple[dict, str]:
 
 
 def _described(value: Any) -> str:
+    if value is None:
+        return "null"
     if isinstance(value, bool):
         return f"the boolean {str(value).lower()}"
     if isinstance(value, (int, float)):
@@ -208,6 +210,11 @@ def other_problems(e: ValidationError) -> str:
 
 
 def validate(raw: dict, source: str = "") -> Spec:
+    human = raw.get("human")
+    if isinstance(human, dict) and not isinstance(human.get("preset", ""), (str, type(None))):
+        # The spec's preset step runs before field types are checked, and looks the name up.
+        raise SpecError(source, "human.preset", f"expected a preset's name ({', '.join(HUMAN_PRESETS)}), "
+                                                f"got {_described(human['preset'])}")
     try:
         return Spec.model_validate(raw)
     except ValidationError as e:
@@ -225,7 +232,10 @@ def validate(raw: dict, source: str = "") -> Spec:
             msg = f"needs a `kind`: one of {', '.join(section)}"
             given = err.get("input") if isinstance(err.get("input"), dict) else {}
             typo = difflib.get_close_matches("kind", [str(k) for k in given], n=1, cutoff=0.6)
-            if typo:
+            if loc == ("human",) and "preset" in given:  # the section is its preset alone, and it names none known
+                loc, msg = loc + ("preset",), (f"{_described(given['preset'])} is not a preset; known: "
+                                               f"{', '.join(HUMAN_PRESETS)}" + did_you_mean(str(given["preset"])[:100], HUMAN_PRESETS))
+            elif typo:
                 loc, msg = loc + (typo[0],), f"unknown key; did you mean `kind`? (the section {msg})"
         elif err["type"] == "union_tag_invalid":
             msg = f"kind {err.get('ctx', {}).get('tag')!r} is not one of {', '.join(section)}"
@@ -373,9 +383,12 @@ def _apply_budget(tree: dict, budget: str, entries: Any, own: bool, switched: se
         # only where the spec's kind has that field. A spec's own budgets apply as written,
         # except to a section whose kind --set changed (they were written for the file's kind).
         as_written = own and dotted.split(".")[0] not in switched
-        if as_written and _switch_kind(tree, dotted, value):  # as --set SECTION.kind does
+        if dotted in switched:
+            continue  # a whole section the budget would give: --set chose the section itself
+        switches = as_written and _switch_kind(tree, dotted, value)  # as --set SECTION.kind does
+        if switches:
             given[dotted.split(".")[0]] = where
-        elif as_written or _kind_has_field(tree, dotted):
+        if switches or as_written or _kind_has_field(tree, dotted):
             _set_path(tree, dotted, value, f"{source}, {where}" if source else where)
             given[dotted] = where
     return given

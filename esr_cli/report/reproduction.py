@@ -207,6 +207,9 @@ class Claim:
     variants: list[tuple[str, tuple[str, ...]]] = field(default_factory=list)  # esr's variants of `a`, shown too
     # esr's stronger versions of the baseline `b` (the paper ran the published one): extra rows
     baseline_variants: list[tuple[str, tuple[str, ...]]] = field(default_factory=list)
+    # The statement under other conditions than the paper's, both sides changed alike (label,
+    # --set values added to `a` and to `b`): extra rows, each judged on its own runs
+    conditions: list[tuple[str, tuple[str, ...]]] = field(default_factory=list)
 
 
 QUICK_CHANGES = ("learner.warmup_epochs=20", "method.repr_lr=0.001")
@@ -215,6 +218,9 @@ PUBLISHED_GOAL_INFERENCE = ("method.variant=original",)
 NO_ROBOT_ACTION = ("method.condition_on_robot_action=false",)
 GREEDY = ("learner.gamma=0.0",)
 FUTURE_HUMAN = ("method.future=human",)  # esr's estimator: psi sees only the human's part of the future
+# Overcooked's human before the layout specs named the paper's (`human.preset: paper`): esr's MLP
+# clone of the 2019 trials, whose Random-robot returns are far from the paper's Random column.
+CLONE_HUMAN = ("human={kind: bc}",)
 
 
 def _paper_cell(mean: float, se) -> str:
@@ -247,9 +253,12 @@ def paper_claims() -> list[Claim]:
 
     for layout in ("cramped_room", "coord_ring", "asymm_advantages"):
         paper = {m: _paper_cell(*v) for m, v in PAPER_OVERCOOKED[layout].items()}
-        for base, label in (("random", "Random"), ("iq_learn", "Reward Inference"), ("ave", "AvE")):
-            claims.append(Claim("Figure 2", f"{layout}: ESR ends above {label}",
-                                f"ESR {paper['esr']} against {label} {paper[base]}", "above", (layout, ()), (f"{layout}_{base}", ())))
+        earlier = [("with esr's MLP clone as the human, not the paper's", CLONE_HUMAN)]
+        for base, label in (("random", "Random"), ("iq_learn", "Reward Inference")):
+            claims.append(Claim("Figure 2", f"{layout}: ESR ends above {label}", f"ESR {paper['esr']} against {label} {paper[base]}",
+                                "above", (layout, ()), (f"{layout}_{base}", ()), conditions=earlier))
+        claims.append(Claim("Figure 2", f"{layout}: ESR ends above AvE", f"ESR {paper['esr']} against AvE {paper['ave']}",
+                            "above", (layout, ()), (f"{layout}_ave", PUBLISHED_AVE), [], [(f"{layout}_ave", ())], earlier))
     for n in (2, 5, 7, 10):
         claims.append(Claim("Figure 3", f"N = {n}: ESR ends above ESR without the robot action",
                             "without aR in phi and phi' learning is worse, most at high N", "above",
@@ -284,6 +293,14 @@ class Finding:
     # The other stored runs of the first spec (fewer epochs, another seed set or device), with
     # their own comparison: a one-seed verdict is read beside the several-seed runs that exist.
     others: list[tuple[Evidence, str]] = field(default_factory=list)
+    conditions: list["ConditionRow"] = field(default_factory=list)  # the claim's other conditions, judged
+
+    def evidence(self) -> list[Evidence]:
+        """Every run shown for this claim (pooled ones as themselves)."""
+        runs = [self.a, self.b] + [v[1] for v in self.variants] + [o[0] for o in self.others]
+        runs += [r.evidence for r in self.baselines]
+        runs += [e for c in self.conditions for e in [c.a, c.b] + [o[0] for o in c.others]]
+        return [e for e in runs if e is not None]
 
 
 def _mi_summary(ev: Evidence) -> tuple[bool, str]:
@@ -326,12 +343,27 @@ def run_label(spec: spec_model.Spec) -> str:
         paper_rate = _paper_repr_lr(spec.name)
         if paper_rate is not None and method.repr_lr != paper_rate:
             notes.append(f"representation rate {method.repr_lr:g}")
+    if not _plays_with_paper_human(spec):
+        notes.append(f"{spec.human.kind} human")
     if spec.learner.gamma == 0.0:
         notes.append("critic gamma 0")
     if spec.learner.warmup_epochs:
         notes.append(f"warm-up {spec.learner.warmup_epochs}")
     name = PAPER_LABELS.get(method.kind, method.kind).removesuffix(" (ours)")
     return name + (f" ({', '.join(notes)})" if notes else "")
+
+
+def _plays_with_paper_human(spec: spec_model.Spec) -> bool:
+    """False for an Overcooked run on a layout the paper reports whose human is not the paper's
+    (`human.preset: paper`) in any field that shapes it; its seed (one human or one per seed) aside."""
+    paper = spec_model.HUMAN_PRESETS["paper"].get(getattr(spec.env, "layout", None))
+    if spec.env.kind != "overcooked" or paper is None:
+        return True
+    if spec.human.kind != paper["kind"]:
+        return False
+    ignored = {"preset", "seed", "per_seed", "layout"}
+    made = spec_model.KIND_MODELS["human"][paper["kind"]].model_validate(paper)
+    return spec.human.model_dump(exclude=ignored) == made.model_dump(exclude=ignored)
 
 
 def _compare(kind: str, a: Evidence, b: Evidence) -> tuple[bool | None, str]:
@@ -379,9 +411,10 @@ def judge(claim: Claim, index: dict[str, list[Evidence]]) -> Finding:
             other = b and _compare(claim.kind, ev, b)[1]
             variants.append((label, ev, other or f"{run_label(ev.spec)} {format_summary(ev.finals())}"))
     baselines = _baseline_rows(claim, a, index)
+    conditions = [_condition_row(claim, label, sets, index) for label, sets in claim.conditions]
     needed = [a] + ([b] if claim.b else [])
     if any(e is None for e in needed):
-        return Finding(claim, a, b, NOT_YET, "not run", variants, baselines)
+        return Finding(claim, a, b, NOT_YET, "not run", variants, baselines, conditions=conditions)
     more = [(ev, _mi_summary(ev)[1] if claim.kind == "mi_positive" else _compare(claim.kind, ev, b)[1])
             for ev in others(index, claim_spec(claim.a), a)]
     if claim.kind == "mi_positive":
@@ -389,12 +422,35 @@ def judge(claim: Claim, index: dict[str, list[Evidence]]) -> Finding:
     else:
         holds, measured = _compare(claim.kind, a, b)
     if not all(e.comparable() for e in needed):
-        return Finding(claim, a, b, NOT_YET, measured, variants, baselines, more)
+        return Finding(claim, a, b, NOT_YET, measured, variants, baselines, more, conditions)
     verdict = tiered_verdict(holds, [_scored(e) for e in needed])
     differs = [row.label for row in baselines if row.judged and row.holds != holds]
     if differs:
         measured += f"; the verdict depends on the baseline: against {', '.join(differs)} it is different (below)"
-    return Finding(claim, a, b, verdict, measured, variants, baselines, more)
+    return Finding(claim, a, b, verdict, measured, variants, baselines, more, conditions)
+
+
+class ConditionRow(NamedTuple):
+    """A claim judged on runs made under other conditions than the paper's (both sides alike)."""
+
+    label: str
+    a: Optional[Evidence]
+    b: Optional[Evidence]
+    measured: str
+    verdict: str
+    others: list[tuple[Evidence, str]] = []  # the other runs of the first spec, each compared as `a` is
+
+
+def _condition_row(claim: Claim, label: str, sets: tuple[str, ...], index) -> ConditionRow:
+    spec_a, spec_b = (claim_spec((stem, own + sets)) for stem, own in (claim.a, claim.b))
+    a, b = pooled(index, spec_a), pooled(index, spec_b)
+    if a is None or b is None:
+        return ConditionRow(label, a, b, "not run", NOT_YET)
+    holds, measured = _compare(claim.kind, a, b)
+    more = [(ev, _compare(claim.kind, ev, b)[1]) for ev in others(index, spec_a, a)]
+    if not (a.comparable() and b.comparable()):
+        return ConditionRow(label, a, b, measured, NOT_YET, more)
+    return ConditionRow(label, a, b, measured, tiered_verdict(holds, [_scored(a), _scored(b)]), more)
 
 
 class BaselineRow(NamedTuple):
@@ -484,19 +540,31 @@ def train_overrides(spec: spec_model.Spec, budget: str, experiments: Path = EXPE
         return None
     try:
         target = spec.training_part()
-        base_part = specs.load(file, budget).training_part()
-        sets = []
-        for section, value in target.items():
-            base, want = _leaves(base_part.get(section, {}), f"{section}."), _leaves(value, f"{section}.")
-            if base.keys() != want.keys():  # another kind of method, human or network: the section whole
-                sets.append(f"{section}={json.dumps(value)}")
-            else:
-                sets += [_override_text(k, want[k]) for k in want if want[k] != base[k]]
-        if specs.load(file, budget, sets).training_part() != target:
-            return None
+        # First the fields that differ from the file's; where that does not resolve (a section the
+        # file names by a preset, which sets its fields whatever is written beside it), each
+        # section that differs starts again from its kind's defaults.
+        for restart in (False, True):
+            sets = _overrides(file, budget, target, restart)
+            if specs.load(file, budget, sets).training_part() == target:
+                return file, sets
     except (specs.SpecError, yamlio.YamlInputError):
-        return None
-    return file, sets
+        pass
+    return None
+
+
+def _overrides(file: Path, budget: str, target: dict, restart: bool) -> list[str]:
+    base_part, sets = specs.load(file, budget).training_part(), []
+    for section, value in target.items():
+        base, want = _leaves(base_part.get(section, {}), f"{section}."), _leaves(value, f"{section}.")
+        if base != want and isinstance(value, dict) and "kind" in value and (restart or base.keys() != want.keys()):
+            kind = f"{section}={json.dumps({'kind': value['kind']})}"
+            base = _leaves(specs.load(file, budget, [kind]).training_part().get(section, {}), f"{section}.")
+            sets.append(kind)
+        if base.keys() != want.keys():  # another kind of method, human or network: the section whole
+            sets = [t for t in sets if not t.startswith(f"{section}=")] + [f"{section}={json.dumps(value)}"]
+        else:
+            sets += [_override_text(k, want[k]) for k in want if want[k] != base[k]]
+    return sets
 
 
 def train_command(ev: Evidence, store: Store) -> str:
@@ -528,8 +596,9 @@ def learning_curves(findings: list[Finding], out_png: Path, title: str) -> Optio
     for figure in dict.fromkeys(f.claim.figure for f in findings):
         runs: dict[str, Evidence] = {}
         for f in (x for x in findings if x.claim.figure == figure):
-            for ev in [f.a, f.b] + [v[1] for v in f.variants] + [r.evidence for r in f.baselines]:
-                if ev is not None and ev.epochs_done >= MIN_CURVE_EPOCHS:
+            others = {o[0].key for o in f.others} | {o[0].key for c in f.conditions for o in c.others}
+            for ev in f.evidence():
+                if ev.key not in others and ev.epochs_done >= MIN_CURVE_EPOCHS:
                     runs[ev.key] = ev
         panels: dict[str, list] = {}
         for ev in sorted(runs.values(), key=lambda e: (panel_order(e), run_label(e.spec), e.key)):
@@ -648,6 +717,9 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
         "- Baselines: each claim is judged against the baseline the paper ran (the published AvE, Du et al.'s Goal "
         "Inference); esr's stronger versions (AvE with its sampling fixed, Goal Inference by the exact posterior) are "
         "extra rows marked as esr's, and a verdict that would change with them says so.",
+        "- Overcooked's human: the statements are judged on runs with the paper's human (the layout specs' "
+        "`human: {preset: paper}`); runs with esr's MLP clone of the 2019 trials (`human={kind: bc}`) are rows of their "
+        "own under each statement, judged on their own pair of runs, never in its place.",
         "- The paper ran 20 seeds (gridworld) and 5 to 15 (Overcooked) for 10,000 epochs.", "",
         f"**Summary:** {summary_line(findings)}", "",
     ]
@@ -664,10 +736,14 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
             for row in f.baselines:
                 if row.evidence is not None:
                     lines.append(f"| ↳ against {row.label} | | {row.measured} | {_run_cell(row.evidence)} | {row.verdict} |")
+            for row in f.conditions:
+                if row.a is not None or row.b is not None:
+                    runs = _run_cell(row.a) + "<br>vs " + _run_cell(row.b)
+                    lines.append(f"| ↳ {row.label} | | {row.measured} | {runs} | {row.verdict} |")
+                for ev, measured in row.others:
+                    lines.append(f"| ↳ another run of this spec, {row.label} | | {measured} | {_run_cell(ev)} | |")
         lines.append("")
-    behind = {part.key: part for f in findings
-              for ev in [f.a, f.b] + [v[1] for v in f.variants] + [o[0] for o in f.others] + [r.evidence for r in f.baselines]
-              if ev is not None for part in (ev.parts or (ev,))}
+    behind = {part.key: part for f in findings for ev in f.evidence() for part in (ev.parts or (ev,))}
     if behind:
         lines += ["## The runs behind this report", "",
                   "Each was made by the command beside it, run from a checkout of its commit (the training code is part of a "
@@ -728,5 +804,7 @@ def findings_json(findings: list[Finding]) -> list[dict]:
     return [{"figure": f.claim.figure, "statement": f.claim.text, "paper": f.claim.paper, "verdict": f.verdict,
              "measured": f.measured, "a": ev(f.a), "b": ev(f.b),
              "baselines": [{"baseline": r.label, "verdict": r.verdict, "measured": r.measured, "run": ev(r.evidence)}
-                           for r in f.baselines]} for f in findings]
+                           for r in f.baselines],
+             "conditions": [{"condition": c.label, "verdict": c.verdict, "measured": c.measured, "a": ev(c.a), "b": ev(c.b)}
+                            for c in f.conditions]} for f in findings]
 

@@ -220,19 +220,49 @@ def test_the_paper_preset_is_a_whole_human_per_layout_whatever_the_file_s_kind()
     closest_clone = specs.load(Path("experiments/coord_ring.yaml"), "quick", ["human.preset=paper_random"])
     assert ring.human.kind == "bc" and ring.training_part() == closest_clone.training_part()
     assert specs.load(Path("experiments/coord_ring.yaml"), "quick", ["human={preset: paper, seed: 2}"]).human.seed == 2
-    # as a field of the file's BC section, a preset that makes another kind is named, not mixed in
+    # as a field of a BC section (the smoke budget's clone), a preset that makes another kind is
+    # named, not mixed in
     with pytest.raises(specs.SpecError, match=r"human.preset='paper' makes a ppo human on cramped_room, not kind "
                                               r"'bc': give the preset alone, human=\{preset: paper\}"):
-        specs.load(Path("experiments/cramped_room.yaml"), "quick", ["human.preset=paper"])
+        specs.load(Path("experiments/cramped_room.yaml"), "smoke", ["human.preset=paper"])
     with pytest.raises(specs.SpecError, match=r"human.preset='paper' is defined for cramped_room.*not 'forced_coord'"):
         specs.load(Path("experiments/forced_coord_random.yaml"), "quick", ["human={preset: paper}"])
+
+
+def test_the_paper_layouts_play_with_the_paper_human_except_at_the_smoke_budget():
+    """The three paper layouts' specs (every method) name `human: {preset: paper}`; the smoke
+    budget, a plumbing check, plays with esr's MLP clone; `human={kind: bc}` is that clone at any
+    budget, keyed as the runs made before the switch (their spec wrote it out)."""
+    for layout in ("cramped_room", "coord_ring", "asymm_advantages"):
+        for method in ("", "_ave", "_iq_learn", "_random"):
+            path = Path(f"experiments/{layout}{method}.yaml")
+            preset = specs.load(path, "paper", ["human={preset: paper}"]).training_part()
+            assert specs.load(path, "paper").training_part() == preset
+            assert specs.load(path, "quick").training_part()["human"] == preset["human"]
+            smoke = specs.load(path, "smoke")
+            assert smoke.human.kind == "bc" and smoke.training_part()["human"] == specs.load(path, "paper", [
+                "human={kind: bc, stay_weight: 0.1, epochs: 60, selfplay_episodes: 64}"]).training_part()["human"]
+            assert specs.load(path, "smoke", ["human={preset: paper}"]).training_part()["human"] == preset["human"]
+    assert specs.load(Path("experiments/cramped_room.yaml")).human.kind == "ppo"
+    assert specs.load(Path("experiments/forced_coord.yaml")).human.kind == "bc"  # no preset there
 
 
 def test_a_human_preset_is_refused_where_it_has_no_settings():
     with pytest.raises(specs.SpecError, match=r"human.preset='paper_random' is defined for cramped_room.*not 'forced_coord'"):
         specs.load(Path("experiments/forced_coord_random.yaml"), "quick", ["human.preset=paper_random"])
+    # beside a kind (the smoke budget's clone) the field's own check names it; as the whole
+    # section (the file's preset), the preset step does, with the closest name
     with pytest.raises(specs.SpecError, match=r"human.preset: Input should be 'paper_random' or 'paper'"):
-        specs.load(Path("experiments/cramped_room.yaml"), "quick", ["human.preset=closest"])
+        specs.load(Path("experiments/cramped_room.yaml"), "smoke", ["human.preset=closest"])
+    with pytest.raises(specs.SpecError, match=r"human.preset: the text 'paper_randm' is not a preset; known: "
+                                              r"paper_random, paper; did you mean `paper_random`\?$"):
+        specs.load(Path("experiments/cramped_room.yaml"), "quick", ["human.preset=paper_randm"])
+    # a preset that is no name at all is one line too, not a crash of the lookup
+    for value, described in (("{a: 1}", "a mapping"), ("[1]", "a list"), ("3", "the number 3")):
+        with pytest.raises(specs.SpecError, match=rf"human.preset: expected a preset's name \(paper_random, paper\), got {described}$"):
+            specs.load(Path("experiments/cramped_room.yaml"), "quick", [f"human.preset={value}"])
+    with pytest.raises(specs.SpecError, match=r"human.preset: null is not a preset"):
+        specs.load(Path("experiments/cramped_room.yaml"), "quick", ["human.preset=null"])
 
 
 def test_a_bad_value_names_the_set_or_budget_that_gave_it(tmp_path):
@@ -287,3 +317,19 @@ def test_a_misspelt_kind_and_wrong_types_are_named_in_plain_words(tmp_path):
     f.write_text(f"extends: {tmp_path}\n" + GOOD)
     with pytest.raises(specs.SpecError, match="is not a file"):
         specs.load(f)
+
+
+def test_a_budget_that_gives_a_section_of_another_kind_keeps_every_field_it_names(tmp_path):
+    """A budget entry `human: {kind: bc, stay_weight: 0.5}` on a file whose human is a preset:
+    the section starts again from the new kind with all the entry's fields (not the kind alone);
+    a --set that chooses the section itself wins over the budget's."""
+    text = (ROOT / "experiments/cramped_room.yaml").read_text().replace(
+        "smoke: {human: {kind: bc},", "smoke: {human: {kind: bc, stay_weight: 0.5, epochs: 7},")
+    assert "stay_weight: 0.5" in text
+    path = tmp_path / "spec.yaml"
+    path.write_text(text)
+    smoke = specs.load(path, "smoke")
+    assert (smoke.human.kind, smoke.human.stay_weight, smoke.human.epochs) == ("bc", 0.5, 7)
+    assert specs.load(path, "smoke", ["human.seed=3"]).human.seed == 3
+    assert specs.load(path, "smoke", ["human={preset: paper}"]).human.kind == "ppo"
+    assert specs.load(path, "smoke", ["human={kind: bc}"]).human.stay_weight == 0.1
