@@ -513,5 +513,18 @@ def load(path: str | Path, budget: str = "paper", overrides: list[str] | tuple[s
         raise
 
 
+def plays_with_paper_human(spec: Spec) -> bool:
+    """False for an Overcooked run on a layout the paper reports whose human is not the paper's
+    (`human.preset: paper`) in any field that shapes it; its seed (one human or one per seed) aside."""
+    paper = HUMAN_PRESETS["paper"].get(getattr(spec.env, "layout", None))
+    if spec.env.kind != "overcooked" or paper is None:
+        return True
+    if spec.human.kind != paper["kind"]:
+        return False
+    ignored = {"preset", "seed", "per_seed", "layout"}
+    made = KIND_MODELS["human"][paper["kind"]].model_validate(paper)
+    return spec.human.model_dump(exclude=ignored) == made.model_dump(exclude=ignored)
+
+
 def to_yaml(spec: Spec) -> str:
     return yaml.safe_dump(spec.model_dump(mode="json"), sort_keys=False)

@@ -22,6 +22,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from esr_cli.common import specs  # noqa: E402
 from esr_cli.common.plots import smooth  # noqa: E402
 from esr_cli.common.stats import describe, format_summary  # noqa: E402
 from esr_cli.recipes import suite as suites  # noqa: E402
@@ -58,6 +59,16 @@ ABLATION_SETS = {
     "no_robot_action": ("method.condition_on_robot_action=false",),
     "greedy": ("learner.gamma=0.0",),
 }
+# The baselines as the paper ran them (its figures' lines): the published AvE and Du et al.'s
+# Goal Inference; the spec files' defaults are esr's versions, drawn beside them as esr's.
+PUBLISHED_SETS = {"ave": ('method.variant="original"',), "goal_inference": ('method.variant="original"',)}
+# esr's own lines in the paper's figures: dotted, in their method's colour, never in place of one.
+ESRS_STYLE = ":"
+ESRS_EXTRA_LINES = (
+    ("esr", "grid_{n}", ('method.future="human"',), "ESR, human future (esr's)"),
+    ("ave", "grid_{n}_ave", (), "AvE, sampling fixed (esr's)"),
+    ("goal_inference", "grid_{n}_goal_inference", (), "Goal Inference, exact posterior (esr's)"),
+)
 REPRESENTATION_SETS = ("method.repr_dim=3",)
 
 
@@ -188,7 +199,7 @@ def seeds_phrase(counts) -> str:
 
 def panels_figure(panels: list[tuple[str, list[tuple[str, str, list[dict]]]]], title: str, ylabel: str,
                   warmup_epochs: int = 0, budget: str | None = None, legend_each: bool = False):
-    """One panel per entry (title, [(label, colour, metric rows)]): return vs epoch, mean ± 1 SE
+    """One panel per entry (title, [(label, colour, metric rows[, line style])]): return vs epoch, mean ± 1 SE
     over seeds; epochs 1..warmup_epochs (a uniform robot) shaded. The title gains
     "[budget, how seeds aggregate]". legend_each: a legend in every panel (when panels hold
     different lines), else one beside the last.
@@ -201,8 +212,8 @@ def panels_figure(panels: list[tuple[str, list[tuple[str, str, list[dict]]]]], t
         table[panel] = {}
         if warmup_epochs:
             ax.axvspan(0.5, warmup_epochs + 0.5, color="0.5", alpha=0.15, lw=0, label="warm-up (learners act uniformly)")
-        for label, color, rows in lines:
-            _band(ax, rows, "return", color, label, "--" if label == "Random" else "-")
+        for label, color, rows, *style in lines:  # (label, colour, rows[, line style])
+            _band(ax, rows, "return", color, label, style[0] if style else "--" if label == "Random" else "-")
             table[panel][label] = describe(final_per_seed(rows) if rows else [])
         ax.set_title(panel)
         ax.set_xlabel("epoch")
@@ -219,13 +230,14 @@ def panels_figure(panels: list[tuple[str, list[tuple[str, str, list[dict]]]]], t
     return fig, table
 
 
-def _grid_panels(inputs: PaperInputs, figure: str, title: str, lines: list[tuple[str, str, tuple[str, ...], str, str]],
+def _grid_panels(inputs: PaperInputs, figure: str, title: str, lines: list[tuple[str, str, tuple[str, ...], str, str, str]],
                  out_dir: Path) -> FigureResult:
-    """4 panels (N = 2, 5, 7, 10); `lines`: (key, spec stem pattern with {n}, sets, label, colour)."""
+    """4 panels (N = 2, 5, 7, 10); `lines`: (key, spec stem pattern with {n}, sets, label, colour, style)."""
     wanted = WANTS[figure]()
     paths = inputs.paths(figure, wanted)
     it = iter(paths)
-    panels = [(f"N = {n} blocks", [(label, color, read_rows(next(it))) for _, _, _, label, color in lines]) for n in GRID_NS]
+    panels = [(f"N = {n} blocks", [(label, color, read_rows(next(it)), style) for _, _, _, label, color, style in lines])
+              for n in GRID_NS]
     warmups = {inputs.run(stem, sets).spec.learner.warmup_epochs for stem, sets in wanted}
     fig, table = panels_figure(panels, title, "return (steps on goal, of 50)", max(warmups) if len(warmups) == 1 else 0,
                                inputs.budget)
@@ -262,14 +274,16 @@ def suite_panels(runs: list[tuple[object, Path]]) -> list[tuple[str, list[tuple[
     return panels
 
 
-GRID_LINES = [(m, "grid_{n}" if m == "esr" else "grid_{n}_" + m, (), PAPER_LABELS[m], METHOD_COLORS[m]) for m in GRID_METHODS]
+GRID_LINES = [(m, "grid_{n}" if m == "esr" else "grid_{n}_" + m, PUBLISHED_SETS.get(m, ()), PAPER_LABELS[m], METHOD_COLORS[m],
+               "--" if m == "random" else "-") for m in GRID_METHODS]
+GRID_LINES += [(m, stem, sets, label, METHOD_COLORS[m], ESRS_STYLE) for m, stem, sets, label in ESRS_EXTRA_LINES]
 
 
 def _ablation_lines(which: str, label: str):
     return [
-        ("esr", "grid_{n}", (), "ESR", METHOD_COLORS["esr"]),
-        (which, "grid_{n}", ABLATION_SETS[which], label, ABLATION_COLORS[which]),
-        ("random", "grid_{n}_random", (), "Random", METHOD_COLORS["random"]),
+        ("esr", "grid_{n}", (), "ESR", METHOD_COLORS["esr"], "-"),
+        (which, "grid_{n}", ABLATION_SETS[which], label, ABLATION_COLORS[which], "-"),
+        ("random", "grid_{n}_random", (), "Random", METHOD_COLORS["random"], "--"),
     ]
 
 
@@ -277,13 +291,14 @@ ABLATION_LABELS = {"no_robot_action": "ESR without aR in phi, phi'", "greedy": "
 
 
 def _grid_wants(lines) -> list[tuple[str, tuple[str, ...]]]:
-    return [(stem.format(n=n), sets) for n in GRID_NS for _, stem, sets, _, _ in lines]
+    return [(stem.format(n=n), sets) for n in GRID_NS for _, stem, sets, _, _, _ in lines]
 
 
 # Which runs of the paper suite each figure reads, in the order it reads them.
 WANTS: dict[str, Callable[[], list[tuple[str, tuple[str, ...]]]]] = {
     "fig1_gridworld": lambda: _grid_wants(GRID_LINES),
-    "fig2_overcooked": lambda: [(lay if m == "esr" else f"{lay}_{m}", ()) for lay in OVERCOOKED_LAYOUTS for m in OVERCOOKED_METHODS],
+    "fig2_overcooked": lambda: [(lay if m == "esr" else f"{lay}_{m}", PUBLISHED_SETS.get(m, ()))
+                                for lay in OVERCOOKED_LAYOUTS for m in OVERCOOKED_METHODS],
     "fig3_no_robot_action": lambda: _grid_wants(_ablation_lines("no_robot_action", "")),
     "fig4_greedy": lambda: _grid_wants(_ablation_lines("greedy", "")),
     "fig5_mutual_information": lambda: [(f"grid_{n}", ()) for n in GRID_NS],
@@ -355,7 +370,9 @@ def overcooked_table(inputs: PaperInputs, out_dir: Path) -> FigureResult:
     for (r, _), c in t.get_celld().items():
         if r > 0 and body[r - 1][0].strip() == "paper":
             c.set_text_props(color="0.4", style="italic")
-    ax.set_title(f"Overcooked with the BC human: return per 400 steps (ours: {inputs.budget} budget, "
+    paper_human = all(specs.plays_with_paper_human(inputs.run(stem, sets).spec) for stem, sets in WANTS["fig2_overcooked"]())
+    human = "the paper's human" if paper_human else "esr's MLP clone as the human"
+    ax.set_title(f"Overcooked with {human}: return per 400 steps (ours: {inputs.budget} budget, "
                  f"{seeds_phrase(seed_counts).replace('1 SE', 'SE')}; paper in grey)", fontsize=9)
     files = save(fig, out_dir, "fig2_overcooked", prov) + [out_dir / "fig2_overcooked.md", out_dir / "fig2_overcooked.tex"]
     return FigureResult("fig2_overcooked", files, prov, {"final_return": ours})

@@ -343,7 +343,7 @@ def run_label(spec: spec_model.Spec) -> str:
         paper_rate = _paper_repr_lr(spec.name)
         if paper_rate is not None and method.repr_lr != paper_rate:
             notes.append(f"representation rate {method.repr_lr:g}")
-    if not _plays_with_paper_human(spec):
+    if not specs.plays_with_paper_human(spec):
         notes.append(f"{spec.human.kind} human")
     if spec.learner.gamma == 0.0:
         notes.append("critic gamma 0")
@@ -351,19 +351,6 @@ def run_label(spec: spec_model.Spec) -> str:
         notes.append(f"warm-up {spec.learner.warmup_epochs}")
     name = PAPER_LABELS.get(method.kind, method.kind).removesuffix(" (ours)")
     return name + (f" ({', '.join(notes)})" if notes else "")
-
-
-def _plays_with_paper_human(spec: spec_model.Spec) -> bool:
-    """False for an Overcooked run on a layout the paper reports whose human is not the paper's
-    (`human.preset: paper`) in any field that shapes it; its seed (one human or one per seed) aside."""
-    paper = spec_model.HUMAN_PRESETS["paper"].get(getattr(spec.env, "layout", None))
-    if spec.env.kind != "overcooked" or paper is None:
-        return True
-    if spec.human.kind != paper["kind"]:
-        return False
-    ignored = {"preset", "seed", "per_seed", "layout"}
-    made = spec_model.KIND_MODELS["human"][paper["kind"]].model_validate(paper)
-    return spec.human.model_dump(exclude=ignored) == made.model_dump(exclude=ignored)
 
 
 def _compare(kind: str, a: Evidence, b: Evidence) -> tuple[bool | None, str]:

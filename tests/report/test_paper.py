@@ -79,6 +79,29 @@ def test_every_figure_reads_runs_of_the_paper_suite():
     assert {f for f, _ in figs.FIGURES.values()} == set(figs.WANTS)
 
 
+def test_the_paper_figures_draw_the_baselines_the_paper_ran_and_esrs_lines_dotted_beside_them():
+    """Figure 1: AvE and Goal Inference as published, in solid lines; esr's estimator variant and
+    its versions of the two baselines dotted in their method's colour. Figure 2: the published
+    AvE, and its title names the human the runs played with."""
+    from esr_cli.storage.store import Store
+
+    inputs = figs.PaperInputs(Store("/nonexistent-store"), "paper")
+    solid = {m: inputs.run(stem.format(n=5), sets).spec for m, stem, sets, _, _, style in figs.GRID_LINES if style == "-"}
+    assert solid["ave"].method.variant == "original" and solid["goal_inference"].method.variant == "original"
+    assert set(solid) == {"esr", "ave", "goal_inference", "iq_learn", "oracle"}
+    dotted = [(m, inputs.run(stem.format(n=5), sets).spec, color) for m, stem, sets, _, color, style in figs.GRID_LINES
+              if style == figs.ESRS_STYLE]
+    assert [(m, c) for m, _, c in dotted] == [(m, figs.METHOD_COLORS[m]) for m in ("esr", "ave", "goal_inference")]
+    assert dotted[0][1].method.future == "human" and dotted[1][1].method.variant == "fixed"
+    assert dotted[2][1].method.variant != "original"
+    fig2 = [inputs.run(stem, sets).spec for stem, sets in figs.WANTS["fig2_overcooked"]()]
+    assert [s.method.variant for s in fig2 if s.method.kind == "ave"] == ["original"] * 3
+    assert all(figs.specs.plays_with_paper_human(s) for s in fig2)
+    assert not any(figs.specs.plays_with_paper_human(s) for s in
+                   (figs.PaperInputs(Store("/nonexistent-store"), "smoke").run(stem, sets).spec
+                    for stem, sets in figs.WANTS["fig2_overcooked"]() if stem.startswith("cramped")))
+
+
 @pytest.mark.slow
 def test_plot_with_missing_runs_names_the_commands(tmp_path):
     proc = esr("plot", "mi", "--budget", "smoke", store=tmp_path, check=False)
