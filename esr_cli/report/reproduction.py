@@ -435,9 +435,14 @@ def _condition_row(claim: Claim, label: str, sets: tuple[str, ...], index) -> Co
         return ConditionRow(label, a, b, "not run", NOT_YET)
     holds, measured = _compare(claim.kind, a, b)
     more = [(ev, _compare(claim.kind, ev, b)[1]) for ev in others(index, spec_a, a)]
+    return ConditionRow(label, a, b, measured, _pair_verdict(holds, a, b), more)
+
+
+def _pair_verdict(holds: bool | None, a: Evidence, b: Evidence) -> str:
+    """The tiered verdict of a comparison of two runs, once both are at a comparable length."""
     if not (a.comparable() and b.comparable()):
-        return ConditionRow(label, a, b, measured, NOT_YET, more)
-    return ConditionRow(label, a, b, measured, tiered_verdict(holds, [_scored(a), _scored(b)]), more)
+        return NOT_YET
+    return tiered_verdict(holds, [_scored(a), _scored(b)])
 
 
 class BaselineRow(NamedTuple):
@@ -460,10 +465,8 @@ def _baseline_rows(claim: Claim, a: Optional[Evidence], index) -> list[BaselineR
             rows.append(BaselineRow(label, ev, "not run" if ev is None else format_summary(ev.finals()), NOT_YET))
             continue
         holds, measured = _compare(claim.kind, a, ev)
-        if not (a.comparable() and ev.comparable()):
-            rows.append(BaselineRow(label, ev, measured, NOT_YET))
-            continue
-        rows.append(BaselineRow(label, ev, measured, tiered_verdict(holds, [_scored(a), _scored(ev)]), holds, True))
+        judged = a.comparable() and ev.comparable()
+        rows.append(BaselineRow(label, ev, measured, _pair_verdict(holds, a, ev), holds if judged else None, judged))
     return rows
 
 
