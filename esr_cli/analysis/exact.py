@@ -333,7 +333,8 @@ class Empowerment:
     effective_empowerment: float  # from the start distribution
     occupancy: Occupancy
     visitation: np.ndarray  # float64[S]: discounted state distribution from the start, sums to 1
-    complete: bool  # MI computed for every pair (else only for `pairs`: state_mi, value are lower bounds)
+    complete: bool  # MI computed and counted for every pair (else state_mi and value are lower bounds)
+    counted: np.ndarray  # bool[S, A_R]: the pairs whose MI state_mi and value count
 
 
 # "Visited" (state, robot action) pairs: the most likely pairs under the robot's own discounted
@@ -354,6 +355,21 @@ def visited_pairs(occupancy: Occupancy, start: np.ndarray, pi_robot: np.ndarray)
     return mask.reshape(pi_robot.shape)
 
 
+# The uniform sample of pairs that stands for all of them where the space is too large to
+# compute every pair: drawn from a fixed generator, so an artifact's sample is a function of its
+# components alone.
+SAMPLE_SEED = 0
+
+
+def sampled_pairs(shape: tuple[int, int], n: int, seed: int = SAMPLE_SEED) -> np.ndarray:
+    """bool[S, A_R]: n distinct (state, robot action) pairs drawn uniformly from all of them
+    (every pair where n covers them all)."""
+    total = shape[0] * shape[1]
+    mask = np.zeros(total, bool)
+    mask[np.random.default_rng(seed).choice(total, size=min(n, total), replace=False)] = True
+    return mask.reshape(shape)
+
+
 def _distinct_pairs(space: StateSpace, wanted: np.ndarray):
     """The distinct (state, next states over aH) rows among the wanted pairs (most robot actions
     are no-ops or share their effect), the pairs' flat indices and their row in the distinct set."""
@@ -372,10 +388,14 @@ def rows_needed(space: StateSpace, pairs: np.ndarray) -> int:
 def empowerment(
     space: StateSpace, pi_robot: np.ndarray, pi_human: np.ndarray, gamma: float,
     pairs: np.ndarray | None = None, batch: int = 64, occupancy: Occupancy | None = None,
+    counted: np.ndarray | None = None,
 ) -> Empowerment:
     """Exact MI for every (state, robot action), or only where `pairs` (bool[S, A_R]) is true:
     the rows of M are solved for just the next states those pairs need. `occupancy` is the
-    chain's under these policies if the caller has it already (else solved here)."""
+    chain's under these policies if the caller has it already (else solved here). `counted`
+    (bool[S, A_R], within `pairs`; default all of them): the pairs whose MI enters state_mi and
+    the value, so that pairs computed for another purpose (a uniform sample, to rank over) leave
+    the effective empowerment's lower bound as it is."""
     occ = occupancy if occupancy is not None else solve_occupancy(transition_matrix(space, pi_robot, pi_human), gamma)
     s, a_r, a_h = space.next_state.shape
     wanted = np.ones((s, a_r), bool) if pairs is None else np.asarray(pairs, bool)
@@ -398,11 +418,12 @@ def empowerment(
         return out.reshape(s, a_r)
 
     mi, mi_merged = per_pair(mi_unique), per_pair(merged_unique)
-    state_mi = np.sum(pi_robot * np.nan_to_num(mi, nan=0.0), axis=1)
+    counts = wanted if counted is None else np.asarray(counted, bool) & wanted
+    state_mi = np.sum(pi_robot * np.where(counts, np.nan_to_num(mi, nan=0.0), 0.0), axis=1)
     value = occ.discounted_sum(state_mi)
     return Empowerment(
         mi=mi, mi_merged=mi_merged, state_mi=state_mi, value=value, effective_empowerment=float(space.start @ value),
-        occupancy=occ, visitation=occ.visitation(space.start), complete=bool(wanted.all()),
+        occupancy=occ, visitation=occ.visitation(space.start), complete=bool(counts.all()), counted=counts,
     )
 
 

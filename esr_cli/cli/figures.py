@@ -69,7 +69,8 @@ def plot(
     if figure == "estimator":
         built = ensure(exact_runs.estimator_recipe(ref, ctx.obj.store, err), ctx.obj.store)
         result = built.summary()
-        err.print(f"Spearman rank correlation of ESR's reward with the exact MI: {result['spearman']:.3f} over {result['pairs']} (state, robot action) pairs")
+        for line in exact_runs.estimator_lines(result):
+            err.print(line, highlight=False)
         png = built.path / "estimator.png"
     elif figure == "geometry":
         built = ensure(exact_runs.geometry_recipe(gamma, state), ctx.obj.store)

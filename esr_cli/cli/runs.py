@@ -14,6 +14,7 @@ from esr_cli.common import specs
 from esr_cli.common.printing import tagged
 from esr_cli.model import spec as spec_model
 from esr_cli.recipes import targets
+from esr_cli.recipes.targets import MAX_SAMPLE_PAIRS
 from esr_cli.storage.artifacts import ensure
 
 
@@ -110,6 +111,10 @@ def exact(
     goal: Optional[str] = typer.Option(None, "--goal", help="the human's goal cell 'row,col' (default: the centre)"),
     gamma: Optional[float] = typer.Option(None, "--gamma", help="future-state horizon (default: the spec's method.future_gamma)"),
     seed_index: Optional[int] = typer.Option(None, "--seed-index", help="which seed of --robot's run (default 0)"),
+    sample_pairs: int = typer.Option(0, "--sample-pairs", min=0, max=MAX_SAMPLE_PAIRS, help="where the space is too "
+                                     "large for every pair: also compute this many pairs drawn uniformly from all, for "
+                                     "`esr plot estimator`'s rank correlation over all pairs (not counted in the "
+                                     "effective empowerment)"),
 ):
     """Exact effective empowerment of a small gridworld: I(aH; s+ | s, aR) for every state."""
     if seed_index is not None and robot is None:
@@ -125,13 +130,14 @@ def exact(
     targets.exact_target(spec, ctx.obj.store, cell, gamma, robot, seed_index or 0)
     from esr_cli.recipes import exact_runs  # JAX and the analysis: after the options are checked
 
-    built = ensure(exact_runs.exact_recipe(spec, ctx.obj.store, cell, gamma, robot, seed_index or 0, err), ctx.obj.store)
+    built = ensure(exact_runs.exact_recipe(spec, ctx.obj.store, cell, gamma, robot, seed_index or 0, err, sample_pairs),
+                   ctx.obj.store)
     path, summary, cached = built.path, built.summary(), built.cached
     table = Table(title=f"exact empowerment: {spec.name}, goal {tuple(summary['goal'])}, gamma {summary['gamma']}")
     table.add_column("quantity")
     table.add_column("value")
     for k in ("states", "effective_empowerment", "mean_mi_visited", "mean_mi_visited_merged_actions", "mean_mi_uniform_states",
-              "max_mi", "states_with_zero_mi", "pairs", "pairs_computed"):
+              "max_mi", "states_with_zero_mi", "pairs", "pairs_computed", "sample_pairs"):
         if k not in summary:  # made by an earlier version
             continue
         v = summary[k]

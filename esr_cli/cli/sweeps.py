@@ -14,7 +14,7 @@ from esr_cli.storage.artifacts import ensure
 
 
 def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait, job_opts,
-                                  unfinished=False, out_dir=None):
+                                  unfinished=False, out_dir=None, exact=False):
     """An option that would change nothing is a mistake to name, not to ignore."""
     for flag, given in (("--unfinished", unfinished), ("--out", out_dir is not None)):
         if given and not plot:
@@ -23,7 +23,7 @@ def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, 
         raise Exit(2, "--status and --results: choose one")
     if as_json and markdown:
         raise Exit(2, "--json and --markdown: choose one")
-    for flag, given in (("--markdown", markdown), ("--metric", metric), ("--plot", plot)):
+    for flag, given in (("--markdown", markdown), ("--metric", metric), ("--plot", plot), ("--exact", exact)):
         if given and not show_results:
             raise Exit(2, f"{flag} applies with --results only")
     if as_json and not (show_status or show_results):
@@ -56,6 +56,9 @@ def sweep(
                                     "marked unfinished (a preview outside the store)"),
     out_dir: Optional[Path] = typer.Option(None, "--out", help="--plot --unfinished: the folder for the preview "
                                            "(default: suite-NAME-BUDGET-unfinished here)"),
+    exact: bool = typer.Option(False, "--exact", help="--results: also each gridworld robot's exact checks as the store "
+                               "holds them, seed by seed (esr exact --robot, esr plot estimator), and the commands "
+                               "that make the missing ones; computes nothing"),
     wait: Optional[bool] = typer.Option(None, "--wait/--no-wait", help="wait for submitted jobs (default: wait, except for slurm)"),
     partition: Optional[str] = typer.Option(None, "--partition", help="slurm: partition (default: the suite's slurm.partition)"),
     time_min: Optional[int] = typer.Option(None, "--time-min", help="slurm: wall-clock limit per job, minutes"),
@@ -69,7 +72,7 @@ def sweep(
     check_executor(executor, sw.EXECUTORS)
     _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait,
                                   {"--partition": partition, "--time-min": time_min, "--gpus": gpus,
-                                   "--cpus": cpus, "--mem-gb": mem_gb}, unfinished, out_dir)
+                                   "--cpus": cpus, "--mem-gb": mem_gb}, unfinished, out_dir, exact)
     overrides = {"partition": partition, "time_min": time_min, "gpus": gpus, "cpus": cpus, "mem_gb": mem_gb}
     try:
         sw.slurm_options(sw.SlurmOptions(), overrides, "")  # before the suite's runs are built
@@ -80,15 +83,15 @@ def sweep(
         if show_results:
             metrics = tuple(dict.fromkeys(metric)) if metric else sw.DEFAULT_RESULT_METRICS
             try:
-                rows = sw.results(suite, ctx.obj.store, metrics)  # refuses a metric no run can log
+                rows = sw.results(suite, ctx.obj.store, metrics, exact)  # refuses a metric no run can log
             except sw.SuiteError as e:
                 raise Exit(2, str(e)) from None
             if as_json:
                 out.print_json(json.dumps(rows))
             elif markdown:
-                out.print(own(sw.results_markdown(suite, rows, metrics)), highlight=False)
+                out.print(own(sw.results_markdown(suite, rows, metrics, exact)), highlight=False)
             else:
-                out.print(sw.results_table(suite, rows, metrics))
+                out.print(sw.results_table(suite, rows, metrics, exact))
             if plot:
                 from esr_cli.report import figures as figs, paper
 

@@ -60,10 +60,11 @@ def tagged(tag: str, style: str, *rest: str | Text) -> Text:
     return Text.assemble((tag, style), *(r if isinstance(r, Text) else printable(r) for r in rest))
 
 
-def train_line(esr: str, spec_path, budget: str, sets) -> str:
-    """`esr train` as a shell line to paste: each word quoted where the shell would change it
-    (`train.seeds=[1]` is a glob; a value may hold a quote or a space)."""
-    words = ["train", str(spec_path), "--budget", budget, *(w for s in sets for w in ("--set", s))]
+def train_line(esr: str, spec_path, budget: str, sets, command: str = "train", extra=()) -> str:
+    """`esr train` (or another command over a spec) as a shell line to paste: each word quoted
+    where the shell would change it (`train.seeds=[1]` is a glob; a value may hold a quote or a
+    space)."""
+    words = [command, str(spec_path), "--budget", budget, *(w for s in sets for w in ("--set", s)), *extra]
     return " ".join([esr, *map(shlex.quote, words)])
 
 

@@ -38,9 +38,12 @@ EXACT_CODE = (provenance.MODEL_SOURCES + ("analysis",), ("recipes/exact_runs.py"
 
 
 def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | None, seed_index: int,
-                 console: Console) -> Recipe:
+                 console: Console, sample_pairs: int = 0) -> Recipe:
     """Exact empowerment of `spec`'s gridworld at `goal` and discount `gamma`, for a uniform
-    robot or the Boltzmann policy of seed `seed_index` of the trained run `robot`."""
+    robot or the Boltzmann policy of seed `seed_index` of the trained run `robot`. Where the
+    space is too large for every pair (above exact.DENSE_STATES), `sample_pairs` more pairs drawn
+    uniformly from all of them are computed beside the visited ones, for a rank correlation that
+    stands for all pairs (`esr plot estimator`); they do not enter the effective empowerment."""
     goal, gamma, robot_manifest = exact_target(spec, store, goal, gamma, robot, seed_index)
     components = {
         "kind": "exact",
@@ -52,6 +55,8 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
         "code": provenance.code_digest(*EXACT_CODE),
         "toolchain": provenance.toolchain(),
     }
+    if sample_pairs:  # absent otherwise: the artifacts made before the option keep their keys
+        components["sample_pairs"] = sample_pairs
 
     @functools.cache  # drawn once, for the check and the build (never on a cache hit)
     def start_states():
@@ -73,26 +78,32 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
             pi_r = exact.boltzmann_robot(space, lambda obs: trainer.learner.log_probs(lstate, obs))
         else:
             pi_r = exact.uniform_robot(space)
-        emp = _solve(space, pi_r, pi_h, gamma, console)
+        emp, sampled = _solve(space, pi_r, pi_h, gamma, console, sample_pairs)
+        arrays = {} if sampled is None else {"sampled": sampled}
         np.savez_compressed(
             out / "exact.npz", human=space.human, blocks=space.blocks, next_state=space.next_state, start=space.start,
             pi_human=pi_h, pi_robot=pi_r, mi=emp.mi, mi_merged=emp.mi_merged, state_mi=emp.state_mi, value=emp.value,
+            **arrays,
         )
+        # the summary's means are over the counted pairs: a sample's pairs stand for ranking only
+        counted, merged = (np.where(emp.counted, m, np.nan) for m in (emp.mi, emp.mi_merged))
+        pairs = "all" if emp.complete else f"visited ({exact.VISITED_MASS:.0%} of the robot's occupancy)"
         return {
             "name": spec.name, "goal": list(goal), "gamma": gamma, "states": space.size,
             "robot": components["robot"],
             "effective_empowerment": emp.effective_empowerment,
             # over every state alike: only where every pair was computed
             "mean_mi_uniform_states": float(emp.state_mi.mean()) if emp.complete else None,
-            "mean_mi_visited": _visited_mean(emp, pi_r),
+            "mean_mi_visited": _visited_mean(emp, pi_r, counted),
             # what a robot that infers the human's action from (s, s') could at most see
-            "mean_mi_visited_merged_actions": _visited_mean(emp, pi_r, emp.mi_merged),
-            "max_mi": float(np.nanmax(emp.mi)),
+            "mean_mi_visited_merged_actions": _visited_mean(emp, pi_r, merged),
+            "max_mi": float(np.nanmax(counted)),
             "states_with_zero_mi": int((emp.state_mi < 1e-9).sum()) if emp.complete else None,
             # above exact.DENSE_STATES only the robot's visited pairs: the rest count 0 in
             # state_mi and value, so the effective empowerment is then a lower bound
-            "pairs": "all" if emp.complete else f"visited ({exact.VISITED_MASS:.0%} of the robot's occupancy)",
+            "pairs": pairs if sampled is None or emp.complete else f"{pairs} and a uniform sample of {int(sampled.sum()):,}",
             "pairs_computed": int(np.isfinite(emp.mi).sum()),
+            **({} if sampled is None else {"sample_pairs": int(sampled.sum())}),
         }
 
     def check(store: Store) -> None:  # before anything is written: the goal must leave some start free
@@ -103,22 +114,29 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
     return Recipe(EXACT_KIND, spec.name, components, _discard_on_failure(build), budget=spec.budget, check=check)
 
 
-def _solve(space, pi_r: np.ndarray, pi_h: np.ndarray, gamma: float, console: Console) -> exact.Empowerment:
-    """exact.empowerment over every pair, or over the robot's visited pairs where the space is
-    too large for the dense solve (the sparse series costs per row of M wanted), with progress."""
+def _solve(space, pi_r: np.ndarray, pi_h: np.ndarray, gamma: float, console: Console,
+           sample_pairs: int = 0) -> tuple[exact.Empowerment, np.ndarray | None]:
+    """exact.empowerment over every pair, or over the robot's visited pairs (and a uniform sample
+    of `sample_pairs` pairs, computed but not counted) where the space is too large for the dense
+    solve (the sparse series costs per row of M wanted), with progress; and the sample (None
+    without one)."""
     p = exact.transition_matrix(space, pi_r, pi_h)
+    shape = space.next_state.shape[:2]
+    sampled = exact.sampled_pairs(shape, sample_pairs) if sample_pairs else None
     if space.size <= exact.DENSE_STATES:
         with console.status(f"solving for occupancies and mutual information ({space.size:,} states)"):
-            return exact.empowerment(space, pi_r, pi_h, gamma, occupancy=exact.solve_occupancy(p, gamma))
+            return exact.empowerment(space, pi_r, pi_h, gamma, occupancy=exact.solve_occupancy(p, gamma)), sampled
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
                   console=console, transient=True) as bar:
         task = bar.add_task("visitation", total=1)
         occ = exact.solve_occupancy(p, gamma, progress=lambda n: bar.advance(task, n))
-        pairs = exact.visited_pairs(occ, space.start, pi_r)
+        visited = exact.visited_pairs(occ, space.start, pi_r)
+        pairs = visited if sampled is None else visited | sampled
         rows = exact.rows_needed(space, pairs)
-        console.print(f"{int(pairs.sum()):,} visited (state, robot action) pairs need {rows:,} rows of the occupancy")
+        extra = "" if sampled is None else f" and {int(sampled.sum()):,} sampled"
+        console.print(f"{int(visited.sum()):,} visited{extra} (state, robot action) pairs need {rows:,} rows of the occupancy")
         bar.reset(task, total=rows + 2, description="occupancy rows")  # + value and visitation
-        return exact.empowerment(space, pi_r, pi_h, gamma, pairs=pairs, occupancy=occ)
+        return exact.empowerment(space, pi_r, pi_h, gamma, pairs=pairs, occupancy=occ, counted=visited), sampled
 
 
 def estimator_recipe(exact_ref: str, store: Store, console: Console) -> Recipe:
@@ -190,14 +208,49 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
     rho, _ = spearmanr(est[computed], mi[computed])
     visited = exact.visited_pairs(occ, space.start, data["pi_robot"]) & computed
     rho_visited, _ = spearmanr(est[visited], mi[visited])
-    result = {"spearman": float(rho), "pairs": int(computed.sum()), "spearman_visited": float(rho_visited),
-              "visited_pairs": int(visited.sum()), "visited_mass": exact.VISITED_MASS,
+    result = {"spearman": float(rho), "pairs": int(computed.sum()), "complete": bool(computed.all()),
+              "spearman_visited": float(rho_visited), "visited_pairs": int(visited.sum()), "visited_mass": exact.VISITED_MASS,
               "run": run_manifest["key"], "exact": manifest["key"]}
+    if "sampled" in data.files:  # a uniform sample of all pairs: its rank correlation, with an interval
+        sampled = data["sampled"] & computed
+        rho_sample, low, high = spearman_interval(est[sampled], mi[sampled])
+        result.update({"spearman_sample": rho_sample, "spearman_sample_ci": [low, high], "sample_pairs": int(sampled.sum())})
     if out_png is not None:
         plots.estimator_scatter(mi[computed], est[computed], float(rho), out_png,
                                 {"artifacts": {"runs": run_manifest["key"], "exact": manifest["key"]},
                                  "budget": run_manifest.get("budget"), "seeds": run_manifest.get("seeds")})
     return result
+
+
+def estimator_lines(result: dict) -> list[str]:
+    """What `esr plot estimator` prints of a check: its rank correlations, each over its pairs."""
+    head = "Spearman rank correlation of ESR's reward with the exact MI"
+    if result.get("complete", True):  # checks made before `complete` was recorded were over every pair they had
+        lines = [f"{head}: {result['spearman']:.3f} over all {result['pairs']:,} (state, robot action) pairs"]
+    elif "spearman_sample" in result:
+        low, high = result["spearman_sample_ci"]
+        lines = [f"{head}: {result['spearman_sample']:.3f} [95% CI {low:.3f}, {high:.3f}] over a uniform sample of "
+                 f"{result['sample_pairs']:,} of all (state, robot action) pairs"]
+    else:
+        lines = [f"{head}: not over all pairs (the space is solved over the robot's visited pairs; "
+                 "`esr exact --sample-pairs N` adds a uniform sample of all pairs)"]
+    lines.append(f"  over the {result['visited_pairs']:,} pairs holding {result['visited_mass']:.0%} of the robot's "
+                 f"discounted occupancy: {result['spearman_visited']:.3f}")
+    return lines
+
+
+SPEARMAN_RESAMPLES = 2000
+
+
+def spearman_interval(x: np.ndarray, y: np.ndarray, resamples: int = SPEARMAN_RESAMPLES, seed: int = 0) -> tuple[float, float, float]:
+    """Spearman's rho of (x, y) and its 95% percentile bootstrap interval over the pairs (each
+    resample draws as many pairs, with replacement, from a fixed generator)."""
+    rho = float(spearmanr(x, y)[0])
+    rng = np.random.default_rng(seed)
+    draws = rng.integers(0, len(x), size=(resamples, len(x)))
+    boot = np.array([spearmanr(x[d], y[d])[0] for d in draws])
+    low, high = np.nanpercentile(boot, [2.5, 97.5])
+    return rho, float(low), float(high)
 
 
 def _visited_mean(emp, pi_robot: np.ndarray, mi: np.ndarray | None = None) -> float:

@@ -39,7 +39,8 @@ from rich.table import Table
 from rich.text import Text
 
 from esr_cli.common import specs
-from esr_cli.common.printing import plain_console, tagged
+from esr_cli.common.printing import plain_console, tagged, train_line
+from esr_cli.model import spec as spec_model
 from esr_cli.recipes.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
 from esr_cli.storage import provenance
 from esr_cli.storage.artifacts import ensure
@@ -370,13 +371,18 @@ def check_metrics(suite: Suite, store: Store, metrics: tuple[str, ...], rows: Op
             raise SuiteError("--metric", "", f"unknown metric {m!r}; known: {', '.join(known)}")
 
 
-def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS) -> list[dict]:
+def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS,
+            exact: bool = False) -> list[dict]:
     """Each run's final value of each metric (return and success unless told; mean +- SE across
     seeds, esr_cli.storage.finals) and wall time, read from the committed artifacts; a metric a run does
     not log is left out of its row; runs not done carry their state and the command. A metric
-    no run of the suite can log is refused (SuiteError)."""
+    no run of the suite can log is refused (SuiteError). With `exact`, each done gridworld run
+    that learns a policy also carries its seeds' exact checks as the store holds them
+    (exact_lookup), and the commands that make what is missing."""
     from esr_cli.storage.finals import read_rows, run_finals
 
+    if exact and not any(r.spec.env.kind == "gridworld" for r in suite.runs):
+        raise SuiteError("--exact", "", "exact checks are made on gridworld runs; this suite has none")
     rows = status(suite, store)
     check_metrics(suite, store, metrics, rows)
     out = []
@@ -386,10 +392,46 @@ def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESUL
             logged = set(read_rows(r.path)[-1]) if metrics != DEFAULT_RESULT_METRICS else set(metrics)
             row.update(run_finals(r.path, tuple(m for m in metrics if m in logged)),
                        wall_s=store.read_manifest(r.path).get("wall_time_s"), path=str(r.path))
+            if exact and _has_exact_checks(r.run.spec):
+                row.update(_exact_columns(r.run, suite.budget, store))
         else:
             row["command"] = r.run.command(suite.budget, store.invocation())
         out.append(row)
     return out
+
+
+EXACT_COLUMNS = {"exact_ee": "exact effective empowerment, per seed (nats)",
+                 "spearman_all": "Spearman (reward, exact MI), all pairs, per seed",
+                 "spearman_visited": "Spearman, visited pairs (count), per seed"}
+# What `esr sweep --results --exact` asks `esr exact` to sample where a space is too large for
+# every pair: enough for a rank correlation to within about +-0.05.
+SUGGESTED_SAMPLE_PAIRS = 500
+
+
+def _has_exact_checks(spec) -> bool:
+    return spec.env.kind == "gridworld" and spec.method.kind not in spec_model.POLICY_FREE_METHODS
+
+
+def _exact_columns(run: Run, budget: str, store: Store) -> dict:
+    """A run's exact-check cells (exact_lookup.cells) and the commands for what the store lacks."""
+    from esr_cli.recipes import exact_lookup
+
+    spec = run.spec
+    goal = (spec.env.size // 2, spec.env.size // 2)
+    gamma = float(getattr(spec.method, "future_gamma", spec.learner.gamma))
+    checks = exact_lookup.run_checks(store, run.key, len(spec.train.seeds), goal, gamma)
+    esr = store.invocation()
+    todo = []
+    for i, what in exact_lookup.missing(checks):
+        if what == "exact":
+            extra = ("--robot", run.key[:8], "--seed-index", str(i), "--sample-pairs", str(SUGGESTED_SAMPLE_PAIRS))
+            todo.append(train_line(esr, run.spec_path, budget, run.sets, command="exact", extra=extra))
+        elif spec.method.kind == "esr":  # the rank correlation is of ESR's own reward
+            todo.append(f"{esr} plot estimator {checks[i].exact[:8]}")
+    cells = exact_lookup.cells(checks)
+    if spec.method.kind != "esr":  # no reward of its own to rank
+        cells.update(spearman_all="", spearman_visited="")
+    return {"exact": cells, "exact_todo": todo}
 
 
 def _pm(row: dict, name: str, digits: int) -> str:
@@ -408,30 +450,59 @@ def _what(metrics: tuple[str, ...]) -> str:
     return ", ".join(metrics[:-1]) + f" and {metrics[-1]}" if len(metrics) > 1 else metrics[0]
 
 
-def results_table(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS) -> Table:
+def _exact_cells(r: dict, exact: bool) -> list[str]:
+    if not exact:
+        return []
+    return [r["exact"][c] for c in EXACT_COLUMNS] if "exact" in r else [""] * len(EXACT_COLUMNS)
+
+
+def _exact_todo(rows: list[dict]) -> list[str]:
+    return [line for r in rows for line in r.get("exact_todo", ())]
+
+
+def results_table(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS, exact: bool = False) -> Table:
     table = Table(title=f"suite {suite.name} ({suite.budget}): final {_what(metrics)}, mean ± SE and IQM "
-                        "[95% bootstrap CI] across seeds (last 10% of epochs)")
-    for col in ("run", "method", "seeds", *metrics, "wall"):
+                        "[95% bootstrap CI] across seeds (last 10% of epochs)", caption=_exact_caption(rows, exact))
+    for col in ("run", "method", "seeds", *metrics, "wall", *(EXACT_COLUMNS.values() if exact else ())):
         table.add_column(col, overflow="fold")
     for r in rows:
         if r["state"] == "done":
             wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
-            table.add_row(r["run"], r["method"], str(r["seeds"]), *(_cell(r, m) for m in metrics), wall)
+            table.add_row(r["run"], r["method"], str(r["seeds"]), *(_cell(r, m) for m in metrics), wall, *_exact_cells(r, exact))
         else:
-            table.add_row(r["run"], r["method"], "", Text(r["state"], style=_STYLE[r["state"]]), *[""] * len(metrics))
+            table.add_row(r["run"], r["method"], "", Text(r["state"], style=_STYLE[r["state"]]), *[""] * len(metrics),
+                          *_exact_cells(r, exact))
     return table
 
 
-def results_markdown(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS) -> str:
+def _exact_caption(rows: list[dict], exact: bool) -> Optional[str]:
+    if not exact:
+        return None
+    todo = _exact_todo(rows)
+    note = ("exact checks at the centre goal and the spec's future discount; '≥': a lower bound (the space is solved "
+            "over the robot's visited pairs); an interval: a uniform sample of all pairs, 95% bootstrap")
+    return note + ("" if not todo else "\nmissing, made by:\n" + "\n".join(todo))
+
+
+def results_markdown(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS, exact: bool = False) -> str:
+    heads = (*metrics, "wall", *(EXACT_COLUMNS.values() if exact else ()))
     lines = [f"Suite `{suite.name}`, budget `{suite.budget}`: final {_what(metrics)}, mean ± SE and "
              "the interquartile mean [95% stratified bootstrap interval] across seeds (each seed's last 10% of epochs).", "",
-             "| run | method | seeds | " + " | ".join(metrics) + " | wall |", "|---|---|---|" + "---|" * len(metrics) + "---|"]
+             "| run | method | seeds | " + " | ".join(heads) + " |", "|---|---|---|" + "---|" * len(heads)]
     for r in rows:
         if r["state"] == "done":
             wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
-            lines.append(f"| {r['run']} | {r['method']} | {r['seeds']} | " + " | ".join(_cell(r, m) for m in metrics) + f" | {wall} |")
+            lines.append(f"| {r['run']} | {r['method']} | {r['seeds']} | " + " | ".join([*(_cell(r, m) for m in metrics), wall,
+                                                                                      *_exact_cells(r, exact)]) + " |")
         else:
-            lines.append(f"| {r['run']} | {r['method']} | | {r['state']}: `{r['command']}` |" + " |" * len(metrics))
+            lines.append(f"| {r['run']} | {r['method']} | | {r['state']}: `{r['command']}` |" + " |" * (len(heads) - 1))
+    if exact:
+        lines += ["", "Exact checks at the centre goal and the spec's future discount, seed by seed: '≥' marks a lower "
+                  "bound (the space is solved over the pairs holding 99% of the robot's discounted occupancy); an "
+                  "interval is a uniform sample of all pairs with its 95% bootstrap interval."]
+        todo = _exact_todo(rows)
+        if todo:
+            lines += ["", "Missing from the store, made by:", "", "```bash", *todo, "```"]
     return "\n".join(lines)
 
 

@@ -115,6 +115,11 @@ def exact_artifact(store: Store, ref: str) -> Path:
     return path
 
 
+# `esr exact --sample-pairs`: each sampled pair needs up to one row of the occupancy per human
+# action, S floats each; beyond this many the sample costs what computing every pair costs.
+MAX_SAMPLE_PAIRS = 10_000
+
+
 def exact_target(spec, store: Store, goal, gamma: float | None, robot: str | None,
                  seed_index: int) -> tuple[tuple[int, int], float, dict | None]:
     """(goal cell, discount, the robot run's manifest or None for a uniform robot) of an exact

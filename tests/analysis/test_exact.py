@@ -140,12 +140,69 @@ def test_exact_and_estimator_cli(tmp_path):
     assert -1 <= result["spearman"] <= 1
     assert 1 <= result["visited_pairs"] <= result["pairs"] and -1 <= result["spearman_visited"] <= 1 or \
         np.isnan(result["spearman_visited"])  # a constant estimate over few pairs has no rank correlation
+    assert result["complete"] and "over all" in fig.stderr
+    sampled = Path(esr("exact", str(spec), "--budget", "smoke", "--goal", "1,1", "--robot", run.name, "--sample-pairs", "30",
+                       store=store).stdout.strip())
+    assert sampled != with_robot
+    check = json.loads((Path(esr("plot", "estimator", sampled.name, store=store).stdout.strip()).parent / "summary.json").read_text())
+    assert check["sample_pairs"] == 30 and check["spearman"] == pytest.approx(result["spearman"])
+    low, high = check["spearman_sample_ci"]
+    assert low <= check["spearman_sample"] <= high or np.isnan(check["spearman_sample"])
     bad = esr("plot", "estimator", path.name, store=store, check=False)
     assert bad.returncode == 2 and "--robot" in bad.stderr
     # a robot without a learned policy has no Boltzmann policy to analyse: refused, not faked
     random_run = Path(esr("train", str(spec), "--budget", "smoke", "--set", "method.kind=random", store=store).stdout.strip())
     refused = esr("exact", str(spec), "--goal", "1,1", "--robot", random_run.name, store=store, check=False)
     assert refused.returncode == 2 and "leave out --robot for the uniform robot" in refused.stderr, refused.stderr
+
+
+@pytest.mark.slow
+def test_sweep_results_exact_puts_each_seeds_checks_beside_the_returns(tmp_path):
+    """`esr sweep --results --exact` reads each seed's exact check and rank correlation from the
+    store, names the command of each one missing, and those commands fill the cells in."""
+    import shlex
+
+    from conftest import ROOT, esr
+
+    (tmp_path / "tiny.yaml").write_text(TINY_SPEC)
+    suite = tmp_path / "suite.yaml"
+    suite.write_text("name: tinyx\nset: {train.seeds: 2}\nspecs: [tiny.yaml, {spec: tiny.yaml, set: {method.kind: random}}]\n")
+    store = tmp_path / "store"
+    esr("sweep", str(suite), "--budget", "smoke", store=store)
+
+    def results():
+        rows = json.loads(esr("sweep", str(suite), "--budget", "smoke", "--results", "--exact", "--json", store=store).stdout)
+        return rows[0], rows[1]
+
+    def run(line):  # a printed line, run as printed: `esr` reaches the store it names by default (ESR_STORE)
+        words = shlex.split(line)
+        assert words[0] == "esr" and words[1] != "--store"
+        return esr(*words[1:], store=store)
+
+    esr_row, random_row = results()
+    assert "exact" not in random_row  # a uniformly random robot has no policy of its own to analyse
+    assert esr_row["exact"] == {"exact_ee": "— / —", "spearman_all": "— / —", "spearman_visited": "— / —"}
+    first, second = esr_row["exact_todo"]
+    assert f"--robot {esr_row['key'][:8]} --seed-index 0 --sample-pairs 500" in first and "--seed-index 1" in second
+    exact_path = Path(run(first).stdout.strip())
+    summary = json.loads((exact_path / "summary.json").read_text())
+    esr_row, _ = results()
+    assert esr_row["exact"]["exact_ee"] == f"{summary['effective_empowerment']:.3f} / —"  # every pair: exact, no '≥'
+    assert esr_row["exact_todo"][0] == f"esr plot estimator {exact_path.name[:8]}"
+    check = json.loads((Path(run(esr_row["exact_todo"][0]).stdout.strip()).parent / "summary.json").read_text())
+    esr_row, _ = results()
+    assert esr_row["exact"]["spearman_all"] == f"{check['spearman']:.3f} / —"
+    assert esr_row["exact"]["spearman_visited"] == f"{check['spearman_visited']:.3f} ({check['visited_pairs']:,}) / —"
+    assert esr_row["exact_todo"] == [second]
+    table = esr("sweep", str(suite), "--budget", "smoke", "--results", "--exact", "--markdown", store=store).stdout
+    assert "exact effective empowerment, per seed (nats)" in table and "Missing from the store, made by:" in table
+    assert second in table
+    refused = esr("sweep", str(suite), "--budget", "smoke", "--exact", store=store, check=False)
+    assert refused.returncode == 2 and "--exact applies with --results only" in refused.stderr
+    overcooked = tmp_path / "oc.yaml"
+    overcooked.write_text(f"name: oc\nspecs: [{ROOT / 'experiments' / 'cramped_room_random.yaml'}]\n")
+    refused = esr("sweep", str(overcooked), "--budget", "smoke", "--results", "--exact", store=store, check=False)
+    assert refused.returncode == 2 and "exact checks are made on gridworld runs; this suite has none" in refused.stderr
 
 
 @pytest.mark.slow
@@ -334,6 +391,42 @@ def test_exact_above_the_dense_limit_covers_the_visited_pairs(tmp_path, monkeypa
     computed = np.isfinite(mi_some)
     np.testing.assert_allclose(mi_some[computed], mi_full[computed], atol=1e-8)
     assert some["effective_empowerment"] <= full["effective_empowerment"] + 1e-12
+    # A uniform sample of all pairs, computed beside the visited ones: its MI is the complete
+    # computation's, and it changes neither the effective empowerment nor the visited means.
+    sampled = ensure(exact_runs.exact_recipe(spec, Store(tmp_path / "b"), (1, 1), None, None, 0, Console(quiet=True), 40),
+                     Store(tmp_path / "b"))
+    with_sample = json.loads((sampled.path / "summary.json").read_text())
+    assert sampled.path.name != part.path.name and with_sample["sample_pairs"] == 40
+    assert with_sample["pairs"] == "visited (99% of the robot's occupancy) and a uniform sample of 40"
+    data = np.load(sampled.path / "exact.npz")
+    assert data["sampled"].sum() == 40 and np.isfinite(data["mi"][data["sampled"]]).all()
+    np.testing.assert_allclose(data["mi"][data["sampled"]], mi_full[data["sampled"]], atol=1e-8)
+    for k in ("effective_empowerment", "mean_mi_visited", "mean_mi_visited_merged_actions", "max_mi"):
+        assert with_sample[k] == pytest.approx(some[k], abs=1e-12), k
+    assert with_sample["pairs_computed"] == int((np.isfinite(mi_some) | data["sampled"]).sum())
+
+
+def test_sampled_pairs_are_distinct_uniform_and_fixed():
+    mask = exact.sampled_pairs((100, 5), 50)
+    assert mask.shape == (100, 5) and mask.sum() == 50
+    assert (exact.sampled_pairs((100, 5), 50) == mask).all()  # a function of its arguments
+    assert exact.sampled_pairs((100, 5), 50, seed=1).sum() == 50 and (exact.sampled_pairs((100, 5), 50, seed=1) != mask).any()
+    assert exact.sampled_pairs((3, 2), 10).all()  # more than there are: every pair
+    # uniform: over many draws every row is picked about as often as n / S
+    counts = sum(exact.sampled_pairs((20, 5), 10, seed=s).sum(axis=1) for s in range(400))
+    assert counts.min() > 0.6 * counts.mean() and counts.max() < 1.4 * counts.mean()
+
+
+def test_spearman_interval_by_hand():
+    from esr_cli.recipes.exact_runs import spearman_interval
+
+    x = np.arange(30.0)
+    assert spearman_interval(x, x**3, resamples=200) == pytest.approx((1.0, 1.0, 1.0))  # monotone: every resample too
+    assert spearman_interval(x, -x, resamples=200) == pytest.approx((-1.0, -1.0, -1.0))
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=400)
+    rho, low, high = spearman_interval(a, a + rng.normal(size=400), resamples=500)
+    assert low < rho < high and 0.5 < rho < 0.8 and high - low < 0.2  # rho of a + noise (sd 1): about 0.68
 
 
 @pytest.mark.slow
