@@ -23,6 +23,7 @@ class SeedCheck:
     exact: Optional[str] = None  # the exact artifact's key
     effective_empowerment: Optional[float] = None  # nats; a lower bound where not every pair was computed
     complete: Optional[bool] = None  # every pair computed and counted
+    sampled: bool = False  # made with a uniform sample of all pairs (`esr exact --sample-pairs`)
     spearman_all: Optional[float] = None  # over every pair, where the space was solved whole
     spearman_sample: Optional[tuple[float, float, float]] = None  # (rho, low, high) over a uniform sample of all pairs
     sample_pairs: Optional[int] = None
@@ -63,7 +64,7 @@ def run_checks(store: Store, run_key: str, seeds: int, goal: tuple[int, int], ga
             out.append(SeedCheck(exact=manifest["key"]))
             continue
         fields = {"exact": manifest["key"], "effective_empowerment": summary.get("effective_empowerment"),
-                  "complete": summary.get("pairs") == "all"}
+                  "complete": summary.get("pairs") == "all", "sampled": "sample_pairs" in manifest["key_components"]}
         check = checks.get(manifest["key"])
         if check is not None:
             try:
@@ -108,6 +109,13 @@ def cells(checks: list[SeedCheck]) -> dict[str, str]:
 
 
 def missing(checks: list[SeedCheck]) -> list[tuple[int, str]]:
-    """(seed index, what is missing): 'exact' (no exact check) or 'estimator' (no rank correlation)."""
-    return [(i, "exact" if c.exact is None else "estimator") for i, c in enumerate(checks)
-            if c.exact is None or c.spearman_visited is None]
+    """(seed index, what is missing): 'exact' (no exact check, or only one over the visited pairs
+    without a sample, which leaves the correlation over all pairs unknown) or 'estimator' (no
+    rank correlation made from it)."""
+    out = []
+    for i, c in enumerate(checks):
+        if c.exact is None or (c.complete is False and not c.sampled):
+            out.append((i, "exact"))
+        elif c.spearman_visited is None:
+            out.append((i, "estimator"))
+    return out

@@ -417,6 +417,23 @@ def test_sampled_pairs_are_distinct_uniform_and_fixed():
     assert counts.min() > 0.6 * counts.mean() and counts.max() < 1.4 * counts.mean()
 
 
+def test_the_missing_checks_of_a_run_are_named_seed_by_seed():
+    from esr_cli.recipes.exact_lookup import SeedCheck, cells, missing
+
+    whole = SeedCheck(exact="a" * 32, effective_empowerment=0.25, complete=True, spearman_all=0.5, spearman_visited=0.4,
+                      visited_pairs=120)
+    visited_only = SeedCheck(exact="b" * 32, effective_empowerment=0.2, complete=False)
+    sampled = SeedCheck(exact="c" * 32, effective_empowerment=0.2, complete=False, sampled=True)
+    checked = SeedCheck(exact="c" * 32, effective_empowerment=0.2, complete=False, sampled=True,
+                        spearman_sample=(0.52, 0.47, 0.58), sample_pairs=500, spearman_visited=0.61, visited_pairs=966)
+    # no check; one over the visited pairs alone (the correlation over all pairs needs a sample);
+    # a sampled one whose correlation is not yet made; complete ones
+    assert missing([SeedCheck(), visited_only, sampled, whole, checked]) == [(0, "exact"), (1, "exact"), (2, "estimator")]
+    assert cells([whole, checked]) == {"exact_ee": "0.250 / ≥ 0.200",
+                                       "spearman_all": "0.500 / 0.520 [0.470, 0.580] (sample of 500)",
+                                       "spearman_visited": "0.400 (120) / 0.610 (966)"}
+
+
 def test_spearman_interval_by_hand():
     from esr_cli.recipes.exact_runs import spearman_interval
 
