@@ -9,7 +9,7 @@ comma  := ,
 STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 DEMO_SET := --budget quick --set train.epochs=40
 
-.PHONY: install browser slurm demo test test-fast bench bench-human sweep paper-figures report-store report report-check clean-venv
+.PHONY: install browser slurm demo test test-fast bench bench-phases bench-human sweep paper-figures report-store report report-check clean-venv
 BUDGET   ?= paper
 EXECUTOR ?= local
 
@@ -69,6 +69,11 @@ paper-figures: install
 
 bench: install
 	$(BIN)/python benchmarks/bench.py
+
+# Where one epoch's time goes: the gridworld paper configuration's epoch less each phase
+# (docs/performance.md, "Where the time goes now").
+bench-phases: install
+	$(BIN)/python benchmarks/bench.py --phases --configs "gridworld grid_2 (paper)" --seeds 1 --epochs 3
 
 # The PPO human's seconds per update on the three layouts (docs/overcooked.md, "Cost").
 bench-human: install

@@ -12,6 +12,13 @@ Output: a table on stdout, a JSON file (--out), and a last line with the headlin
 
     python benchmarks/bench.py                 # grid_2 paper config; seeds 1, 5, 20
     python benchmarks/bench.py --seeds 1 --epochs 2
+    python benchmarks/bench.py --phases        # where one epoch's time goes, phase by phase
+
+--phases times the configuration's epoch whole and with each phase's updates set to none (the
+representation updates; the critic's, with the reward table they read; the dual's, with the Q
+table they read), each in a fresh process, so that every phase is timed inside the real epoch
+program: a phase's cost is the whole epoch's time less the time without it, and the rollout's
+(with the buffer and the metrics) the time with no updates at all.
 """
 
 from __future__ import annotations
@@ -101,8 +108,8 @@ def epoch_flops(trainer) -> float:
     return total
 
 
-def measure(spec_path: str, seeds: int, epochs: int, seed_batch: int | None) -> dict:
-    """One configuration in this process: -> figures."""
+def measure(spec_path: str, seeds: int, epochs: int, seed_batch: int | None, sets: tuple[str, ...] = ()) -> dict:
+    """One configuration in this process (with `sets`, --set overrides): -> figures."""
     import resource
 
     import jax
@@ -115,7 +122,7 @@ def measure(spec_path: str, seeds: int, epochs: int, seed_batch: int | None) -> 
     from esr_cli.storage.store import Store
 
     apply_matmul_precision()  # as training does (ESR_MATMUL_PRECISION)
-    spec = specs.load(ROOT / spec_path, "paper", [f"train.seeds={seeds}", f"train.chunk_epochs={epochs}"])
+    spec = specs.load(ROOT / spec_path, "paper", [f"train.seeds={seeds}", f"train.chunk_epochs={epochs}", *sets])
     store = Store(os.environ.get("ESR_STORE") or ROOT / "artifacts")
     if spec.human.kind == "bc":  # the BC human of an Overcooked spec: built once, then stored
         from esr_cli.common.printing import plain_console
@@ -143,6 +150,7 @@ def measure(spec_path: str, seeds: int, epochs: int, seed_batch: int | None) -> 
     flops = epoch_flops(trainer) * seeds
     return {
         "config": spec_path,
+        "sets": list(sets),
         "seeds": seeds,
         "seed_batch": "all" if seed_batch is None else seed_batch,
         "num_envs": spec.train.num_envs,
@@ -183,6 +191,48 @@ def _seed_batch(text: str):
     return None if text == "all" else int(text)
 
 
+def _measure_in_child(path: str, seeds: int, epochs: int, seed_batch: str, sets: tuple[str, ...] = ()) -> dict:
+    """`measure` in a fresh process: its memory and compiled programs are its own."""
+    proc = subprocess.run([sys.executable, __file__, "--one", path, str(seeds), str(epochs), seed_batch, *sets],
+                          capture_output=True, text=True, cwd=ROOT)
+    if proc.returncode != 0:
+        print(proc.stderr, file=sys.stderr)
+        raise SystemExit(f"benchmark of {path} {' '.join(sets)} with {seeds} seeds failed")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+# Each phase of an epoch, and the --set values that leave it out (its table goes with it: the
+# reward table is built only for a critic phase, the Q table only for a dual phase).
+PHASES = {
+    "representation updates": ("method.repr_updates_per_epoch=0",),
+    "critic updates, with the reward table": ("learner.updates_per_epoch=0",),
+    "dual updates, with the Q table": ("learner.dual_updates_per_epoch=0",),
+}
+
+
+def phases(configs: list[str], seeds: int, epochs: int, seed_batch: str, out: str) -> None:
+    """Each phase's seconds per epoch: the whole epoch less the epoch without that phase."""
+    rows = []
+    for name in configs:
+        path = CONFIGS[name]
+        print(f"measuring {name}, {seeds} seed(s): the whole epoch, then without each phase...", file=sys.stderr, flush=True)
+        whole = _measure_in_child(path, seeds, epochs, seed_batch)
+        print(f"device: {whole['device']}\n{name}, {seeds} seed(s): {whole['s_per_epoch']:.3f} s per epoch", flush=True)
+        none = _measure_in_child(path, seeds, epochs, seed_batch, tuple(s for sets in PHASES.values() for s in sets))
+        parts = {phase: whole["s_per_epoch"] - _measure_in_child(path, seeds, epochs, seed_batch, sets)["s_per_epoch"]
+                 for phase, sets in PHASES.items()}
+        parts["rollout, buffer and metrics (no updates)"] = none["s_per_epoch"]
+        for phase, t in parts.items():
+            print(f"  {phase:44} {t:7.3f} s  {100 * t / whole['s_per_epoch']:5.1f}%", flush=True)
+        rest = whole["s_per_epoch"] - sum(parts.values())
+        print(f"  {'left over (phases overlapping or noise)':44} {rest:7.3f} s  {100 * rest / whole['s_per_epoch']:5.1f}%", flush=True)
+        rows.append({"name": name, "seeds": seeds, "epochs_timed": epochs, "device": whole["device"],
+                     "s_per_epoch": whole["s_per_epoch"], "phases_s": {k: round(v, 3) for k, v in parts.items()},
+                     "left_over_s": round(rest, 3)})
+        _write(out, {"results": rows})
+    print(f"wrote {out}")
+
+
 def _write(path: str, results: dict) -> None:
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -201,11 +251,17 @@ def main() -> None:
                     help="seeds vmapped side by side, the rest one after another: auto (all on an "
                          "accelerator, 1 on the CPU), all, or a number")
     ap.add_argument("--out", default="benchmarks/results.json")
-    ap.add_argument("--one", nargs=4, help=argparse.SUPPRESS)  # internal: spec seeds epochs seed_batch
+    ap.add_argument("--phases", action="store_true", help="time each phase of one epoch (the first of --seeds, each "
+                    "of --configs) instead; writes benchmarks/results_phases.json unless --out is given")
+    ap.add_argument("--one", nargs="+", help=argparse.SUPPRESS)  # internal: spec seeds epochs seed_batch [sets...]
     args = ap.parse_args()
     if args.one:
-        path, n, epochs, batch = args.one
-        print(json.dumps(measure(path, int(n), int(epochs), _seed_batch(batch))))
+        path, n, epochs, batch, *sets = args.one
+        print(json.dumps(measure(path, int(n), int(epochs), _seed_batch(batch), tuple(sets))))
+        return
+    if args.phases:
+        out = args.out if any(a.startswith("--out") for a in sys.argv[1:]) else "benchmarks/results_phases.json"
+        phases(args.configs, args.seeds[0], args.epochs, args.seed_batch, out)
         return
 
     # The parent touches no device until the children are done: on a GPU, jax would otherwise
@@ -217,14 +273,7 @@ def main() -> None:
         path = CONFIGS[name]
         for n in args.seeds:
             print(f"measuring {name}, {n} seed(s)...", file=sys.stderr, flush=True)
-            proc = subprocess.run(
-                [sys.executable, __file__, "--one", path, str(n), str(args.epochs), args.seed_batch],
-                capture_output=True, text=True, cwd=ROOT,
-            )
-            if proc.returncode != 0:
-                print(proc.stderr, file=sys.stderr)
-                raise SystemExit(f"benchmark of {name} with {n} seeds failed")
-            r = {"name": name, **json.loads(proc.stdout.strip().splitlines()[-1])}
+            r = {"name": name, **_measure_in_child(path, n, args.epochs, args.seed_batch)}
             rows.append(r)
             if len(rows) == 1:  # the device as the first child saw it, before any figure
                 print(f"device: {r['device']}\n{header}", flush=True)
