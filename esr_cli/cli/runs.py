@@ -14,7 +14,7 @@ from esr_cli.common import specs
 from esr_cli.common.printing import tagged
 from esr_cli.model import spec as spec_model
 from esr_cli.recipes import targets
-from esr_cli.recipes.targets import MAX_SAMPLE_PAIRS
+from esr_cli.recipes.targets import MAX_SAMPLE_PAIRS, MIN_SAMPLE_PAIRS
 from esr_cli.storage.artifacts import ensure
 
 
@@ -119,6 +119,11 @@ def exact(
     """Exact effective empowerment of a small gridworld: I(aH; s+ | s, aR) for every state."""
     if seed_index is not None and robot is None:
         raise Exit(2, "--seed-index applies to --robot's run only (a uniform robot has no seeds)")
+    if sample_pairs and robot is None:
+        raise Exit(2, "--sample-pairs serves `esr plot estimator`, which needs a trained ESR robot: give --robot")
+    if 0 < sample_pairs < MIN_SAMPLE_PAIRS:
+        raise Exit(2, f"--sample-pairs {sample_pairs}: a rank correlation with an interval needs at least "
+                      f"{MIN_SAMPLE_PAIRS} pairs (or 0 for none)")
     spec = load_spec(spec_file, budget, set_, ctx.obj.store)
     cell = None
     if goal is not None:

@@ -92,6 +92,8 @@ def sweep(
                 out.print(own(sw.results_markdown(suite, rows, metrics, exact)), highlight=False)
             else:
                 out.print(sw.results_table(suite, rows, metrics, exact))
+                for line in sw.exact_notes(rows) if exact else ():  # whole lines, to copy and paste
+                    out.print(line, highlight=False, soft_wrap=True)
             if plot:
                 from esr_cli.report import figures as figs, paper
 

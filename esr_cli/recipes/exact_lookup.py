@@ -31,53 +31,88 @@ class SeedCheck:
     visited_pairs: Optional[int] = None
 
 
-def _default_view(components: dict, goal: tuple[int, int], gamma: float) -> bool:
-    return tuple(components.get("goal", ())) == goal and math.isclose(float(components.get("gamma", -1.0)), gamma)
+def _number(v) -> Optional[float]:
+    """A number read from a store (never a bool or text), or None."""
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
 
 
-def run_checks(store: Store, run_key: str, seeds: int, goal: tuple[int, int], gamma: float) -> list[SeedCheck]:
-    """Per seed index of run `run_key`: its exact check at `goal` and discount `gamma` (the
-    defaults of `esr exact`), preferring one with a uniform sample of pairs, then the newest."""
-    exacts: dict[int, list[tuple[dict, dict]]] = {}
-    checks: dict[str, dict] = {}
+def _count(v) -> Optional[int]:
+    return v if isinstance(v, int) and not isinstance(v, bool) else None
+
+
+def _summary(path) -> dict:
+    """An artifact's summary as a mapping; {} where it is missing, damaged or not a mapping."""
+    try:
+        summary = read_summary(path)
+    except (StoreError, OSError, ValueError):
+        return {}
+    return summary if isinstance(summary, dict) else {}
+
+
+@dataclass(frozen=True)
+class Target:
+    """What an exact check of a run is of: the run's environment and human (its spec's training
+    part), and the goal and discount `esr exact` takes by default for its spec."""
+
+    run_key: str
+    env: dict
+    human: dict
+    goal: tuple[int, int]
+    gamma: float
+
+    def matches(self, comps: dict) -> Optional[int]:
+        """The seed index of an exact artifact's key components when they are of this target."""
+        robot, goal, gamma = comps.get("robot"), comps.get("goal"), _number(comps.get("gamma"))
+        if not isinstance(robot, dict) or robot.get("run") != self.run_key or _count(robot.get("seed_index")) is None:
+            return None
+        if not isinstance(goal, list) or tuple(goal) != self.goal or gamma is None or not math.isclose(gamma, self.gamma):
+            return None
+        if comps.get("env") != self.env or comps.get("human") != self.human:
+            return None
+        return robot["seed_index"]
+
+
+def run_checks(store: Store, target: Target, seeds: int) -> list[SeedCheck]:
+    """Per seed index of the target's run: its exact check as the store holds it, preferring one
+    with a uniform sample of pairs, then the newest; and the estimator check made from it.
+    Entries whose manifests or summaries are damaged are passed over, never trusted."""
+    exacts: dict[int, list[tuple[bool, str, str, object]]] = {}  # seed -> (sampled, created, key, path)
+    estimators: dict[str, tuple[str, object]] = {}  # exact key -> (created, the newest check's path)
     for entry in store.entries():
         if entry.status != "complete" or entry.manifest is None or entry.kind not in (EXACT_KIND, FIGURE_KIND):
             continue
-        comps = entry.manifest.get("key_components") or {}
-        if entry.kind == FIGURE_KIND:
-            if comps.get("figure") == "estimator" and isinstance(comps.get("exact"), str):
-                checks[comps["exact"]] = {"path": entry.path, "created": entry.manifest.get("created_at", "")}
+        comps = entry.manifest.get("key_components")
+        if not isinstance(comps, dict):
             continue
-        robot = comps.get("robot")
-        if isinstance(robot, dict) and robot.get("run") == run_key and _default_view(comps, goal, gamma):
-            exacts.setdefault(int(robot.get("seed_index", -1)), []).append((entry.manifest, {"path": entry.path}))
+        created = str(entry.manifest.get("created_at") or "")
+        if entry.kind == FIGURE_KIND:
+            made_from = comps.get("exact")
+            if comps.get("figure") == "estimator" and isinstance(made_from, str) and created >= estimators.get(made_from, ("",))[0]:
+                estimators[made_from] = (created, entry.path)
+            continue
+        seed = target.matches(comps)
+        if seed is not None:
+            exacts.setdefault(seed, []).append(("sample_pairs" in comps, created, entry.key, entry.path))
     out = []
     for i in range(seeds):
-        found = sorted(exacts.get(i, []), key=lambda m: ("sample_pairs" in m[0]["key_components"], m[0].get("created_at", "")))
-        if not found:
+        if not exacts.get(i):
             out.append(SeedCheck())
             continue
-        manifest, where = found[-1]
-        try:
-            summary = read_summary(where["path"])
-        except StoreError:
-            out.append(SeedCheck(exact=manifest["key"]))
-            continue
-        fields = {"exact": manifest["key"], "effective_empowerment": summary.get("effective_empowerment"),
-                  "complete": summary.get("pairs") == "all", "sampled": "sample_pairs" in manifest["key_components"]}
-        check = checks.get(manifest["key"])
-        if check is not None:
-            try:
-                result = read_summary(check["path"])
-            except StoreError:
-                result = {}
-            if result:
-                fields.update(spearman_visited=result.get("spearman_visited"), visited_pairs=result.get("visited_pairs"))
-                if result.get("complete", fields["complete"]):
-                    fields["spearman_all"] = result.get("spearman")
-                if "spearman_sample" in result:
-                    low, high = result["spearman_sample_ci"]
-                    fields.update(spearman_sample=(result["spearman_sample"], low, high), sample_pairs=result.get("sample_pairs"))
+        sampled, _, key, path = max(exacts[i], key=lambda e: e[:2])
+        summary = _summary(path)
+        fields = {"exact": key, "effective_empowerment": _number(summary.get("effective_empowerment")),
+                  # summaries made before `pairs` was recorded were always of every pair
+                  "complete": summary.get("pairs", "all") == "all" if summary else None, "sampled": sampled}
+        result = _summary(estimators[key][1]) if key in estimators else {}
+        if _number(result.get("spearman_visited")) is not None:  # NaN too: a constant estimate has no rank correlation
+            fields.update(spearman_visited=_number(result.get("spearman_visited")),
+                          visited_pairs=_count(result.get("visited_pairs")))
+            if result.get("complete", fields["complete"]) is True:
+                fields["spearman_all"] = _number(result.get("spearman"))
+            ci = result.get("spearman_sample_ci")
+            rho = _number(result.get("spearman_sample"))
+            if rho is not None and isinstance(ci, list) and len(ci) == 2 and all(_number(c) is not None for c in ci):
+                fields.update(spearman_sample=(rho, float(ci[0]), float(ci[1])), sample_pairs=_count(result.get("sample_pairs")))
         out.append(SeedCheck(**fields))
     return out
 
@@ -93,16 +128,19 @@ def cells(checks: list[SeedCheck]) -> dict[str, str]:
     def ee(c: SeedCheck) -> str:
         return _num(c.effective_empowerment) if c.complete or c.effective_empowerment is None else f"≥ {_num(c.effective_empowerment)}"
 
+    def pairs(n: Optional[int]) -> str:
+        return "?" if n is None else f"{n:,}"
+
     def every(c: SeedCheck) -> str:
         if c.spearman_all is not None:
             return _num(c.spearman_all)
         if c.spearman_sample is not None:
             rho, low, high = c.spearman_sample
-            return f"{_num(rho)} [{_num(low)}, {_num(high)}] (sample of {c.sample_pairs:,})"
+            return f"{_num(rho)} [{_num(low)}, {_num(high)}] (sample of {pairs(c.sample_pairs)})"
         return "—"
 
     def visited(c: SeedCheck) -> str:
-        return "—" if c.spearman_visited is None else f"{_num(c.spearman_visited)} ({c.visited_pairs:,})"
+        return "—" if c.spearman_visited is None else f"{_num(c.spearman_visited)} ({pairs(c.visited_pairs)})"
 
     return {"exact_ee": " / ".join(map(ee, checks)), "spearman_all": " / ".join(map(every, checks)),
             "spearman_visited": " / ".join(map(visited, checks))}

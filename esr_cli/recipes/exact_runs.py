@@ -187,7 +187,7 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
     psibar = occ.times(psi_all)  # [S, d]: expected psi(g) from each next state
     a_h = env.num_human_actions
     mi = data["mi"]
-    computed = np.isfinite(mi)  # every pair, or the visited ones on large spaces
+    computed = np.isfinite(mi)  # every pair, or on large spaces the visited ones (and a sample, if drawn)
     pair_state, pair_action = np.nonzero(computed)
 
     @jax.jit

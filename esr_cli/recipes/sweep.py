@@ -39,7 +39,7 @@ from rich.table import Table
 from rich.text import Text
 
 from esr_cli.common import specs
-from esr_cli.common.printing import plain_console, tagged, train_line
+from esr_cli.common.printing import plain_console, printable, tagged, train_line
 from esr_cli.model import spec as spec_model
 from esr_cli.recipes.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
 from esr_cli.storage import provenance
@@ -409,7 +409,16 @@ SUGGESTED_SAMPLE_PAIRS = 500
 
 
 def _has_exact_checks(spec) -> bool:
-    return spec.env.kind == "gridworld" and spec.method.kind not in spec_model.POLICY_FREE_METHODS
+    """A gridworld run whose robot has a policy of its own, on a space small enough for `esr exact`."""
+    from esr_cli.analysis.state_count import MAX_STATES, state_bound
+
+    return (spec.env.kind == "gridworld" and spec.method.kind not in spec_model.POLICY_FREE_METHODS
+            and state_bound(spec.env.size, spec.env.blocks) <= MAX_STATES)
+
+
+def _ranks_its_reward(spec) -> bool:
+    """`esr plot estimator` ranks ESR's own reward, at each true human action."""
+    return spec.method.kind == "esr" and spec.method.human_action != "inferred"
 
 
 def _exact_columns(run: Run, budget: str, store: Store) -> dict:
@@ -417,21 +426,23 @@ def _exact_columns(run: Run, budget: str, store: Store) -> dict:
     from esr_cli.recipes import exact_lookup
 
     spec = run.spec
-    goal = (spec.env.size // 2, spec.env.size // 2)
+    part = spec.training_part()
+    goal = (spec.env.size // 2, spec.env.size // 2)  # `esr exact`'s defaults (targets.exact_target)
     gamma = float(getattr(spec.method, "future_gamma", spec.learner.gamma))
-    checks = exact_lookup.run_checks(store, run.key, len(spec.train.seeds), goal, gamma)
+    target = exact_lookup.Target(run.key, part["env"], part["human"], goal, gamma)
+    checks = exact_lookup.run_checks(store, target, len(spec.train.seeds))
     esr = store.invocation()
     todo = []
     for i, what in exact_lookup.missing(checks):
         if what == "exact":
             extra = ("--robot", run.key[:8], "--seed-index", str(i), "--sample-pairs", str(SUGGESTED_SAMPLE_PAIRS))
             todo.append(train_line(esr, run.spec_path, budget, run.sets, command="exact", extra=extra))
-        elif spec.method.kind == "esr":  # the rank correlation is of ESR's own reward
+        elif _ranks_its_reward(spec):
             todo.append(f"{esr} plot estimator {checks[i].exact[:8]}")
     cells = exact_lookup.cells(checks)
-    if spec.method.kind != "esr":  # no reward of its own to rank
+    if not _ranks_its_reward(spec):  # no reward of its own to rank
         cells.update(spearman_all="", spearman_visited="")
-    return {"exact": cells, "exact_todo": todo}
+    return {"exact": cells, "exact_todo": [printable(line) for line in todo]}
 
 
 def _pm(row: dict, name: str, digits: int) -> str:
@@ -462,7 +473,7 @@ def _exact_todo(rows: list[dict]) -> list[str]:
 
 def results_table(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS, exact: bool = False) -> Table:
     table = Table(title=f"suite {suite.name} ({suite.budget}): final {_what(metrics)}, mean ± SE and IQM "
-                        "[95% bootstrap CI] across seeds (last 10% of epochs)", caption=_exact_caption(rows, exact))
+                        "[95% bootstrap CI] across seeds (last 10% of epochs)")
     for col in ("run", "method", "seeds", *metrics, "wall", *(EXACT_COLUMNS.values() if exact else ())):
         table.add_column(col, overflow="fold")
     for r in rows:
@@ -475,13 +486,15 @@ def results_table(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEF
     return table
 
 
-def _exact_caption(rows: list[dict], exact: bool) -> Optional[str]:
-    if not exact:
-        return None
+EXACT_NOTE = ("Exact checks at the centre goal and the spec's future discount, seed by seed: '≥' marks a lower bound "
+              "(the space is solved over the pairs holding 99% of the robot's discounted occupancy); an interval is a "
+              "uniform sample of all pairs with its 95% bootstrap interval.")
+
+
+def exact_notes(rows: list[dict]) -> list[str]:
+    """What `--exact` prints below a table: the note on its cells, and the commands of the missing checks."""
     todo = _exact_todo(rows)
-    note = ("exact checks at the centre goal and the spec's future discount; '≥': a lower bound (the space is solved "
-            "over the robot's visited pairs); an interval: a uniform sample of all pairs, 95% bootstrap")
-    return note + ("" if not todo else "\nmissing, made by:\n" + "\n".join(todo))
+    return [EXACT_NOTE] + (["Missing from the store, made by:", *todo] if todo else [])
 
 
 def results_markdown(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS, exact: bool = False) -> str:
@@ -497,9 +510,7 @@ def results_markdown(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = 
         else:
             lines.append(f"| {r['run']} | {r['method']} | | {r['state']}: `{r['command']}` |" + " |" * (len(heads) - 1))
     if exact:
-        lines += ["", "Exact checks at the centre goal and the spec's future discount, seed by seed: '≥' marks a lower "
-                  "bound (the space is solved over the pairs holding 99% of the robot's discounted occupancy); an "
-                  "interval is a uniform sample of all pairs with its 95% bootstrap interval."]
+        lines += ["", EXACT_NOTE]
         todo = _exact_todo(rows)
         if todo:
             lines += ["", "Missing from the store, made by:", "", "```bash", *todo, "```"]

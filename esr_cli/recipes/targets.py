@@ -118,6 +118,7 @@ def exact_artifact(store: Store, ref: str) -> Path:
 # `esr exact --sample-pairs`: each sampled pair needs up to one row of the occupancy per human
 # action, S floats each; beyond this many the sample costs what computing every pair costs.
 MAX_SAMPLE_PAIRS = 10_000
+MIN_SAMPLE_PAIRS = 30  # below this a bootstrap interval of a rank correlation says little
 
 
 def exact_target(spec, store: Store, goal, gamma: float | None, robot: str | None,

@@ -146,6 +146,9 @@ def test_exact_and_estimator_cli(tmp_path):
     assert sampled != with_robot
     check = json.loads((Path(esr("plot", "estimator", sampled.name, store=store).stdout.strip()).parent / "summary.json").read_text())
     assert check["sample_pairs"] == 30 and check["spearman"] == pytest.approx(result["spearman"])
+    for args, why in ((("--sample-pairs", "40"), "give --robot"), (("--robot", run.name, "--sample-pairs", "5"), "at least 30 pairs")):
+        refused = esr("exact", str(spec), "--budget", "smoke", "--goal", "1,1", *args, store=store, check=False)
+        assert refused.returncode == 2 and why in refused.stderr, refused.stderr
     low, high = check["spearman_sample_ci"]
     assert low <= check["spearman_sample"] <= high or np.isnan(check["spearman_sample"])
     bad = esr("plot", "estimator", path.name, store=store, check=False)
@@ -197,6 +200,8 @@ def test_sweep_results_exact_puts_each_seeds_checks_beside_the_returns(tmp_path)
     table = esr("sweep", str(suite), "--budget", "smoke", "--results", "--exact", "--markdown", store=store).stdout
     assert "exact effective empowerment, per seed (nats)" in table and "Missing from the store, made by:" in table
     assert second in table
+    plain = esr("sweep", str(suite), "--budget", "smoke", "--results", "--exact", store=store).stdout
+    assert second in plain.splitlines()  # whole, on a line of its own: to copy and paste
     refused = esr("sweep", str(suite), "--budget", "smoke", "--exact", store=store, check=False)
     assert refused.returncode == 2 and "--exact applies with --results only" in refused.stderr
     overcooked = tmp_path / "oc.yaml"
@@ -400,6 +405,7 @@ def test_exact_above_the_dense_limit_covers_the_visited_pairs(tmp_path, monkeypa
     assert with_sample["pairs"] == "visited (99% of the robot's occupancy) and a uniform sample of 40"
     data = np.load(sampled.path / "exact.npz")
     assert data["sampled"].sum() == 40 and np.isfinite(data["mi"][data["sampled"]]).all()
+    assert (data["sampled"] & ~np.isfinite(mi_some)).any()  # the sample reaches beyond the visited pairs
     np.testing.assert_allclose(data["mi"][data["sampled"]], mi_full[data["sampled"]], atol=1e-8)
     for k in ("effective_empowerment", "mean_mi_visited", "mean_mi_visited_merged_actions", "max_mi"):
         assert with_sample[k] == pytest.approx(some[k], abs=1e-12), k
@@ -432,6 +438,51 @@ def test_the_missing_checks_of_a_run_are_named_seed_by_seed():
     assert cells([whole, checked]) == {"exact_ee": "0.250 / ≥ 0.200",
                                        "spearman_all": "0.500 / 0.520 [0.470, 0.580] (sample of 500)",
                                        "spearman_visited": "0.400 (120) / 0.610 (966)"}
+
+
+def test_run_checks_read_only_the_runs_own_checks_and_pass_over_damaged_entries(tmp_path):
+    """A hand-made store: the run's sampled check and its estimator are read; a check of another
+    human, goal or run, and entries with damaged manifests, components or summaries, are passed
+    over (never a traceback); between two checks of a seed the sampled one is read."""
+    from esr_cli.recipes.exact_lookup import Target, run_checks
+    from esr_cli.storage.store import Store
+
+    env, human = {"kind": "gridworld", "size": 4}, {"kind": "noisy_greedy", "noise": 0.2}
+    run = "ab" * 16
+
+    def artifact(kind, key, comps, summary, created="2026-11-29T10:00:00+0000"):
+        d = tmp_path / kind / key[:2] / key
+        d.mkdir(parents=True)
+        (d / "manifest.json").write_text(json.dumps({"kind": kind, "key": key, "files": {}, "key_components": comps,
+                                                     "created_at": created}))
+        (d / "summary.json").write_text(summary if isinstance(summary, str) else json.dumps(summary))
+
+    def exact_comps(seed, **over):
+        return {"kind": "exact", "env": env, "human": human, "goal": [2, 2], "gamma": 0.9,
+                "robot": {"run": run, "seed_index": seed}, **over}
+
+    visited = {"effective_empowerment": 0.2, "pairs": "visited (99% of the robot's occupancy)"}
+    artifact("exact", "10" * 16, exact_comps(0), visited, created="2026-11-29T12:00:00+0000")  # newer, no sample
+    artifact("exact", "11" * 16, exact_comps(0, sample_pairs=500), {**visited, "sample_pairs": 500})
+    artifact("figures", "12" * 16, {"figure": "estimator", "exact": "11" * 16},
+             {"spearman": 0.5, "complete": False, "spearman_visited": 0.6, "visited_pairs": 900,
+              "spearman_sample": 0.41, "spearman_sample_ci": [0.33, 0.49], "sample_pairs": 500})
+    artifact("exact", "20" * 16, exact_comps(1, human={"kind": "noisy_greedy", "noise": 0.5}), visited)  # another human
+    artifact("exact", "21" * 16, exact_comps(1, goal=[0, 0]), visited)  # another goal
+    artifact("exact", "22" * 16, exact_comps(1, robot={"run": "cd" * 16, "seed_index": 1}), visited)  # another run
+    artifact("exact", "23" * 16, exact_comps(1, gamma=None, robot={"run": run, "seed_index": "1"}), visited)
+    artifact("exact", "24" * 16, "not a mapping", visited)
+    artifact("exact", "30" * 16, exact_comps(2), "[1, 2]")  # a summary that is no mapping
+    artifact("figures", "31" * 16, {"figure": "estimator", "exact": "30" * 16}, {"spearman_sample": 0.4, "spearman_sample_ci": "x"})
+    (tmp_path / "exact" / "40").mkdir()
+    (tmp_path / "exact" / "40" / ("40" * 16)).mkdir()  # no manifest at all
+    checks = run_checks(Store(tmp_path), Target(run, env, human, (2, 2), 0.9), 3)
+    first, second, third = checks
+    assert first.exact == "11" * 16 and first.sampled and first.complete is False and first.effective_empowerment == 0.2
+    assert first.spearman_sample == (0.41, 0.33, 0.49) and first.sample_pairs == 500
+    assert first.spearman_visited == 0.6 and first.visited_pairs == 900 and first.spearman_all is None
+    assert second.exact is None  # every candidate for seed 1 is of something else, or damaged
+    assert third.exact == "30" * 16 and third.effective_empowerment is None and third.spearman_visited is None
 
 
 def test_spearman_interval_by_hand():
