@@ -250,7 +250,8 @@ def main() -> None:
     ap.add_argument("--seed-batch", default="auto",
                     help="seeds vmapped side by side, the rest one after another: auto (all on an "
                          "accelerator, 1 on the CPU), all, or a number")
-    ap.add_argument("--out", default="benchmarks/results.json")
+    ap.add_argument("--out", help="the JSON file (default: benchmarks/results.json, or with --phases "
+                    "benchmarks/results_phases.json)")
     ap.add_argument("--phases", action="store_true", help="time each phase of one epoch (the first of --seeds, each "
                     "of --configs) instead; writes benchmarks/results_phases.json unless --out is given")
     ap.add_argument("--one", nargs="+", help=argparse.SUPPRESS)  # internal: spec seeds epochs seed_batch [sets...]
@@ -260,9 +261,9 @@ def main() -> None:
         print(json.dumps(measure(path, int(n), int(epochs), _seed_batch(batch), tuple(sets))))
         return
     if args.phases:
-        out = args.out if any(a.startswith("--out") for a in sys.argv[1:]) else "benchmarks/results_phases.json"
-        phases(args.configs, args.seeds[0], args.epochs, args.seed_batch, out)
+        phases(args.configs, args.seeds[0], args.epochs, args.seed_batch, args.out or "benchmarks/results_phases.json")
         return
+    args.out = args.out or "benchmarks/results.json"
 
     # The parent touches no device until the children are done: on a GPU, jax would otherwise
     # take most of its memory for itself and the children would run out.

@@ -72,12 +72,19 @@ class Target:
         return robot["seed_index"]
 
 
-def run_checks(store: Store, target: Target, seeds: int) -> list[SeedCheck]:
-    """Per seed index of the target's run: its exact check as the store holds it, preferring one
-    with a uniform sample of pairs, then the newest; and the estimator check made from it.
-    Entries whose manifests or summaries are damaged are passed over, never trusted."""
-    exacts: dict[int, list[tuple[bool, str, str, object]]] = {}  # seed -> (sampled, created, key, path)
-    estimators: dict[str, tuple[str, object]] = {}  # exact key -> (created, the newest check's path)
+@dataclass(frozen=True)
+class StoreChecks:
+    """The store's committed exact artifacts and estimator checks, read once for a whole table."""
+
+    exacts: list[tuple[dict, bool, str, str, object]]  # (key components, sampled, created, key, path)
+    estimators: dict[str, object]  # exact key -> the newest estimator check's path
+
+
+def read_checks(store: Store) -> StoreChecks:
+    """Every committed exact artifact and estimator check of `store`; entries whose manifests or
+    key components are damaged are passed over, never trusted."""
+    exacts, estimators = [], {}
+    newest: dict[str, str] = {}
     for entry in store.entries():
         if entry.status != "complete" or entry.manifest is None or entry.kind not in (EXACT_KIND, FIGURE_KIND):
             continue
@@ -85,14 +92,24 @@ def run_checks(store: Store, target: Target, seeds: int) -> list[SeedCheck]:
         if not isinstance(comps, dict):
             continue
         created = str(entry.manifest.get("created_at") or "")
-        if entry.kind == FIGURE_KIND:
-            made_from = comps.get("exact")
-            if comps.get("figure") == "estimator" and isinstance(made_from, str) and created >= estimators.get(made_from, ("",))[0]:
-                estimators[made_from] = (created, entry.path)
+        if entry.kind == EXACT_KIND:
+            exacts.append((comps, "sample_pairs" in comps, created, entry.key, entry.path))
             continue
+        made_from = comps.get("exact")
+        if comps.get("figure") == "estimator" and isinstance(made_from, str) and created >= newest.get(made_from, ""):
+            newest[made_from], estimators[made_from] = created, entry.path
+    return StoreChecks(exacts, estimators)
+
+
+def run_checks(checks: StoreChecks, target: Target, seeds: int) -> list[SeedCheck]:
+    """Per seed index of the target's run: its exact check among `checks`, preferring one with a
+    uniform sample of pairs, then the newest; and the estimator check made from it. Damaged
+    summaries leave their fields empty."""
+    exacts: dict[int, list[tuple[bool, str, str, object]]] = {}  # seed -> (sampled, created, key, path)
+    for comps, *found in checks.exacts:
         seed = target.matches(comps)
         if seed is not None:
-            exacts.setdefault(seed, []).append(("sample_pairs" in comps, created, entry.key, entry.path))
+            exacts.setdefault(seed, []).append(tuple(found))
     out = []
     for i in range(seeds):
         if not exacts.get(i):
@@ -103,7 +120,7 @@ def run_checks(store: Store, target: Target, seeds: int) -> list[SeedCheck]:
         fields = {"exact": key, "effective_empowerment": _number(summary.get("effective_empowerment")),
                   # summaries made before `pairs` was recorded were always of every pair
                   "complete": summary.get("pairs", "all") == "all" if summary else None, "sampled": sampled}
-        result = _summary(estimators[key][1]) if key in estimators else {}
+        result = _summary(checks.estimators[key]) if key in checks.estimators else {}
         if _number(result.get("spearman_visited")) is not None:  # NaN too: a constant estimate has no rank correlation
             fields.update(spearman_visited=_number(result.get("spearman_visited")),
                           visited_pairs=_count(result.get("visited_pairs")))

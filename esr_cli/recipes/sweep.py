@@ -41,7 +41,9 @@ from rich.text import Text
 from esr_cli.common import specs
 from esr_cli.common.printing import plain_console, printable, tagged, train_line
 from esr_cli.model import spec as spec_model
+from esr_cli.recipes import exact_lookup
 from esr_cli.recipes.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
+from esr_cli.recipes.targets import exact_defaults
 from esr_cli.storage import provenance
 from esr_cli.storage.artifacts import ensure
 from esr_cli.storage.store import RUN_KIND, Store, atomic_write_text, read_pending
@@ -385,6 +387,7 @@ def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESUL
         raise SuiteError("--exact", "", "exact checks are made on gridworld runs; this suite has none")
     rows = status(suite, store)
     check_metrics(suite, store, metrics, rows)
+    stored_checks = None
     out = []
     for r in rows:
         row = {"run": r.run.label, "method": r.run.spec.method.kind, "key": r.run.key, "state": r.state}
@@ -393,7 +396,9 @@ def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESUL
             row.update(run_finals(r.path, tuple(m for m in metrics if m in logged)),
                        wall_s=store.read_manifest(r.path).get("wall_time_s"), path=str(r.path))
             if exact and _has_exact_checks(r.run.spec):
-                row.update(_exact_columns(r.run, suite.budget, store))
+                if stored_checks is None:  # the store's checks, read once for the whole table
+                    stored_checks = exact_lookup.read_checks(store)
+                row.update(_exact_columns(r.run, suite.budget, store, stored_checks))
         else:
             row["command"] = r.run.command(suite.budget, store.invocation())
         out.append(row)
@@ -421,16 +426,12 @@ def _ranks_its_reward(spec) -> bool:
     return spec.method.kind == "esr" and spec.method.human_action != "inferred"
 
 
-def _exact_columns(run: Run, budget: str, store: Store) -> dict:
+def _exact_columns(run: Run, budget: str, store: Store, stored_checks) -> dict:
     """A run's exact-check cells (exact_lookup.cells) and the commands for what the store lacks."""
-    from esr_cli.recipes import exact_lookup
-
     spec = run.spec
     part = spec.training_part()
-    goal = (spec.env.size // 2, spec.env.size // 2)  # `esr exact`'s defaults (targets.exact_target)
-    gamma = float(getattr(spec.method, "future_gamma", spec.learner.gamma))
-    target = exact_lookup.Target(run.key, part["env"], part["human"], goal, gamma)
-    checks = exact_lookup.run_checks(store, target, len(spec.train.seeds))
+    target = exact_lookup.Target(run.key, part["env"], part["human"], *exact_defaults(spec))
+    checks = exact_lookup.run_checks(stored_checks, target, len(spec.train.seeds))
     esr = store.invocation()
     todo = []
     for i, what in exact_lookup.missing(checks):

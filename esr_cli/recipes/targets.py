@@ -121,6 +121,12 @@ MAX_SAMPLE_PAIRS = 10_000
 MIN_SAMPLE_PAIRS = 30  # below this a bootstrap interval of a rank correlation says little
 
 
+def exact_defaults(spec) -> tuple[tuple[int, int], float]:
+    """The goal cell and discount `esr exact` takes for a gridworld spec unless told: the centre,
+    and the future discount ESR's representations were trained with (the critic's otherwise)."""
+    return (spec.env.size // 2, spec.env.size // 2), float(getattr(spec.method, "future_gamma", spec.learner.gamma))
+
+
 def exact_target(spec, store: Store, goal, gamma: float | None, robot: str | None,
                  seed_index: int) -> tuple[tuple[int, int], float, dict | None]:
     """(goal cell, discount, the robot run's manifest or None for a uniform robot) of an exact
@@ -134,10 +140,11 @@ def exact_target(spec, store: Store, goal, gamma: float | None, robot: str | Non
     except TooManyStates as e:
         raise StoreError(f"{spec.name}: {e}") from None
     size = spec.env.size
-    goal = tuple(goal) if goal else (size // 2, size // 2)
+    default_goal, default_gamma = exact_defaults(spec)
+    goal = tuple(goal) if goal else default_goal
     if not all(0 <= g < size for g in goal):
         raise StoreError(f"--goal {goal} is outside the {size}x{size} grid")
-    gamma = float(gamma if gamma is not None else getattr(spec.method, "future_gamma", spec.learner.gamma))
+    gamma = float(gamma if gamma is not None else default_gamma)
     if not 0.0 <= gamma < 1.0:
         raise StoreError(f"--gamma must be in [0, 1), got {gamma}")
     if not robot:

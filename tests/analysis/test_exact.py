@@ -444,7 +444,7 @@ def test_run_checks_read_only_the_runs_own_checks_and_pass_over_damaged_entries(
     """A hand-made store: the run's sampled check and its estimator are read; a check of another
     human, goal or run, and entries with damaged manifests, components or summaries, are passed
     over (never a traceback); between two checks of a seed the sampled one is read."""
-    from esr_cli.recipes.exact_lookup import Target, run_checks
+    from esr_cli.recipes.exact_lookup import Target, read_checks, run_checks
     from esr_cli.storage.store import Store
 
     env, human = {"kind": "gridworld", "size": 4}, {"kind": "noisy_greedy", "noise": 0.2}
@@ -476,7 +476,7 @@ def test_run_checks_read_only_the_runs_own_checks_and_pass_over_damaged_entries(
     artifact("figures", "31" * 16, {"figure": "estimator", "exact": "30" * 16}, {"spearman_sample": 0.4, "spearman_sample_ci": "x"})
     (tmp_path / "exact" / "40").mkdir()
     (tmp_path / "exact" / "40" / ("40" * 16)).mkdir()  # no manifest at all
-    checks = run_checks(Store(tmp_path), Target(run, env, human, (2, 2), 0.9), 3)
+    checks = run_checks(read_checks(Store(tmp_path)), Target(run, env, human, (2, 2), 0.9), 3)
     first, second, third = checks
     assert first.exact == "11" * 16 and first.sampled and first.complete is False and first.effective_empowerment == 0.2
     assert first.spearman_sample == (0.41, 0.33, 0.49) and first.sample_pairs == 500
