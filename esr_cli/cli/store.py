@@ -113,9 +113,8 @@ def _show_lines(r: dict, manifest: dict) -> list[tuple[str, object]]:
     if r["epochs"] is not None:
         lines.append(("epochs", f"{r['epochs']:,}" + (f" of {r['epochs_total']:,}" if r["epochs_total"] and r["epochs"] != r["epochs_total"] else "")))
     if r["kind"] == RUN_KIND:
-        from esr_cli.storage.finals import run_finals
-
         from esr_cli.report.listing import metrics_problem
+        from esr_cli.storage.finals import run_finals
 
         problem = metrics_problem(r["path"])  # a FIFO, a link, a file too large: said, not waited on
         if problem:

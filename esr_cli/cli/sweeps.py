@@ -14,7 +14,7 @@ from esr_cli.storage.artifacts import ensure
 
 
 def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait, job_opts,
-                                  unfinished=False, out_dir=None, exact=False):
+                                  unfinished=False, out_dir=None, exact=False, any_code=False):
     """An option that would change nothing is a mistake to name, not to ignore."""
     for flag, given in (("--unfinished", unfinished), ("--out", out_dir is not None)):
         if given and not plot:
@@ -23,9 +23,12 @@ def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, 
         raise Exit(2, "--status and --results: choose one")
     if as_json and markdown:
         raise Exit(2, "--json and --markdown: choose one")
-    for flag, given in (("--markdown", markdown), ("--metric", metric), ("--plot", plot), ("--exact", exact)):
+    for flag, given in (("--markdown", markdown), ("--metric", metric), ("--plot", plot), ("--exact", exact),
+                        ("--any-code", any_code)):
         if given and not show_results:
             raise Exit(2, f"{flag} applies with --results only")
+    if any_code and plot:
+        raise Exit(2, "--any-code applies to the table: --plot draws only the runs this code made")
     if as_json and not (show_status or show_results):
         raise Exit(2, "--json applies with --status or --results only")
     # submitit-local uses the time, CPU and memory limits; partition and GPUs are SLURM's alone.
@@ -59,6 +62,9 @@ def sweep(
     exact: bool = typer.Option(False, "--exact", help="--results: also each gridworld robot's exact checks as the store "
                                "holds them, seed by seed (esr exact --robot, esr plot estimator), and the commands "
                                "that make the missing ones; computes nothing"),
+    any_code: bool = typer.Option(False, "--any-code", help="--results: a run this code has not made is read from a "
+                                  "finished run of the same spec, budget and seeds made by other training code "
+                                  "(another commit, device or jax: an imported archive), its row naming that commit"),
     wait: Optional[bool] = typer.Option(None, "--wait/--no-wait", help="wait for submitted jobs (default: wait, except for slurm)"),
     partition: Optional[str] = typer.Option(None, "--partition", help="slurm: partition (default: the suite's slurm.partition)"),
     time_min: Optional[int] = typer.Option(None, "--time-min", help="slurm: wall-clock limit per job, minutes"),
@@ -72,7 +78,7 @@ def sweep(
     check_executor(executor, sw.EXECUTORS)
     _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait,
                                   {"--partition": partition, "--time-min": time_min, "--gpus": gpus,
-                                   "--cpus": cpus, "--mem-gb": mem_gb}, unfinished, out_dir, exact)
+                                   "--cpus": cpus, "--mem-gb": mem_gb}, unfinished, out_dir, exact, any_code)
     overrides = {"partition": partition, "time_min": time_min, "gpus": gpus, "cpus": cpus, "mem_gb": mem_gb}
     try:
         sw.slurm_options(sw.SlurmOptions(), overrides, "")  # before the suite's runs are built
@@ -83,7 +89,7 @@ def sweep(
         if show_results:
             metrics = tuple(dict.fromkeys(metric)) if metric else sw.DEFAULT_RESULT_METRICS
             try:
-                rows = sw.results(suite, ctx.obj.store, metrics, exact)  # refuses a metric no run can log
+                rows = sw.results(suite, ctx.obj.store, metrics, exact, any_code)  # refuses a metric no run can log
             except sw.SuiteError as e:
                 raise Exit(2, str(e)) from None
             if as_json:
@@ -92,7 +98,7 @@ def sweep(
                 out.print(own(sw.results_markdown(suite, rows, metrics, exact)), highlight=False)
             else:
                 out.print(sw.results_table(suite, rows, metrics, exact))
-                for line in sw.exact_notes(rows) if exact else ():  # whole lines, to copy and paste
+                for line in sw.table_notes(rows, exact):  # whole lines, to copy and paste
                     out.print(line, highlight=False, soft_wrap=True)
             if plot:
                 from esr_cli.report import figures as figs, paper
@@ -202,4 +208,33 @@ def paper_(
         raise Exit(1, str(e), own_lines=isinstance(e, figs.MissingRuns)) from None
     err.print(tagged("report", "green", f": {path / 'report.md'}"))
     out.print(str(path / "report.md"), highlight=False)
+
+
+@app.command("tables")
+def tables(
+    ctx: typer.Context,
+    files: list[Path] = typer.Argument(..., help="markdown files whose generated tables to bring up to date", show_default=False),
+    check: bool = typer.Option(False, "--check", help="write nothing; exit 1 if a table differs from what the store gives now"),
+):
+    """Result tables inside markdown files, generated from the store: each table between
+    `<!-- esr sweep SUITE ... --results --markdown -->` and `<!-- end of generated table -->`
+    is that command's output (docs/cluster.md)."""
+    from esr_cli.report import doc_tables
+
+    for path in files:
+        if not path.is_file():
+            raise Exit(2, f"{path}: no such file")
+    try:
+        if check:
+            differences = doc_tables.check(files, ctx.obj.store)
+            if differences:
+                for line in differences:  # each line escaped: the file on disk may hold anything
+                    err.print(line, highlight=False)
+                raise Exit(1, "generated tables are stale: `esr tables FILE...` brings them up to date")
+            err.print(tagged("tables", "green", f": every generated table in {len(files)} file(s) is what the store gives"))
+            return
+        for path, count, changed in doc_tables.update(files, ctx.obj.store):
+            err.print(tagged("tables", "green", f": {path}: {count} table(s), {'rewritten' if changed else 'unchanged'}"))
+    except doc_tables.TableError as e:
+        raise Exit(2, str(e)) from None
 

@@ -373,24 +373,73 @@ def check_metrics(suite: Suite, store: Store, metrics: tuple[str, ...], rows: Op
             raise SuiteError("--metric", "", f"unknown metric {m!r}; known: {', '.join(known)}")
 
 
+def _trained(spec_part: object, budget: object) -> str:
+    """What a run trained, whatever code trained it: its spec's training part and budget."""
+    return json.dumps({"spec": spec_part, "budget": budget}, sort_keys=True)
+
+
+def finished_runs_by_training(store: Store) -> dict[str, tuple[str, Path, provenance.Origin]]:
+    """The store's finished runs by what they trained (`_trained`): key, path and origin of the
+    newest of each. Runs made by other training code (another commit, device or jax) have other
+    keys; this is how `--any-code` finds them."""
+    found: dict[str, tuple[str, str, Path, provenance.Origin]] = {}
+    for entry in store.entries():
+        info = entry.manifest
+        if entry.kind != RUN_KIND or entry.status != "complete" or not isinstance(info, dict):
+            continue
+        comps = info.get("key_components")
+        if not isinstance(comps, dict) or not isinstance(comps.get("spec"), dict):
+            continue
+        what = _trained(comps["spec"], comps.get("budget"))
+        created = str(info.get("created_at") or "")
+        if what not in found or created > found[what][0]:
+            found[what] = (created, entry.key, entry.path, provenance.origin(info))
+    return {what: hit[1:] for what, hit in found.items()}
+
+
+def with_runs_made_elsewhere(rows: list[RunStatus], store: Store) -> list[RunStatus]:
+    """Each row not done under this code taken from a finished run of exactly its spec and budget
+    made by other training code, where the store has one; the row's note names that run's commit
+    and device."""
+    if all(r.state == "done" for r in rows):
+        return rows
+    index = finished_runs_by_training(store)
+    out = []
+    for r in rows:
+        hit = None if r.state == "done" else index.get(_trained(r.run.spec.training_part(), r.run.spec.budget))
+        if hit is None:
+            out.append(r)
+            continue
+        key, path, made = hit
+        note = f"made by other code: commit {made.commit[:7] if made.commit else 'unknown'}" + (f", {made.device}" if made.device else "")
+        out.append(RunStatus(replace(r.run, key=key), "done", note, path))
+    return out
+
+
 def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS,
-            exact: bool = False) -> list[dict]:
+            exact: bool = False, any_code: bool = False) -> list[dict]:
     """Each run's final value of each metric (return and success unless told; mean +- SE across
     seeds, esr_cli.storage.finals) and wall time, read from the committed artifacts; a metric a run does
     not log is left out of its row; runs not done carry their state and the command. A metric
     no run of the suite can log is refused (SuiteError). With `exact`, each done gridworld run
     that learns a policy also carries its seeds' exact checks as the store holds them
-    (exact_lookup), and the commands that make what is missing."""
+    (exact_lookup), and the commands that make what is missing. With `any_code`, a run this code
+    has not made is read from a run of the same spec made by other code (`with_runs_made_elsewhere`),
+    its row saying so in `made_by`."""
     from esr_cli.storage.finals import read_rows, run_finals
 
     if exact and not any(r.spec.env.kind == "gridworld" for r in suite.runs):
         raise SuiteError("--exact", "", "exact checks are made on gridworld runs; this suite has none")
     rows = status(suite, store)
+    if any_code:
+        rows = with_runs_made_elsewhere(rows, store)
     check_metrics(suite, store, metrics, rows)
     stored_checks = None
     out = []
     for r in rows:
         row = {"run": r.run.label, "method": r.run.spec.method.kind, "key": r.run.key, "state": r.state}
+        if r.note.startswith("made by other code"):
+            row["made_by"] = r.note
         if r.state == "done":
             logged = set(read_rows(r.path)[-1]) if metrics != DEFAULT_RESULT_METRICS else set(metrics)
             row.update(run_finals(r.path, tuple(m for m in metrics if m in logged)),
@@ -462,6 +511,16 @@ def _what(metrics: tuple[str, ...]) -> str:
     return ", ".join(metrics[:-1]) + f" and {metrics[-1]}" if len(metrics) > 1 else metrics[0]
 
 
+OTHER_CODE_NOTE = ("A run followed by (commit ...) was made by that commit's training code, not this checkout's "
+                   "(--any-code: the same spec, budget and seeds).")
+
+
+def _label(r: dict) -> str:
+    """The run's cell: its label, and where it was made when that was other code (`--any-code`)."""
+    made = r.get("made_by")
+    return r["run"] + (f" ({made.removeprefix('made by other code: ')})" if made else "")
+
+
 def _exact_cells(r: dict, exact: bool) -> list[str]:
     if not exact:
         return []
@@ -480,7 +539,7 @@ def results_table(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEF
     for r in rows:
         if r["state"] == "done":
             wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
-            table.add_row(r["run"], r["method"], str(r["seeds"]), *(_cell(r, m) for m in metrics), wall, *_exact_cells(r, exact))
+            table.add_row(_label(r), r["method"], str(r["seeds"]), *(_cell(r, m) for m in metrics), wall, *_exact_cells(r, exact))
         else:
             table.add_row(r["run"], r["method"], "", Text(r["state"], style=_STYLE[r["state"]]), *[""] * len(metrics),
                           *_exact_cells(r, exact))
@@ -492,10 +551,14 @@ EXACT_NOTE = ("Exact checks at the centre goal and the spec's future discount, s
               "uniform sample of all pairs with its 95% bootstrap interval.")
 
 
-def exact_notes(rows: list[dict]) -> list[str]:
-    """What `--exact` prints below a table: the note on its cells, and the commands of the missing checks."""
-    todo = _exact_todo(rows)
-    return [EXACT_NOTE] + (["Missing from the store, made by:", *todo] if todo else [])
+def table_notes(rows: list[dict], exact: bool) -> list[str]:
+    """What a plain table has below it: which runs other code made (`--any-code`), and with
+    `--exact` the note on its cells and the commands of the missing checks."""
+    notes = [OTHER_CODE_NOTE] if any("made_by" in r for r in rows) else []
+    if exact:
+        todo = _exact_todo(rows)
+        notes += [EXACT_NOTE] + (["Missing from the store, made by:", *todo] if todo else [])
+    return notes
 
 
 def results_markdown(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS, exact: bool = False) -> str:
@@ -506,10 +569,12 @@ def results_markdown(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = 
     for r in rows:
         if r["state"] == "done":
             wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
-            lines.append(f"| {r['run']} | {r['method']} | {r['seeds']} | " + " | ".join([*(_cell(r, m) for m in metrics), wall,
+            lines.append(f"| {_label(r)} | {r['method']} | {r['seeds']} | " + " | ".join([*(_cell(r, m) for m in metrics), wall,
                                                                                       *_exact_cells(r, exact)]) + " |")
         else:
             lines.append(f"| {r['run']} | {r['method']} | | {r['state']}: `{r['command']}` |" + " |" * (len(heads) - 1))
+    if any("made_by" in r for r in rows):
+        lines += ["", OTHER_CODE_NOTE]
     if exact:
         lines += ["", EXACT_NOTE]
         todo = _exact_todo(rows)

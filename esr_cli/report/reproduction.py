@@ -127,20 +127,10 @@ def index_store(store: Store) -> dict[str, list[Evidence]]:
         except (specs.SpecError, yamlio.YamlInputError):
             continue  # made by code whose spec fields this version no longer reads
         info = entry.manifest or {}
-        sessions = provenance.earlier_sessions(info)
-        # The commit a run was started from (its training code is the same at every resume: the
-        # code digest is part of the key); a manifest from before sessions names the last one.
-        commit = next((s["commit"] for s in sessions if s.get("commit")), None) \
-            or info.get("provenance", {}).get("git", {}).get("commit")
-        modified = bool(sessions and sessions[0].get("dirty"))
-        # Every device it ran on, in order; an unfinished run made by an esr whose pending.json
-        # named only its backend (part of its key) says just that.
-        devices = list(dict.fromkeys(s["device"] for s in sessions if isinstance(s.get("device"), str)))
-        backend = info.get("key_components", {}).get("toolchain", {}).get("backend")
-        device = ", then ".join(devices) or info.get("provenance", {}).get("device") or backend
+        made = provenance.origin(info)
         resumable = entry.status == "complete" or bool(verified_steps(entry.path))
         ev = Evidence(entry.key, entry.path, entry.status, info.get("budget", spec.budget), spec,
-                      read_rows(entry.path), commit, device, resumable, modified=modified)
+                      read_rows(entry.path), made.commit, made.device, resumable, modified=made.modified)
         if ev.rows:
             out.setdefault(_without_train(spec), []).append(ev)
     return out

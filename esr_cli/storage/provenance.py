@@ -21,6 +21,7 @@ import time
 from functools import cache
 from importlib import metadata
 from pathlib import Path
+from typing import NamedTuple
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1]  # esr_cli/
 
@@ -216,6 +217,29 @@ def earlier_sessions(pending: dict | None) -> list[dict]:
         return [s for s in sessions if isinstance(s, dict)]
     last = {k: pending[k] for k in ("commit", "device") if isinstance(pending.get(k), str)}
     return [last] if last else []
+
+
+class Origin(NamedTuple):
+    """Where a stored artifact was made, from its manifest (or an unfinished one's pending.json)."""
+
+    commit: str | None  # the checkout it was started from; the same at every resume (the code is in the key)
+    device: str | None  # every device it ran on, in order ('cpu:cpu', 'gpu:NVIDIA H200, then ...'); None: unknown
+    modified: bool  # that checkout had edits under esr_cli/ (its code digest still says which code ran)
+
+
+def origin(info: dict | None) -> Origin:
+    info = info or {}
+    sessions = earlier_sessions(info)
+    # A manifest from before sessions were recorded names only the last one.
+    git = info.get("provenance", {}).get("git", {}) if isinstance(info.get("provenance"), dict) else {}
+    commit = next((s["commit"] for s in sessions if isinstance(s.get("commit"), str)), None) \
+        or (git.get("commit") if isinstance(git, dict) and isinstance(git.get("commit"), str) else None)
+    devices = list(dict.fromkeys(s["device"] for s in sessions if isinstance(s.get("device"), str)))
+    # An unfinished run made by an esr whose pending.json named only its backend (part of its key) says just that.
+    toolchain = info.get("key_components", {}).get("toolchain", {}) if isinstance(info.get("key_components"), dict) else {}
+    backend = toolchain.get("backend") if isinstance(toolchain, dict) else None
+    device = ", then ".join(devices) or info.get("provenance", {}).get("device") or backend
+    return Origin(commit, device if isinstance(device, str) else None, bool(sessions and sessions[0].get("dirty")))
 
 
 def package_versions() -> dict:

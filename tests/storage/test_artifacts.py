@@ -100,7 +100,7 @@ def test_a_failed_build_commits_nothing_and_the_next_resumes_its_partial_directo
 def test_a_recipe_that_keeps_its_partial_loses_nothing_to_a_failed_or_stopped_build(tmp_path):
     """What a person played cannot be made again: neither an error nor a stop signal during the
     build, nor the next build, removes it."""
-    store, calls = Store(tmp_path / "store"), []
+    store = Store(tmp_path / "store")
     components = {"n": "episode"}
     for stop in (RuntimeError("the front end failed"), Terminated()):
         def build(out: Path, store: Store, stop=stop) -> dict:

@@ -1,0 +1,147 @@
+"""Generated result tables in markdown (`esr tables`) and `esr sweep --results --any-code`."""
+
+import json
+from pathlib import Path
+
+import pytest
+from conftest import ROOT, esr
+
+from esr_cli.recipes import sweep
+from esr_cli.report import doc_tables
+from esr_cli.storage import provenance
+from esr_cli.storage.store import Store
+
+GRID_2 = ROOT / "experiments" / "grid_2.yaml"
+END = doc_tables.END
+
+
+def one_run_suite(tmp_path: Path) -> Path:
+    path = tmp_path / "one.yaml"
+    path.write_text(f"name: one\nspecs: [{GRID_2}]\n")
+    return path
+
+
+def doc_with(tmp_path: Path, command: str, body: str = "") -> Path:
+    path = tmp_path / "page.md"
+    path.write_text(f"# A page\n\nSome text.\n<!-- {command} -->\n{body}{END}\n\nMore text.\n")
+    return path
+
+
+def test_a_tables_command_is_parsed_into_the_sweeps_own_options():
+    cmd = doc_tables.parse_command("esr sweep experiments/suites/x.yaml --budget quick --results --markdown --any-code "
+                                   "--metric return --metric mi_estimate --metric return --exact", "page.md:4")
+    assert cmd == doc_tables.Command(Path("experiments/suites/x.yaml"), "quick", ("return", "mi_estimate"), True, True)
+    assert doc_tables.parse_command("esr sweep s.yaml --results --markdown", "w").budget == "paper"  # the CLI's default
+
+
+@pytest.mark.parametrize("text,problem", [
+    ("esr train experiments/grid_2.yaml", "a table's command is `esr sweep SUITE"),
+    ("esr sweep --results --markdown", "a table's command is `esr sweep SUITE"),
+    ("esr sweep s.yaml --results --markdown --store /elsewhere", "'--store' is not an option of a generated table"),
+    ("esr sweep s.yaml --results --markdown ; rm -rf ~", "';' is not an option"),
+    ("esr sweep s.yaml --results", "needs --markdown"),
+    ("esr sweep s.yaml --markdown --metric", "--metric needs a value"),
+    ("esr sweep s.yaml --results --markdown 'unclosed", "cannot split the command"),
+])
+def test_anything_but_a_sweep_table_in_a_block_is_refused_naming_file_and_line(text, problem):
+    with pytest.raises(doc_tables.TableError) as e:
+        doc_tables.parse_command(text, "docs/page.md:12")
+    assert str(e.value).startswith("docs/page.md:12: ") and problem in str(e.value)
+
+
+def test_blocks_are_found_between_their_comments_and_a_broken_one_is_named(tmp_path):
+    path = doc_with(tmp_path, "esr sweep s.yaml --results --markdown", "| old |\n")
+    (block,) = doc_tables.blocks(path, doc_tables.read_doc(path))
+    assert (block.line, block.start, block.end) == (4, 4, 5)  # the table is line 5 (index 4), the end comment line 6
+    unclosed = tmp_path / "unclosed.md"
+    unclosed.write_text("<!-- esr sweep s.yaml --results --markdown -->\n| a |\n<!-- esr sweep t.yaml --results --markdown -->\n")
+    with pytest.raises(doc_tables.TableError, match=r"unclosed.md:1: the table has no"):
+        doc_tables.blocks(unclosed, doc_tables.read_doc(unclosed))
+    stray = tmp_path / "stray.md"
+    stray.write_text(f"text\n{END}\n")
+    with pytest.raises(doc_tables.TableError, match=r"stray.md:2: .* without a table's opening comment"):
+        doc_tables.blocks(stray, doc_tables.read_doc(stray))
+
+
+def test_a_file_that_is_not_a_markdown_page_is_refused_before_any_work(tmp_path):
+    binary = tmp_path / "b.md"
+    binary.write_bytes(b"\xff\xfe\x00text")
+    with pytest.raises(doc_tables.TableError, match="not UTF-8 text"):
+        doc_tables.read_doc(binary)
+    big = tmp_path / "big.md"
+    with big.open("wb") as f:
+        f.truncate(doc_tables.MAX_DOC_BYTES + 1)
+    with pytest.raises(doc_tables.TableError, match="more than a markdown page holds"):
+        doc_tables.read_doc(big)
+
+
+@pytest.mark.slow
+def test_tables_writes_the_sweeps_own_table_and_check_fails_when_it_is_edited(smoke_run, tmp_path):
+    store, run_path, _ = smoke_run
+    suite = one_run_suite(tmp_path)
+    command = f"esr sweep {suite} --budget smoke --results --markdown --metric return"
+    page = doc_with(tmp_path, command, "| a stale table |\n")
+    before = page.read_text()
+
+    stale = esr("tables", "--check", str(page), store=store, check=False)
+    assert stale.returncode == 1 and "| a stale table |" in stale.stderr and "generated tables are stale" in stale.stderr
+    assert page.read_text() == before  # --check writes nothing
+
+    esr("tables", str(page), store=store)
+    table = esr("sweep", str(suite), "--budget", "smoke", "--results", "--markdown", "--metric", "return", store=store).stdout
+    text = page.read_text()
+    assert f"<!-- {command} -->\n{table.rstrip()}\n{END}\n" in text  # exactly what the sweep prints
+    assert text.startswith("# A page\n\nSome text.\n") and text.endswith("\n\nMore text.\n")  # the rest untouched
+    assert esr("tables", "--check", str(page), store=store).returncode == 0
+
+    # A number changed by hand in the committed table makes the check fail, naming the line.
+    last = json.loads((run_path / "metrics.jsonl").read_text().splitlines()[-1])
+    shown = f"{last['return'][0]:.2f}"
+    page.write_text(text.replace(shown, "99.99", 1))
+    edited = esr("tables", "--check", str(page), store=store, check=False)
+    assert edited.returncode == 1
+    removed = [line for line in edited.stderr.splitlines() if line.startswith("-|")]
+    added = [line for line in edited.stderr.splitlines() if line.startswith("+|")]
+    assert len(removed) == len(added) == 1 and "99.99" in removed[0] and shown in added[0]
+
+    # A block whose command is not a sweep table stops with exit 2 and its file and line.
+    bad = doc_with(tmp_path, "esr train experiments/grid_2.yaml")
+    proc = esr("tables", str(bad), store=store, check=False)
+    assert proc.returncode == 2 and f"{bad}:4: a table's command is" in proc.stderr
+
+
+@pytest.mark.slow
+def test_any_code_reads_a_run_of_the_same_spec_made_by_other_training_code(smoke_run, tmp_path, monkeypatch):
+    store, run_path, _ = smoke_run
+    suite_path = one_run_suite(tmp_path)
+    own = sweep.results(sweep.load_suite(suite_path, "smoke"), Store(store), ("return",))
+    assert own[0]["state"] == "done" and "made_by" not in own[0]  # this code made it: nothing to say
+
+    # Other training code: every key changes, so the run is missing under it...
+    monkeypatch.setattr(provenance, "code_digest", lambda *a, **k: "f" * 32)
+    suite = sweep.load_suite(suite_path, "smoke")
+    assert suite.runs[0].key != own[0]["key"]
+    (missing,) = sweep.results(suite, Store(store), ("return",))
+    assert missing["state"] == "missing"
+    # ...and --any-code finds the run of the same spec, budget and seeds, and says which code made it.
+    (found,) = sweep.results(suite, Store(store), ("return",), any_code=True)
+    commit = provenance.origin(json.loads((run_path / "manifest.json").read_text())).commit
+    assert found["state"] == "done" and found["key"] == own[0]["key"] and found["return"] == own[0]["return"]
+    assert found["made_by"].startswith(f"made by other code: commit {commit[:7] if commit else 'unknown'}")
+    md = sweep.results_markdown(suite, [found], ("return",))
+    assert f"| grid_2 ({found['made_by'].removeprefix('made by other code: ')}) | esr |" in md
+    assert sweep.OTHER_CODE_NOTE in md
+
+    # A run of another spec (here other seeds) is never taken for it.
+    seeds = tmp_path / "seeds.yaml"
+    seeds.write_text(f"name: seeds\nspecs: [{GRID_2}]\nset: {{train.seeds: [7]}}\n")
+    (other,) = sweep.results(sweep.load_suite(seeds, "smoke"), Store(store), ("return",), any_code=True)
+    assert other["state"] == "missing" and "made_by" not in other
+
+
+def test_any_code_is_refused_where_it_would_change_nothing(tmp_path):
+    suite = one_run_suite(tmp_path)
+    for args, problem in ((["--any-code"], "--any-code applies with --results only"),
+                          (["--results", "--any-code", "--plot"], "--any-code applies to the table")):
+        proc = esr("sweep", str(suite), "--budget", "smoke", *args, store=tmp_path / "store", check=False)
+        assert proc.returncode == 2 and problem in proc.stderr
