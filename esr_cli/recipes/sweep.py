@@ -416,8 +416,18 @@ def with_runs_made_elsewhere(rows: list[RunStatus], store: Store) -> list[RunSta
     return out
 
 
+def _shown_from(run: Run, base: Path) -> Run:
+    """`run` with its spec path relative to `base` where it lies inside it (for commands printed
+    in a page that any checkout reads, e.g. `esr tables`)."""
+    try:
+        return replace(run, spec_path=run.spec_path.relative_to(base))
+    except ValueError:
+        return run
+
+
 def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS,
-            exact: bool = False, any_code: bool = False) -> list[dict]:
+            exact: bool = False, any_code: bool = False, esr: Optional[str] = None,
+            paths_from: Optional[Path] = None) -> list[dict]:
     """Each run's final value of each metric (return and success unless told; mean +- SE across
     seeds, esr_cli.storage.finals) and wall time, read from the committed artifacts; a metric a run does
     not log is left out of its row; runs not done carry their state and the command. A metric
@@ -425,8 +435,12 @@ def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESUL
     that learns a policy also carries its seeds' exact checks as the store holds them
     (exact_lookup), and the commands that make what is missing. With `any_code`, a run this code
     has not made is read from a run of the same spec made by other code (`with_runs_made_elsewhere`),
-    its row saying so in `made_by`."""
+    its row saying so in `made_by`. The commands of missing runs and checks call esr as `esr`
+    says (default: as this store is reached, Store.invocation) with spec paths relative to
+    `paths_from` when given."""
     from esr_cli.storage.finals import read_rows, run_finals
+
+    esr = esr or store.invocation()
 
     if exact and not any(r.spec.env.kind == "gridworld" for r in suite.runs):
         raise SuiteError("--exact", "", "exact checks are made on gridworld runs; this suite has none")
@@ -436,6 +450,8 @@ def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESUL
     check_metrics(suite, store, metrics, rows)
     stored_checks = None
     out = []
+    if paths_from is not None:
+        rows = [replace(r, run=_shown_from(r.run, paths_from)) for r in rows]
     for r in rows:
         row = {"run": r.run.label, "method": r.run.spec.method.kind, "key": r.run.key, "state": r.state}
         if r.note.startswith("made by other code"):
@@ -447,9 +463,9 @@ def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESUL
             if exact and _has_exact_checks(r.run.spec):
                 if stored_checks is None:  # the store's checks, read once for the whole table
                     stored_checks = exact_lookup.read_checks(store)
-                row.update(_exact_columns(r.run, suite.budget, store, stored_checks))
+                row.update(_exact_columns(r.run, suite.budget, esr, stored_checks))
         else:
-            row["command"] = r.run.command(suite.budget, store.invocation())
+            row["command"] = r.run.command(suite.budget, esr)
         out.append(row)
     return out
 
@@ -475,13 +491,13 @@ def _ranks_its_reward(spec) -> bool:
     return spec.method.kind == "esr" and spec.method.human_action != "inferred"
 
 
-def _exact_columns(run: Run, budget: str, store: Store, stored_checks) -> dict:
-    """A run's exact-check cells (exact_lookup.cells) and the commands for what the store lacks."""
+def _exact_columns(run: Run, budget: str, esr: str, stored_checks) -> dict:
+    """A run's exact-check cells (exact_lookup.cells) and the commands for what the store lacks
+    (`esr`: how they call esr)."""
     spec = run.spec
     part = spec.training_part()
     target = exact_lookup.Target(run.key, part["env"], part["human"], *exact_defaults(spec))
     checks = exact_lookup.run_checks(stored_checks, target, len(spec.train.seeds))
-    esr = store.invocation()
     todo = []
     for i, what in exact_lookup.missing(checks):
         if what == "exact":

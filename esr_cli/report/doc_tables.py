@@ -122,7 +122,9 @@ def generate(command: Command, store: Store, where: str) -> list[str]:
     try:
         suite = sw.load_suite(command.suite, command.budget)
         metrics = command.metrics or sw.DEFAULT_RESULT_METRICS
-        rows = sw.results(suite, store, metrics, command.exact, command.any_code)
+        # A page is read from any checkout and store: its commands say `esr` and name spec files
+        # from the checkout's root, as the page's own command does.
+        rows = sw.results(suite, store, metrics, command.exact, command.any_code, esr="esr", paths_from=Path.cwd())
     except (sw.SuiteError, specs.SpecError) as e:
         raise TableError(f"{where}: {e}") from None
     return sw.results_markdown(suite, rows, metrics, command.exact).split("\n")

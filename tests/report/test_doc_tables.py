@@ -145,3 +145,14 @@ def test_any_code_is_refused_where_it_would_change_nothing(tmp_path):
                           (["--results", "--any-code", "--plot"], "--any-code applies to the table")):
         proc = esr("sweep", str(suite), "--budget", "smoke", *args, store=tmp_path / "store", check=False)
         assert proc.returncode == 2 and problem in proc.stderr
+
+
+def test_a_missing_run_in_a_page_is_named_by_a_command_any_checkout_and_store_can_run(tmp_path, monkeypatch):
+    monkeypatch.chdir(ROOT)
+    monkeypatch.delenv("ESR_STORE", raising=False)
+    suite = one_run_suite(tmp_path)
+    command = doc_tables.parse_command(f"esr sweep {suite} --budget smoke --results --markdown", "page.md:1")
+    lines = doc_tables.generate(command, Store(tmp_path / "somewhere" / "store"), "page.md:1")
+    (row,) = [line for line in lines if line.startswith("| grid_2 |")]
+    # Not `esr --store /tmp/...` nor the spec's absolute path: the page's reader has neither.
+    assert "| missing: `esr train experiments/grid_2.yaml --budget smoke` |" in row
