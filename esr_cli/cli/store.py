@@ -182,9 +182,10 @@ def export_(
     ctx: typer.Context,
     ref: str = typer.Argument(..., help="artifact key, key prefix or directory; an unfinished run too", show_default=False),
     out_file: Optional[Path] = typer.Option(None, "--out", "-o", help="archive to write (default: ./KEY8.tar.gz)"),
-    without_checkpoint: bool = typer.Option(False, "--without-checkpoint", help="a run without its networks: a "
-                                            "finished one as metrics, spec and manifest (reports and figures, not "
-                                            "eval); an unfinished one as a record of its logged epochs"),
+    without_checkpoint: bool = typer.Option(False, "--without-checkpoint", help="a run without its networks (a finished "
+                                            "one as metrics, spec and manifest: reports and figures, not eval; an "
+                                            "unfinished one as a record of its logged epochs); an exact check without "
+                                            "its arrays (its summary: tables, not the estimator check)"),
     sign: bool = typer.Option(False, "--sign", help="also write ARCHIVE.sig, an HMAC-SHA256 of the archive under the "
                               "key in the file $ESR_ARCHIVE_KEY names (`esr import --require-signature` checks it)"),
 ):

@@ -27,7 +27,7 @@ from esr_cli.recipes.runs import load_run, seed_slice
 from esr_cli.recipes.targets import exact_artifact, exact_target, geometry_options
 from esr_cli.storage import provenance
 from esr_cli.storage.artifacts import Recipe
-from esr_cli.storage.store import EXACT_KIND, FIGURE_KIND, Store, StoreError
+from esr_cli.storage.store import EXACT_ARRAYS, EXACT_KIND, FIGURE_KIND, Store, StoreError, kept_without
 
 # The code behind an exact analysis: the environment, human and evaluation path with the
 # analysis package (their import closure), and this module's own steps, but not the store,
@@ -81,7 +81,7 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
         emp, sampled = _solve(space, pi_r, pi_h, gamma, console, sample_pairs)
         arrays = {} if sampled is None else {"sampled": sampled}
         np.savez_compressed(
-            out / "exact.npz", human=space.human, blocks=space.blocks, next_state=space.next_state, start=space.start,
+            out / EXACT_ARRAYS, human=space.human, blocks=space.blocks, next_state=space.next_state, start=space.start,
             pi_human=pi_h, pi_robot=pi_r, mi=emp.mi, mi_merged=emp.mi_merged, state_mi=emp.state_mi, value=emp.value,
             **arrays,
         )
@@ -163,6 +163,10 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
     representations were trained on. -> Spearman rank correlation and a scatter plot.
     """
     manifest = store.read_manifest(exact_path)
+    if kept_without(EXACT_KIND, exact_path):
+        raise StoreError(f"exact {exact_path.name[:12]} was kept without its arrays (esr export --without-checkpoint): "
+                         "tables read its summary, but this check needs its state space: compute it again with "
+                         "`esr exact` in a store that does not hold it")
     robot = manifest["key_components"]["robot"]
     if robot == "uniform":
         raise StoreError("this exact artifact is for a uniform robot: run `esr exact SPEC --robot RUN` for an ESR run first")
@@ -172,7 +176,7 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
     if trainer.spec.method.human_action == "inferred":
         raise StoreError("the estimator check evaluates phi at each true human action; this run infers them "
                          "(method.human_action: inferred), so its phi takes latent codes instead")
-    data = np.load(exact_path / "exact.npz")
+    data = np.load(exact_path / EXACT_ARRAYS)
     mstate = seed_slice(state.method, robot["seed_index"])
     goal = jnp.asarray(manifest["key_components"]["goal"], jnp.int32)
     n = len(data["human"])

@@ -375,8 +375,9 @@ class Store:
         elif folder in KINDS and kind != folder:  # a directory outside a store has no kind folder
             problems.append(f"{MANIFEST} names kind {kind!r}, but the artifact is under {folder}/")
         listed = manifest["files"]
-        if kind == RUN_KIND and without_checkpoint(path):  # kept as metrics only, on purpose
-            listed = {rel: want for rel, want in listed.items() if not rel.startswith(f"{CHECKPOINT_FOLDER}/")}
+        left_out = kept_without(kind, path)
+        if left_out:  # kept without its networks or arrays, on purpose (`esr export --without-checkpoint`)
+            listed = {rel: want for rel, want in listed.items() if rel != left_out and not rel.startswith(f"{left_out}/")}
         problems += [p for rel, want in sorted(listed.items()) if (p := _file_problem(path, rel, want))]
         for f in sorted(Path(path).rglob("*")):
             rel = f.relative_to(path).as_posix()
@@ -411,6 +412,19 @@ def _folders(path: Path) -> list[Path]:
             return [Path(e.path) for e in entries if e.is_dir(follow_symlinks=False)]
     except OSError:
         return []
+
+
+EXACT_ARRAYS = "exact.npz"  # an exact artifact's state space, occupancies and MI (recipes/exact_runs.py)
+# What `esr export --without-checkpoint` leaves out of a finished artifact, by kind: a run's
+# networks, an exact check's arrays. What stays (manifest, summaries, metrics) is what reports
+# and tables read; the manifest keeps the digests of what was left out.
+LEFT_OUT = {RUN_KIND: CHECKPOINT_FOLDER, EXACT_KIND: EXACT_ARRAYS}
+
+
+def kept_without(kind: str, path: Path) -> str | None:
+    """The part (LEFT_OUT) a committed artifact was kept without, or None where it is whole."""
+    part = LEFT_OUT.get(kind)
+    return part if part is not None and not (Path(path) / part).exists() else None
 
 
 def without_checkpoint(path: Path) -> bool:

@@ -30,7 +30,7 @@ from typing import BinaryIO, Iterator
 from esr_cli.common import faults, tar_reader, yamlio
 from esr_cli.storage.checkpoint_files import CHECKPOINT_DIR, epochs_problem, run_length, state_epochs_problem, verified_steps, verify_artifact
 from esr_cli.storage.finals import read_rows
-from esr_cli.storage.store import KINDS, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, load_manifest, parse_dirname, read_pending
+from esr_cli.storage.store import KINDS, LEFT_OUT, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, load_manifest, parse_dirname, read_pending
 
 KEY_RE = re.compile(r"[0-9a-f]{32}")
 SNAPSHOT_TRIES = 5
@@ -56,12 +56,13 @@ class Moved:
 def export(store: Store, ref: str, out: Path | None = None, without_checkpoint: bool = False) -> Moved:
     """Archive the artifact `ref` (key, unique key prefix or path; committed, or an unfinished
     run) into `out` (default: ./<key[:8]>.tar.gz). A running run may keep writing meanwhile.
-    without_checkpoint (runs only): a finished run as metrics, spec, manifest and digests (it
-    verifies, reports and plots, but cannot be evaluated or extended); an unfinished one as a
-    record of its logged epochs (`esr import --without-checkpoint`)."""
+    without_checkpoint: a finished run as metrics, spec, manifest and digests (it verifies,
+    reports and plots, but cannot be evaluated or extended); an unfinished one as a record of its
+    logged epochs (`esr import --without-checkpoint`); an exact check as its summary and manifest
+    (tables read it; the estimator check needs its arrays). Kinds: LEFT_OUT."""
     kind, key, src, status = _find(store, ref)
-    if without_checkpoint and kind != RUN_KIND:
-        raise StoreError(f"{kind} {key[:12]} is not a run: only a run has a checkpoint to leave out")
+    if without_checkpoint and kind not in LEFT_OUT:
+        raise StoreError(f"{kind} {key[:12]} is kept whole: only a run's checkpoint and an exact check's arrays are left out")
     out = Path(out) if out is not None else Path(f"{key[:8]}.tar.gz")
     if out.is_dir():
         raise StoreError(f"{out} is a directory: give the archive's file name")
@@ -75,7 +76,7 @@ def export(store: Store, ref: str, out: Path | None = None, without_checkpoint: 
     with tempfile.TemporaryDirectory(prefix=".export-", dir=out.parent) as tmp:
         stage = Path(tmp) / arcroot  # laid out as in a store: verify checks the kind folder
         if status == "complete":
-            shutil.copytree(src, stage, ignore=_without_checkpoint(src) if without_checkpoint else None)
+            shutil.copytree(src, stage, ignore=_leaving_out(src, LEFT_OUT[kind]) if without_checkpoint else None)
             problems = verify_artifact(store, stage)
             if problems:
                 raise StoreError(f"{kind} {key[:12]} fails its manifest ({problems[0]}); `esr verify {key[:12]}` lists every problem")
@@ -136,9 +137,9 @@ def _remove_copy(tree: Path) -> None:
     shutil.rmtree(tree, onerror=writable_then_again)
 
 
-def _without_checkpoint(src: Path):
+def _leaving_out(src: Path, part: str):
     def ignore(directory: str, names: list[str]) -> list[str]:
-        return [CHECKPOINT_DIR] if Path(directory) == src and CHECKPOINT_DIR in names else []
+        return [part] if Path(directory) == src and part in names else []
 
     return ignore
 

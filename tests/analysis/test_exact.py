@@ -533,3 +533,39 @@ def test_a_gridworld_without_blocks_enumerates_the_humans_cells():
     space = exact.enumerate_states(env, (2, 2), exact.start_states(env, (2, 2), 64))
     assert space.size == 9
     assert (space.next_state == space.next_state[:, :1, :]).all()  # whatever the robot does
+
+
+@pytest.mark.slow
+def test_a_check_kept_without_its_arrays_still_fills_the_table_in_another_store(tmp_path):
+    """`esr export --without-checkpoint` of a finished run and of its exact check (no exact.npz)
+    and the estimator figure: imported elsewhere, `--results --exact` shows the same cells; the
+    estimator check itself, which needs the arrays, is refused by name."""
+    from conftest import esr
+
+    (tmp_path / "tiny.yaml").write_text(TINY_SPEC)
+    suite = tmp_path / "suite.yaml"
+    suite.write_text("name: tinyl\nspecs: [tiny.yaml]\n")
+    store, other = tmp_path / "store", tmp_path / "other"
+    run = Path(esr("sweep", str(suite), "--budget", "smoke", store=store).stdout.split()[0])
+    exact_path = Path(esr("exact", str(tmp_path / "tiny.yaml"), "--budget", "smoke", "--robot", run.name[:8],
+                          store=store).stdout.strip())
+    figure = Path(esr("plot", "estimator", exact_path.name[:8], store=store).stdout.strip()).parent
+
+    def table(s):
+        return json.loads(esr("sweep", str(suite), "--budget", "smoke", "--results", "--exact", "--json", store=s).stdout)[0]["exact"]
+
+    for key, light in ((run.name, True), (exact_path.name, True), (figure.name, False)):
+        archive = tmp_path / f"{key[:8]}.tar.gz"
+        esr("export", key, "--out", str(archive), *(["--without-checkpoint"] if light else []), store=store)
+        esr("import", str(archive), store=other)
+    (copy,) = (other / "exact").glob("*/" + exact_path.name)
+    assert not (copy / "exact.npz").exists() and (copy / "summary.json").exists()
+    assert esr("verify", store=other).returncode == 0  # the manifest keeps the left-out file's digest
+    assert table(other) == table(store) and "—" not in table(other)["exact_ee"]
+    # Where no estimator figure of it was imported, drawing one needs the arrays: refused by name.
+    third = tmp_path / "third"
+    esr("import", str(tmp_path / f"{exact_path.name[:8]}.tar.gz"), store=third)
+    refused = esr("plot", "estimator", exact_path.name[:8], store=third, check=False)
+    assert refused.returncode != 0 and "kept without its arrays" in refused.stderr
+    whole = esr("export", figure.name, "--without-checkpoint", "--out", str(tmp_path / "f.tar.gz"), store=store, check=False)
+    assert whole.returncode != 0 and "kept whole" in whole.stderr
