@@ -191,7 +191,18 @@ def session(with_device: bool) -> dict:
     record = {"commit": git["commit"], "dirty": git["dirty"], "started_at": now_iso()}
     if with_device:
         record["device"] = device()
+        # XLA's CPU backend splits work over the cores a process may use, and the split orders
+        # float additions: a run's numbers are reproduced bit for bit only on as many cores.
+        record["cpu_cores"] = cpu_cores()
     return record
+
+
+def cpu_cores() -> int:
+    """The cores this process may run on (its affinity; `taskset` and cgroups narrow it)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # no affinity call on this platform
+        return os.cpu_count() or 1
 
 
 MAX_SESSIONS = 100  # a run resumed by many short jobs keeps its first and its latest sessions

@@ -151,13 +151,14 @@ def test_every_start_and_resume_is_a_session_and_the_first_names_the_artifact(tm
 
     store, calls = Store(tmp_path / "store"), []
     components = {"n": "long run"}
-    places = iter([({"commit": "a" * 40, "dirty": False}, "gpu:NVIDIA H100"),
-                   ({"commit": "b" * 40, "dirty": True}, "gpu:NVIDIA H200")])
+    places = iter([({"commit": "a" * 40, "dirty": False}, "gpu:NVIDIA H100", 16),
+                   ({"commit": "b" * 40, "dirty": True}, "gpu:NVIDIA H200", 2)])
 
     def next_place():
         place = next(places)
         monkeypatch.setattr(provenance, "git_state", lambda: place[0])
         monkeypatch.setattr(provenance, "device", lambda: place[1])
+        monkeypatch.setattr(provenance, "cpu_cores", lambda: place[2])
 
     next_place()
     with pytest.raises(RuntimeError):
@@ -173,6 +174,8 @@ def test_every_start_and_resume_is_a_session_and_the_first_names_the_artifact(tm
     assert [(s["commit"][0], s["dirty"], s["device"]) for s in manifest["sessions"]] == \
         [("a", False, "gpu:NVIDIA H100"), ("b", True, "gpu:NVIDIA H200")]
     assert all(s["started_at"] for s in manifest["sessions"]) and manifest["provenance"]["device"] == "gpu:NVIDIA H200"
+    # the cores each session's process could use: the float order of XLA's CPU work depends on them
+    assert [s["cpu_cores"] for s in manifest["sessions"]] == [16, 2]
 
 
 def test_a_pending_record_from_before_sessions_counts_as_the_last_session(tmp_path, monkeypatch):
