@@ -96,17 +96,36 @@ def read_doc(path: Path) -> list[str]:
         raise TableError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
 
 
+def _fenced(lines: list[str]) -> list[bool]:
+    """Per line, whether it lies inside a fenced code block (``` or ~~~): an example of the
+    comments shown in a page is text, not a table."""
+    inside, fence, out = False, "", []
+    for line in lines:
+        mark = line.lstrip()[:3]
+        if mark in ("```", "~~~") and (not inside or mark == fence):
+            inside, fence = not inside, mark
+            out.append(True)
+            continue
+        out.append(inside)
+    return out
+
+
 def blocks(path: Path, lines: list[str]) -> list[Block]:
     found, i = [], 0
+    fenced = _fenced(lines)
     while i < len(lines):
-        m = _START.match(lines[i].rstrip())
+        m = None if fenced[i] else _START.match(lines[i].rstrip())
         if not m:
+            if fenced[i]:
+                i += 1
+                continue
             if lines[i].strip() == END:
                 raise TableError(f"{path}:{i + 1}: {END} without a table's opening comment above it")
             i += 1
             continue
         where = f"{path}:{i + 1}"
-        end = next((j for j in range(i + 1, len(lines)) if lines[j].strip() == END or _START.match(lines[j].rstrip())), None)
+        end = next((j for j in range(i + 1, len(lines))
+                    if not fenced[j] and (lines[j].strip() == END or _START.match(lines[j].rstrip()))), None)
         if end is None or lines[end].strip() != END:
             raise TableError(f"{where}: the table has no {END} after it")
         found.append(Block(path, i + 1, parse_command(m.group(1), where), i + 1, end))

@@ -63,6 +63,13 @@ def test_blocks_are_found_between_their_comments_and_a_broken_one_is_named(tmp_p
         doc_tables.blocks(stray, doc_tables.read_doc(stray))
 
 
+def test_the_comments_shown_in_a_code_block_are_an_example_not_a_table(tmp_path):
+    page = tmp_path / "howto.md"
+    page.write_text(f"Write a table so:\n```\n<!-- esr sweep experiments/suites/NAME.yaml --results --markdown -->\n"
+                    f"(its output)\n{END}\n```\nand\n~~~md\n<!-- esr train x.yaml -->\n~~~\n")
+    assert doc_tables.blocks(page, doc_tables.read_doc(page)) == []
+
+
 def test_a_file_that_is_not_a_markdown_page_is_refused_before_any_work(tmp_path):
     binary = tmp_path / "b.md"
     binary.write_bytes(b"\xff\xfe\x00text")
