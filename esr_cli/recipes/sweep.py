@@ -143,6 +143,7 @@ class RunStatus:
     state: str  # one of STATES
     note: str = ""
     path: Optional[Path] = None  # the committed artifact (done) or the partial directory
+    made_by: str = ""  # `--any-code`: the commit (and device) of the other code that made it
 
 
 def _lock_holder(store: Store, key: str) -> Optional[str]:
@@ -411,8 +412,8 @@ def with_runs_made_elsewhere(rows: list[RunStatus], store: Store) -> list[RunSta
             out.append(r)
             continue
         key, path, made = hit
-        note = f"made by other code: commit {made.commit[:7] if made.commit else 'unknown'}" + (f", {made.device}" if made.device else "")
-        out.append(RunStatus(replace(r.run, key=key), "done", note, path))
+        where = f"commit {made.commit[:7] if made.commit else 'unknown'}" + (f", {made.device}" if made.device else "")
+        out.append(RunStatus(replace(r.run, key=key), "done", f"made by other code: {where}", path, made_by=where))
     return out
 
 
@@ -447,15 +448,15 @@ def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESUL
     rows = status(suite, store)
     if any_code:
         rows = with_runs_made_elsewhere(rows, store)
+    if paths_from is not None:
+        rows = [replace(r, run=_shown_from(r.run, paths_from)) for r in rows]
     check_metrics(suite, store, metrics, rows)
     stored_checks = None
     out = []
-    if paths_from is not None:
-        rows = [replace(r, run=_shown_from(r.run, paths_from)) for r in rows]
     for r in rows:
         row = {"run": r.run.label, "method": r.run.spec.method.kind, "key": r.run.key, "state": r.state}
-        if r.note.startswith("made by other code"):
-            row["made_by"] = r.note
+        if r.made_by:
+            row["made_by"] = r.made_by
         if r.state == "done":
             logged = set(read_rows(r.path)[-1]) if metrics != DEFAULT_RESULT_METRICS else set(metrics)
             row.update(run_finals(r.path, tuple(m for m in metrics if m in logged)),
@@ -533,8 +534,7 @@ OTHER_CODE_NOTE = ("A run followed by (commit ...) was made by that commit's tra
 
 def _label(r: dict) -> str:
     """The run's cell: its label, and where it was made when that was other code (`--any-code`)."""
-    made = r.get("made_by")
-    return r["run"] + (f" ({made.removeprefix('made by other code: ')})" if made else "")
+    return r["run"] + (f" ({r['made_by']})" if r.get("made_by") else "")
 
 
 def _exact_cells(r: dict, exact: bool) -> list[str]:

@@ -239,18 +239,22 @@ class Origin(NamedTuple):
 
 
 def origin(info: dict | None) -> Origin:
-    info = info or {}
+    def part(record: object, name: str) -> dict:  # a damaged manifest's field is read as empty, never trusted
+        value = record.get(name) if isinstance(record, dict) else None
+        return value if isinstance(value, dict) else {}
+
+    def text(value: object) -> str | None:
+        return value if isinstance(value, str) and value else None
+
     sessions = earlier_sessions(info)
+    made = part(info, "provenance")
     # A manifest from before sessions were recorded names only the last one.
-    git = info.get("provenance", {}).get("git", {}) if isinstance(info.get("provenance"), dict) else {}
-    commit = next((s["commit"] for s in sessions if isinstance(s.get("commit"), str)), None) \
-        or (git.get("commit") if isinstance(git, dict) and isinstance(git.get("commit"), str) else None)
-    devices = list(dict.fromkeys(s["device"] for s in sessions if isinstance(s.get("device"), str)))
+    commit = next((s["commit"] for s in sessions if text(s.get("commit"))), None) or text(part(made, "git").get("commit"))
+    devices = list(dict.fromkeys(s["device"] for s in sessions if text(s.get("device"))))
     # An unfinished run made by an esr whose pending.json named only its backend (part of its key) says just that.
-    toolchain = info.get("key_components", {}).get("toolchain", {}) if isinstance(info.get("key_components"), dict) else {}
-    backend = toolchain.get("backend") if isinstance(toolchain, dict) else None
-    device = ", then ".join(devices) or info.get("provenance", {}).get("device") or backend
-    return Origin(commit, device if isinstance(device, str) else None, bool(sessions and sessions[0].get("dirty")))
+    backend = part(part(info, "key_components"), "toolchain").get("backend")
+    device = ", then ".join(devices) or text(made.get("device")) or text(backend)
+    return Origin(commit, device, bool(sessions and sessions[0].get("dirty")))
 
 
 def package_versions() -> dict:

@@ -432,7 +432,7 @@ def without_checkpoint(path: Path) -> bool:
     out its whole checkpoint folder (a folder that is there is checked file by file, so a
     checkpoint damaged in part is still found). Its metrics, spec and manifest are checked as
     always; reading its final networks needs the full archive."""
-    return not (Path(path) / CHECKPOINT_FOLDER).exists()
+    return kept_without(RUN_KIND, path) is not None
 
 
 def _file_problem(path: Path, rel: str, want) -> str | None:

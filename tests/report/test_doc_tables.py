@@ -134,9 +134,9 @@ def test_any_code_reads_a_run_of_the_same_spec_made_by_other_training_code(smoke
     (found,) = sweep.results(suite, Store(store), ("return",), any_code=True)
     commit = provenance.origin(json.loads((run_path / "manifest.json").read_text())).commit
     assert found["state"] == "done" and found["key"] == own[0]["key"] and found["return"] == own[0]["return"]
-    assert found["made_by"].startswith(f"made by other code: commit {commit[:7] if commit else 'unknown'}")
+    assert found["made_by"].startswith(f"commit {commit[:7] if commit else 'unknown'}")
     md = sweep.results_markdown(suite, [found], ("return",))
-    assert f"| grid_2 ({found['made_by'].removeprefix('made by other code: ')}) | esr |" in md
+    assert f"| grid_2 ({found['made_by']}) | esr |" in md
     assert sweep.OTHER_CODE_NOTE in md
 
     # A run of another spec (here other seeds) is never taken for it.

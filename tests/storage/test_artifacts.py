@@ -203,3 +203,16 @@ def test_a_run_resumed_by_many_jobs_keeps_its_first_and_latest_sessions():
     assert sessions[0] == {"commit": "0"} and sessions[-1] == {"commit": "249"}
     assert sessions[1]["omitted"] + len(sessions) - 1 == 250  # every session is counted once
     assert [s["commit"] for s in sessions[2:]] == [str(i) for i in range(152, 250)]
+
+
+def test_where_an_artifact_was_made_is_read_from_its_sessions_and_a_damaged_manifest_says_nothing():
+    from esr_cli.storage.provenance import Origin, origin
+
+    sessions = [{"commit": "a" * 40, "dirty": True, "device": "gpu:NVIDIA H100"},
+                {"commit": "b" * 40, "dirty": False, "device": "cpu:cpu"}]
+    assert origin({"sessions": sessions}) == Origin("a" * 40, "gpu:NVIDIA H100, then cpu:cpu", True)
+    # a manifest from before sessions were recorded: its provenance names the commit and device
+    assert origin({"provenance": {"git": {"commit": "c" * 40}, "device": "cpu:cpu"}}) == Origin("c" * 40, "cpu:cpu", False)
+    assert origin({"key_components": {"toolchain": {"backend": "gpu"}}}) == Origin(None, "gpu", False)
+    for damaged in (None, {}, {"provenance": "x", "key_components": 3}, {"provenance": {"git": ["c"], "device": 7}}):
+        assert origin(damaged) == Origin(None, None, False)
