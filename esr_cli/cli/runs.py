@@ -174,91 +174,97 @@ def diagnose(
         raise Exit(2, f"--refit fits ESR's representations; this run's method is {method}")
     if refit and episodes < 2:
         raise Exit(2, "--refit holds one episode in four out of the fit: give --episodes 2 or more")
-    import jax  # and the training code: after the options are checked against the run
+    from esr_cli.recipes import diagnosis_runs as dr  # JAX and the training code: after the options are checked
 
-    from esr_cli.analysis import diagnose as dg, play_check as pc
-    from esr_cli.recipes.runs import load_run_so_far, seed_slice
+    options = dr.Options(batches=batches, episodes=episodes, refit=refit)
+    if finished:  # stored: a table reads it back, and the same diagnosis again is a cache hit
+        built = ensure(dr.diagnosis_recipe(ctx.obj.store, path, seed_index, options), ctx.obj.store)
+        report = built.summary()
+        err.print(tagged("cache hit" if built.cached else "computed", "green", f": {built.path}"))
+    else:  # an unfinished run changes with every chunk: shown, never stored
+        from esr_cli.recipes.runs import load_run_so_far
 
-    trainer, state, epoch = load_run_so_far(ctx.obj.store, path, finished)
-    one = seed_slice(state, seed_index)
-    learns = trainer.method.learns_policy and not trainer.acts_by_rule
-    play = pc.play_check(trainer, one, jax.random.PRNGKey(3), episodes, batches, refit) if learns else None
-    report = {"run": str(path), "finished": finished, "epoch": epoch, "epochs": trainer.spec.train.epochs,
-              "seed_index": seed_index, "play": play}
-    if trainer.spec.env.kind == "gridworld":
-        rewards = dg.reward_by_situation(trainer, one, jax.random.PRNGKey(0), batches)
-        report.update({
-            "reward": rewards,
-            "free_vs_trapped": dg.free_trapped_contrast(rewards),
-            "start": trainer.spec.env.start,
-            "start_states": dg.start_policy(trainer, one, jax.random.PRNGKey(1)) if learns else [],
-            "representations": dg.representation_check(trainer, one, jax.random.PRNGKey(2), batches)
-            if trainer.spec.method.kind == "esr" else None,
-        })
+        trainer, state, epoch = load_run_so_far(ctx.obj.store, path, finished)
+        report = dr.compute(trainer, state, epoch, seed_index, options, False, path.name.split(".")[0])
     if as_json:
         out.print_json(json.dumps(report))
         return
-    when = "" if finished else f", unfinished: checkpoint at epoch {epoch:,} of {trainer.spec.train.epochs:,}"
-    out.print(f"{record['name']} ({record['budget']} budget, {trainer.spec.method.kind}), seed index {seed_index}{when}")
-    if play:
-        _print_play_check(play)
+    when = "" if finished else f", unfinished: checkpoint at epoch {report['epoch']:,} of {report['epochs']:,}"
+    out.print(f"{record['name']} ({record['budget']} budget, {method}), seed index {seed_index}{when}")
+    if isinstance(report.get("play"), dict):
+        _print_play_check(report["play"])
     else:
-        out.print(f"{trainer.spec.method.kind} learns no robot policy: no play check")
-    if trainer.spec.env.kind == "gridworld":
+        out.print(f"{method} learns no robot policy: no play check")
+    if isinstance(report.get("reward"), dict):  # a gridworld run
         _print_gridworld_diagnosis(report)
 
 
 def _print_play_check(play: dict) -> None:
+    """The play check of a diagnosis, computed or read from the store (every field read typed:
+    a damaged one prints as '—')."""
+    from esr_cli.recipes.diagnosis_lookup import count, fmt, number
+
     table = Table(title="the run's reward on its robot's play and on a uniform robot's (same human)")
-    refit = all("refit" in r for r in play.values())
+    sides = [(player, play[player]) for player in ("robot", "uniform") if isinstance(play.get(player), dict)]
+    refit = bool(sides) and all(isinstance(r.get("refit"), dict) for _, r in sides)
     columns = ["robot", "episodes", "return", "reward: mean", "sd", "MI estimate (nats)", "steps the human moves"]
     for col in columns + (["refit MI: fit", "held out"] if refit else []):
         table.add_column(col)
-    for player, r in play.items():
-        mi = r["reward"].get("mi_estimate")
-        cells = [player, str(r["episodes"]), f"{r['return']:.2f}", f"{r['reward']['mean']:+.3f}", f"{r['reward']['sd']:.3f}",
-                 "" if mi is None else f"{mi:+.4f}", f"{r['human_moves']:.3f}"]
+    for player, r in sides:
+        episodes = count(r, "episodes")
+        cells = [player, "—" if episodes is None else str(episodes), fmt(number(r, "return"), ".2f"),
+                 fmt(number(r, "reward", "mean"), "+.3f"), fmt(number(r, "reward", "sd"), ".3f"),
+                 fmt(number(r, "reward", "mi_estimate"), "+.4f"), fmt(number(r, "human_moves"), ".3f")]
         if refit:
-            cells += [f"{r['refit']['fit']:+.4f}", f"{r['refit']['held_out']:+.4f}"]
+            cells += [fmt(number(r, "refit", "fit"), "+.4f"), fmt(number(r, "refit", "held_out"), "+.4f")]
         table.add_row(*cells)
     out.print(table)
 
 
 def _print_gridworld_diagnosis(report: dict) -> None:
     from esr_cli.analysis import diagnose as dg
+    from esr_cli.recipes.diagnosis_lookup import count, fmt, number
 
-    rewards, contrast, starts, reprs = (report[k] for k in ("reward", "free_vs_trapped", "start_states", "representations"))
+    def n(*path, tree=report) -> str:
+        v = count(tree, *path)
+        return "—" if v is None else str(v)
+
     table = Table(title="reward by the human's situation (the run's buffer)")
     for col in ("situation", "transitions", "mean reward", "sd"):
         table.add_column(col)
-    for name, r in rewards.items():
-        table.add_row(name, str(r["n"]), f"{r['mean']:.3f}", f"{r['sd']:.3f}")
+    for name in dg.SITUATIONS:
+        table.add_row(name, n("reward", name, "n"), fmt(number(report, "reward", name, "mean"), ".3f"),
+                      fmt(number(report, "reward", name, "sd"), ".3f"))
     out.print(table)
-    n_free, n_trapped = rewards["free"]["n"], rewards["trapped"]["n"]
+    n_free, n_trapped = count(report, "reward", "free", "n") or 0, count(report, "reward", "trapped", "n") or 0
     if n_free < 2 or n_trapped < 2:
         out.print(f"free vs trapped: too few transitions to compare ({n_free} free, {n_trapped} trapped)")
     else:
-        out.print(f"free vs trapped: {contrast['difference']:+.3f} in mean reward, effect size {contrast['effect_size']:.2f} "
-                  "(pooled standard deviations)")
+        out.print(f"free vs trapped: {fmt(number(report, 'free_vs_trapped', 'difference'), '+.3f')} in mean reward, "
+                  f"effect size {fmt(number(report, 'free_vs_trapped', 'effect_size'), '.2f')} (pooled standard deviations)")
+    starts = [row for row in report.get("start_states") or () if isinstance(row, dict)]
     if starts:
-        table = Table(title=f"{report['start']} starts: robot actions by what they do (the human staying)")
+        table = Table(title=f"{report.get('start')} starts: robot actions by what they do (the human staying)")
         table.add_column("human at")
         for name in dg.EFFECTS:
             table.add_column(f"{name}: actions, max Q, P(policy), in buffer")
         for row in starts:
-            table.add_row(str(row["human"]), *[f"{row[e]['actions']}, {row[e]['q_max']:.2f}, {row[e]['p']:.3f}, "
-                                               f"{row[e]['stored']}" for e in dg.EFFECTS])
+            table.add_row(str(row.get("human")), *[
+                f"{n(e, 'actions', tree=row)}, {fmt(number(row, e, 'q_max'), '.2f')}, {fmt(number(row, e, 'p'), '.3f')}, "
+                f"{n(e, 'stored', tree=row)}" for e in dg.EFFECTS])
         out.print(table)
-    if reprs:
+    reprs = report.get("representations")
+    if isinstance(reprs, dict):
+        def r(name: str) -> str:
+            return fmt(number(reprs, name), ".3f")
+
         table = Table(title="representations: how often each picks a transition's future in a batch")
         for col in ("candidates", "phi(s, aR, aH)", "phi'(s, aR)", "block layout alone", "uniform"):
             table.add_column(col)
-        table.add_row("the whole batch", f"{reprs['accuracy_phi']:.3f}", f"{reprs['accuracy_phi_prime']:.3f}",
-                      f"{reprs['layout_only']:.3f}", f"{reprs['chance']:.3f}")
-        table.add_row("futures with the true block layout", f"{reprs['within_layout_phi']:.3f}",
-                      f"{reprs['within_layout_phi_prime']:.3f}", "", "")
+        table.add_row("the whole batch", r("accuracy_phi"), r("accuracy_phi_prime"), r("layout_only"), r("chance"))
+        table.add_row("futures with the true block layout", r("within_layout_phi"), r("within_layout_phi_prime"), "", "")
         out.print(table)
-        out.print(f"MI estimate (phi minus phi' diagonal logit): {reprs['mi_estimate']:+.3f} nats")
+        out.print(f"MI estimate (phi minus phi' diagonal logit): {fmt(number(reprs, 'mi_estimate'), '+.3f')} nats")
 
 
 @app.command()

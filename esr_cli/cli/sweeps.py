@@ -14,7 +14,7 @@ from esr_cli.storage.artifacts import ensure
 
 
 def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait, job_opts,
-                                  unfinished=False, out_dir=None, exact=False, any_code=False):
+                                  unfinished=False, out_dir=None, exact=False, any_code=False, diagnose=False):
     """An option that would change nothing is a mistake to name, not to ignore."""
     for flag, given in (("--unfinished", unfinished), ("--out", out_dir is not None)):
         if given and not plot:
@@ -24,7 +24,7 @@ def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, 
     if as_json and markdown:
         raise Exit(2, "--json and --markdown: choose one")
     for flag, given in (("--markdown", markdown), ("--metric", metric), ("--plot", plot), ("--exact", exact),
-                        ("--any-code", any_code)):
+                        ("--diagnose", diagnose), ("--any-code", any_code)):
         if given and not show_results:
             raise Exit(2, f"{flag} applies with --results only")
     if any_code and plot:
@@ -62,6 +62,9 @@ def sweep(
     exact: bool = typer.Option(False, "--exact", help="--results: also each gridworld robot's exact checks as the store "
                                "holds them, seed by seed (esr exact --robot, esr plot estimator), and the commands "
                                "that make the missing ones; computes nothing"),
+    diagnose: bool = typer.Option(False, "--diagnose", help="--results: also each robot's diagnoses as the store holds "
+                                  "them, seed by seed (esr diagnose RUN --seed-index I), and the commands that make "
+                                  "the missing ones; computes nothing"),
     any_code: bool = typer.Option(False, "--any-code", help="--results: a run this code has not made is read from a "
                                   "finished run of the same spec, budget and seeds made by other training code "
                                   "(another commit, device or jax: an imported archive), its row naming that commit"),
@@ -78,7 +81,7 @@ def sweep(
     check_executor(executor, sw.EXECUTORS)
     _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait,
                                   {"--partition": partition, "--time-min": time_min, "--gpus": gpus,
-                                   "--cpus": cpus, "--mem-gb": mem_gb}, unfinished, out_dir, exact, any_code)
+                                   "--cpus": cpus, "--mem-gb": mem_gb}, unfinished, out_dir, exact, any_code, diagnose)
     overrides = {"partition": partition, "time_min": time_min, "gpus": gpus, "cpus": cpus, "mem_gb": mem_gb}
     try:
         sw.slurm_options(sw.SlurmOptions(), overrides, "")  # before the suite's runs are built
@@ -88,17 +91,18 @@ def sweep(
         suite = sw.load_suite(suite_file, budget)
         if show_results:
             metrics = tuple(dict.fromkeys(metric)) if metric else sw.DEFAULT_RESULT_METRICS
+            checks = tuple(name for name, given in (("exact", exact), ("diagnosis", diagnose)) if given)
             try:
-                rows = sw.results(suite, ctx.obj.store, metrics, exact, any_code)  # refuses a metric no run can log
+                rows = sw.results(suite, ctx.obj.store, metrics, checks, any_code)  # refuses a metric no run can log
             except sw.SuiteError as e:
                 raise Exit(2, str(e)) from None
             if as_json:
                 out.print_json(json.dumps(rows))
             elif markdown:
-                out.print(own(sw.results_markdown(suite, rows, metrics, exact)), highlight=False)
+                out.print(own(sw.results_markdown(suite, rows, metrics, checks)), highlight=False)
             else:
-                out.print(sw.results_table(suite, rows, metrics, exact))
-                for line in sw.table_notes(rows, exact):  # whole lines, to copy and paste
+                out.print(sw.results_table(suite, rows, metrics, checks))
+                for line in sw.table_notes(rows, checks):  # whole lines, to copy and paste
                     out.print(line, highlight=False, soft_wrap=True)
             if plot:
                 from esr_cli.report import figures as figs, paper

@@ -41,9 +41,8 @@ from rich.text import Text
 from esr_cli.common import specs
 from esr_cli.common.printing import plain_console, printable, tagged, train_line
 from esr_cli.model import spec as spec_model
-from esr_cli.recipes import exact_lookup
+from esr_cli.recipes import check_columns
 from esr_cli.recipes.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
-from esr_cli.recipes.targets import exact_defaults
 from esr_cli.storage import provenance
 from esr_cli.storage.artifacts import ensure
 from esr_cli.storage.store import RUN_KIND, Store, atomic_write_text, read_pending
@@ -427,14 +426,15 @@ def _shown_from(run: Run, base: Path) -> Run:
 
 
 def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS,
-            exact: bool = False, any_code: bool = False, esr: Optional[str] = None,
+            checks: tuple[str, ...] = (), any_code: bool = False, esr: Optional[str] = None,
             paths_from: Optional[Path] = None) -> list[dict]:
     """Each run's final value of each metric (return and success unless told; mean +- SE across
     seeds, esr_cli.storage.finals) and wall time, read from the committed artifacts; a metric a run does
     not log is left out of its row; runs not done carry their state and the command. A metric
-    no run of the suite can log is refused (SuiteError). With `exact`, each done gridworld run
-    that learns a policy also carries its seeds' exact checks as the store holds them
-    (exact_lookup), and the commands that make what is missing. With `any_code`, a run this code
+    no run of the suite can log is refused (SuiteError). With `checks` (names of
+    check_columns.REGISTRY: "exact", "diagnosis"), each done run a check applies to also carries
+    its seeds' checks of that kind as the store holds them, under the check's name, and the
+    commands that make what is missing, under NAME_todo. With `any_code`, a run this code
     has not made is read from a run of the same spec made by other code (`with_runs_made_elsewhere`),
     its row saying so in `made_by`. The commands of missing runs and checks call esr as `esr`
     says (default: as this store is reached, Store.invocation) with spec paths relative to
@@ -443,15 +443,18 @@ def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESUL
 
     esr = esr or store.invocation()
 
-    if exact and not any(r.spec.env.kind == "gridworld" for r in suite.runs):
-        raise SuiteError("--exact", "", "exact checks are made on gridworld runs; this suite has none")
+    groups = check_columns.chosen(checks)
+    for group in groups:
+        why = group.refusal(suite)
+        if why:
+            raise SuiteError(group.option, "", why)
     rows = status(suite, store)
     if any_code:
         rows = with_runs_made_elsewhere(rows, store)
     if paths_from is not None:
         rows = [replace(r, run=_shown_from(r.run, paths_from)) for r in rows]
     check_metrics(suite, store, metrics, rows)
-    stored_checks = None
+    stored: dict[str, object] = {}  # each check's artifacts, read once for the whole table
     out = []
     for r in rows:
         row = {"run": r.run.label, "method": r.run.spec.method.kind, "key": r.run.key, "state": r.state}
@@ -461,55 +464,15 @@ def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESUL
             logged = set(read_rows(r.path)[-1]) if metrics != DEFAULT_RESULT_METRICS else set(metrics)
             row.update(run_finals(r.path, tuple(m for m in metrics if m in logged)),
                        wall_s=store.read_manifest(r.path).get("wall_time_s"), path=str(r.path))
-            if exact and _has_exact_checks(r.run.spec):
-                if stored_checks is None:  # the store's checks, read once for the whole table
-                    stored_checks = exact_lookup.read_checks(store)
-                row.update(_exact_columns(r.run, suite.budget, esr, stored_checks))
+            for group in groups:
+                if group.applies(r.run.spec):
+                    if group.name not in stored:
+                        stored[group.name] = group.read(store)
+                    row[group.name], row[f"{group.name}_todo"] = group.cells(r.run, suite.budget, esr, stored[group.name])
         else:
             row["command"] = r.run.command(suite.budget, esr)
         out.append(row)
     return out
-
-
-EXACT_COLUMNS = {"exact_ee": "exact effective empowerment, per seed (nats)",
-                 "spearman_all": "Spearman (reward, exact MI), all pairs, per seed",
-                 "spearman_visited": "Spearman, visited pairs (count), per seed"}
-# What `esr sweep --results --exact` asks `esr exact` to sample where a space is too large for
-# every pair: enough for a rank correlation to within about +-0.08 (95% interval, rho near 0.4).
-SUGGESTED_SAMPLE_PAIRS = 500
-
-
-def _has_exact_checks(spec) -> bool:
-    """A gridworld run whose robot has a policy of its own, on a space small enough for `esr exact`."""
-    from esr_cli.analysis.state_count import MAX_STATES, state_bound
-
-    return (spec.env.kind == "gridworld" and spec.method.kind not in spec_model.POLICY_FREE_METHODS
-            and state_bound(spec.env.size, spec.env.blocks) <= MAX_STATES)
-
-
-def _ranks_its_reward(spec) -> bool:
-    """`esr plot estimator` ranks ESR's own reward, at each true human action."""
-    return spec.method.kind == "esr" and spec.method.human_action != "inferred"
-
-
-def _exact_columns(run: Run, budget: str, esr: str, stored_checks) -> dict:
-    """A run's exact-check cells (exact_lookup.cells) and the commands for what the store lacks
-    (`esr`: how they call esr)."""
-    spec = run.spec
-    part = spec.training_part()
-    target = exact_lookup.Target(run.key, part["env"], part["human"], *exact_defaults(spec))
-    checks = exact_lookup.run_checks(stored_checks, target, len(spec.train.seeds))
-    todo = []
-    for i, what in exact_lookup.missing(checks):
-        if what == "exact":
-            extra = ("--robot", run.key[:8], "--seed-index", str(i), "--sample-pairs", str(SUGGESTED_SAMPLE_PAIRS))
-            todo.append(train_line(esr, run.spec_path, budget, run.sets, command="exact", extra=extra))
-        elif _ranks_its_reward(spec):
-            todo.append(f"{esr} plot estimator {checks[i].exact[:8]}")
-    cells = exact_lookup.cells(checks)
-    if not _ranks_its_reward(spec):  # no reward of its own to rank
-        cells.update(spearman_all="", spearman_visited="")
-    return {"exact": cells, "exact_todo": [printable(line) for line in todo]}
 
 
 def _pm(row: dict, name: str, digits: int) -> str:
@@ -537,48 +500,50 @@ def _label(r: dict) -> str:
     return r["run"] + (f" ({r['made_by']})" if r.get("made_by") else "")
 
 
-def _exact_cells(r: dict, exact: bool) -> list[str]:
-    if not exact:
-        return []
-    return [r["exact"][c] for c in EXACT_COLUMNS] if "exact" in r else [""] * len(EXACT_COLUMNS)
+def _check_cells(r: dict, checks: tuple[str, ...]) -> list[str]:
+    """A row's cells of the checks asked for ('' where a check does not apply to the run)."""
+    return [r[g.name][c] if g.name in r else "" for g in check_columns.chosen(checks) for c in g.columns]
 
 
-def _exact_todo(rows: list[dict]) -> list[str]:
-    return [line for r in rows for line in r.get("exact_todo", ())]
+def _check_heads(checks: tuple[str, ...]) -> list[str]:
+    return [head for g in check_columns.chosen(checks) for head in g.columns.values()]
 
 
-def results_table(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS, exact: bool = False) -> Table:
+def _check_todo(rows: list[dict], checks: tuple[str, ...]) -> list[str]:
+    return [line for g in check_columns.chosen(checks) for r in rows for line in r.get(f"{g.name}_todo", ())]
+
+
+def _check_notes(checks: tuple[str, ...]) -> list[str]:
+    return [g.note for g in check_columns.chosen(checks)]
+
+
+def results_table(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS,
+                  checks: tuple[str, ...] = ()) -> Table:
     table = Table(title=f"suite {suite.name} ({suite.budget}): final {_what(metrics)}, mean ± SE and IQM "
                         "[95% bootstrap CI] across seeds (last 10% of epochs)")
-    for col in ("run", "method", "seeds", *metrics, "wall", *(EXACT_COLUMNS.values() if exact else ())):
+    for col in ("run", "method", "seeds", *metrics, "wall", *_check_heads(checks)):
         table.add_column(col, overflow="fold")
     for r in rows:
         if r["state"] == "done":
             wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
-            table.add_row(_label(r), r["method"], str(r["seeds"]), *(_cell(r, m) for m in metrics), wall, *_exact_cells(r, exact))
+            table.add_row(_label(r), r["method"], str(r["seeds"]), *(_cell(r, m) for m in metrics), wall, *_check_cells(r, checks))
         else:
             table.add_row(r["run"], r["method"], "", Text(r["state"], style=_STYLE[r["state"]]), *[""] * len(metrics),
-                          *_exact_cells(r, exact))
+                          *_check_cells(r, checks))
     return table
 
 
-EXACT_NOTE = ("Exact checks at the centre goal and the spec's future discount, seed by seed: '≥' marks a lower bound "
-              "(the space is solved over the pairs holding 99% of the robot's discounted occupancy); an interval is a "
-              "uniform sample of all pairs with its 95% bootstrap interval.")
-
-
-def table_notes(rows: list[dict], exact: bool) -> list[str]:
-    """What a plain table has below it: which runs other code made (`--any-code`), and with
-    `--exact` the note on its cells and the commands of the missing checks."""
+def table_notes(rows: list[dict], checks: tuple[str, ...] = ()) -> list[str]:
+    """What a plain table has below it: which runs other code made (`--any-code`), the note on
+    each check's cells, and the commands of the missing checks."""
     notes = [OTHER_CODE_NOTE] if any("made_by" in r for r in rows) else []
-    if exact:
-        todo = _exact_todo(rows)
-        notes += [EXACT_NOTE] + (["Missing from the store, made by:", *todo] if todo else [])
-    return notes
+    todo = _check_todo(rows, checks)
+    return notes + _check_notes(checks) + (["Missing from the store, made by:", *todo] if todo else [])
 
 
-def results_markdown(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS, exact: bool = False) -> str:
-    heads = (*metrics, "wall", *(EXACT_COLUMNS.values() if exact else ()))
+def results_markdown(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEFAULT_RESULT_METRICS,
+                     checks: tuple[str, ...] = ()) -> str:
+    heads = (*metrics, "wall", *_check_heads(checks))
     lines = [f"Suite `{suite.name}`, budget `{suite.budget}`: final {_what(metrics)}, mean ± SE and "
              "the interquartile mean [95% stratified bootstrap interval] across seeds (each seed's last 10% of epochs).", "",
              "| run | method | seeds | " + " | ".join(heads) + " |", "|---|---|---|" + "---|" * len(heads)]
@@ -586,16 +551,16 @@ def results_markdown(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = 
         if r["state"] == "done":
             wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
             lines.append(f"| {_label(r)} | {r['method']} | {r['seeds']} | " + " | ".join([*(_cell(r, m) for m in metrics), wall,
-                                                                                      *_exact_cells(r, exact)]) + " |")
+                                                                                      *_check_cells(r, checks)]) + " |")
         else:
             lines.append(f"| {r['run']} | {r['method']} | | {r['state']}: `{r['command']}` |" + " |" * (len(heads) - 1))
     if any("made_by" in r for r in rows):
         lines += ["", OTHER_CODE_NOTE]
-    if exact:
-        lines += ["", EXACT_NOTE]
-        todo = _exact_todo(rows)
-        if todo:
-            lines += ["", "Missing from the store, made by:", "", "```bash", *todo, "```"]
+    for note in _check_notes(checks):
+        lines += ["", note]
+    todo = _check_todo(rows, checks)
+    if todo:
+        lines += ["", "Missing from the store, made by:", "", "```bash", *todo, "```"]
     return "\n".join(lines)
 
 

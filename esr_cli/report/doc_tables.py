@@ -29,7 +29,8 @@ END = "<!-- end of generated table -->"
 _START = re.compile(r"^<!-- (esr\s.*) -->$")  # any esr command: one that is not a sweep table is named
 MAX_DOC_BYTES = 4 << 20  # a markdown page of this project is tens of KiB
 MAX_DIFF_LINES = 60
-_FLAGS = {"--results", "--markdown", "--any-code", "--exact"}
+_FLAGS = {"--results", "--markdown", "--any-code", "--exact", "--diagnose"}
+_CHECK_FLAGS = {"--exact": "exact", "--diagnose": "diagnosis"}  # flag -> check_columns name
 _VALUED = {"--budget": "budget", "-b": "budget", "--metric": "metric"}
 
 
@@ -42,7 +43,7 @@ class Command:
     suite: Path
     budget: str
     metrics: tuple[str, ...]
-    exact: bool
+    checks: tuple[str, ...]  # check_columns names: "exact", "diagnosis"
     any_code: bool
 
 
@@ -82,8 +83,8 @@ def parse_command(text: str, where: str) -> Command:
     missing = {"--results", "--markdown"} - flags
     if missing:
         raise TableError(f"{where}: a generated table needs {' and '.join(sorted(missing))}")
-    return Command(suite, options["budget"], tuple(dict.fromkeys(options["metric"])), "--exact" in flags,
-                   "--any-code" in flags)
+    checks = tuple(name for flag, name in _CHECK_FLAGS.items() if flag in flags)
+    return Command(suite, options["budget"], tuple(dict.fromkeys(options["metric"])), checks, "--any-code" in flags)
 
 
 def read_doc(path: Path) -> list[str]:
@@ -143,10 +144,10 @@ def generate(command: Command, store: Store, where: str) -> list[str]:
         metrics = command.metrics or sw.DEFAULT_RESULT_METRICS
         # A page is read from any checkout and store: its commands say `esr` and name spec files
         # from the checkout's root, as the page's own command does.
-        rows = sw.results(suite, store, metrics, command.exact, command.any_code, esr="esr", paths_from=Path.cwd())
+        rows = sw.results(suite, store, metrics, command.checks, command.any_code, esr="esr", paths_from=Path.cwd())
     except (sw.SuiteError, specs.SpecError) as e:
         raise TableError(f"{where}: {e}") from None
-    return sw.results_markdown(suite, rows, metrics, command.exact).split("\n")
+    return sw.results_markdown(suite, rows, metrics, command.checks).split("\n")
 
 
 def refresh(path: Path, store: Store) -> tuple[list[str], list[str], int]:

@@ -44,7 +44,8 @@ MAX_MANIFEST_BYTES = 16 << 20  # a run's manifest is a few KiB; a figure's lists
 RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND = "runs", "evals", "exact", "figures", "humandata", "humans"
 CHECKPOINT_FOLDER = "checkpoints"  # a run's checkpoints, one folder per epoch (checkpoint_files.py)
 PLAY_KIND = "play"  # an episode a person played with a robot (esr play)
-KINDS = (RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND, PLAY_KIND)
+DIAGNOSIS_KIND = "diagnoses"  # why a finished run's robot helps or not, one seed (esr diagnose)
+KINDS = (RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND, PLAY_KIND, DIAGNOSIS_KIND)
 
 
 class StoreError(Failure):

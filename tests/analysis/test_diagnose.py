@@ -186,3 +186,121 @@ def test_refit_recovers_log_4_when_the_next_state_names_one_of_4_human_actions()
     assert abs(told["held_out"] - np.log(4)) < 0.15 and abs(told["fit"] - np.log(4)) < 0.15
     unrelated = refit_mi_estimate(trainer, episodes(rng.integers(0, 4, (n, steps))), jax.random.PRNGKey(0), 300)
     assert abs(unrelated["held_out"]) < 0.15 and abs(unrelated["fit"]) < 0.15
+
+
+# ---------------------------------------------------------------- stored diagnoses, read back
+
+def _stored_diagnosis(store, run_key: str, seed_index: int, summary: dict, **options):
+    """A committed diagnosis with a hand-made summary, made the one way every artifact is."""
+    from dataclasses import replace
+
+    from esr_cli.recipes.diagnosis_runs import Options, components
+    from esr_cli.storage.artifacts import Recipe, ensure
+    from esr_cli.storage.store import DIAGNOSIS_KIND
+
+    comps = components(run_key, seed_index, replace(Options(), **options))
+    return ensure(Recipe(DIAGNOSIS_KIND, "hand-made", comps, lambda out, store: summary), store).path
+
+
+HAND_MADE = {
+    "play": {"robot": {"return": 26.125}, "uniform": {"return": 11.0}},
+    "reward": {"free": {"n": 5, "mean": 5.319}, "trapped": {"n": 3, "mean": 0.241}, "dead": {"n": 1, "mean": -3.57},
+               "at_goal": {"n": 2, "mean": 0.3}},
+    "free_vs_trapped": {"difference": 5.08, "effect_size": 0.306},
+    "start_states": [{"free": {"p": 1.0}}, {"free": {"p": 0.9}}, {"free": {"p": 2.7e-6}}, {"free": {"p": 0.5}}],
+    "representations": {"accuracy_phi": 0.1456, "accuracy_phi_prime": 0.1433, "layout_only": 0.9553},
+}
+
+
+def test_a_runs_stored_diagnoses_become_its_cells_seed_by_seed(tmp_path):
+    from esr_cli.recipes import diagnosis_lookup as dl
+    from esr_cli.storage.store import Store
+
+    store = Store(tmp_path / "store")
+    run = "ab" * 16
+    _stored_diagnosis(store, run, 0, HAND_MADE)
+    _stored_diagnosis(store, run, 1, {**HAND_MADE, "representations": None}, batches=3)  # not the defaults: not read
+    _stored_diagnosis(store, "cd" * 16, 1, HAND_MADE)  # another run's
+    found = dl.read_diagnoses(store)
+    cells, missing = dl.run_cells(found, run, 2)
+    assert missing == [1]
+    assert cells == {
+        "reward_by_situation": "+5.32, +0.24, -3.57 / —",  # free, trapped, dead
+        "effect_size": "0.31 / —",
+        "future_picked": "0.146, 0.143 / —",  # phi, phi'
+        "layout_only": "0.955 / —",
+        "starts_freed": "2 of 4 / —",  # over half the policy's probability on freeing: 1.0 and 0.9, not 0.5
+        "play": "26.12 vs 11.00 / —",
+    }
+    _stored_diagnosis(store, run, 1, {"play": HAND_MADE["play"]})  # an Overcooked run: a play check alone
+    cells, missing = dl.run_cells(dl.read_diagnoses(store), run, 2)
+    assert missing == [] and cells["play"] == "26.12 vs 11.00 / 26.12 vs 11.00"
+    assert cells["layout_only"] == "0.955 / —"
+    only_play, _ = dl.run_cells(dl.read_diagnoses(store), run, 3)  # seed 2 missing alike
+    assert only_play["play"].endswith(" / —")
+    one_seed, _ = dl.run_cells({(run, 0): found[(run, 0)]}, run, 1)
+    assert all(one_seed[c] and " / " not in one_seed[c] for c in dl.COLUMNS)
+
+
+def test_a_damaged_stored_diagnosis_shows_dashes_never_a_crash_or_a_number():
+    from esr_cli.recipes import diagnosis_lookup as dl
+
+    hostile = {
+        "play": {"robot": {"return": "26"}, "uniform": {"return": True}},
+        "reward": {"free": {"mean": [1]}, "trapped": "x", "dead": {"mean": float("nan")}},
+        "free_vs_trapped": ["effect_size", 3],
+        "start_states": ["not a row", {"free": {"p": "1"}}, {"free": {"p": 0.99}}],
+        "representations": {"accuracy_phi": {"v": 1}, "layout_only": None},
+    }
+    assert dl.seed_cells(hostile) == {
+        "reward_by_situation": "—, —, —", "effect_size": "—", "future_picked": "—, —", "layout_only": "—",
+        "starts_freed": "1 of 3", "play": "— vs —",
+    }
+    assert set(dl.seed_cells({}).values()) == {""}  # nothing of a gridworld, ESR or a learned policy: no cells
+
+
+@pytest.mark.slow
+def test_a_finished_runs_diagnosis_is_stored_and_read_back_by_its_suites_table(tmp_path):
+    """`esr diagnose` of a finished run stores it (the same again is a cache hit), and `esr sweep
+    --results --diagnose` reads it into the row, naming the command of each seed it lacks."""
+    import shlex
+
+    from conftest import ROOT
+
+    suite = tmp_path / "suite.yaml"
+    suite.write_text(f"name: diag\nset: {{train.seeds: 2}}\nspecs: [{ROOT / 'experiments' / 'grid_2.yaml'}, "
+                     f"{{spec: {ROOT / 'experiments' / 'grid_2_random.yaml'}}}]\n")
+    store = tmp_path / "store"
+    esr("sweep", str(suite), "--budget", "smoke", store=store)
+
+    def rows():
+        return json.loads(esr("sweep", str(suite), "--budget", "smoke", "--results", "--diagnose", "--json", store=store).stdout)
+
+    esr_row, random_row = rows()
+    assert "diagnosis" not in random_row  # a uniformly random robot learns no policy to diagnose
+    assert set(esr_row["diagnosis"].values()) == {"— / —"}
+    first, second = esr_row["diagnosis_todo"]
+    assert first == f"esr diagnose {esr_row['key'][:8]} --seed-index 0" and second.endswith("--seed-index 1")
+    made = esr(*shlex.split(first)[1:], store=store)
+    assert "computed" in made.stderr
+    (stored,) = (store / "diagnoses").glob("*/*/summary.json")
+    summary = json.loads(stored.read_text())
+    assert summary["run"] == esr_row["key"] and summary["seed_index"] == 0 and summary["finished"] is True
+    again = esr(*shlex.split(first)[1:], "--json", store=store)
+    assert "cache hit" in again.stderr and json.loads(again.stdout) == summary
+    assert made.stdout == esr(*shlex.split(first)[1:], store=store).stdout  # printed alike from the store
+    esr_row, _ = rows()
+    assert esr_row["diagnosis_todo"] == [second]
+    free, trapped, dead = (summary["reward"][s]["mean"] for s in ("free", "trapped", "dead"))
+    assert esr_row["diagnosis"]["reward_by_situation"].startswith(
+        ", ".join("—" if v != v else f"{v:+.2f}" for v in (free, trapped, dead)) + " / ")
+    assert esr_row["diagnosis"]["play"] == (f"{summary['play']['robot']['return']:.2f} vs "
+                                            f"{summary['play']['uniform']['return']:.2f} / —")
+    table = esr("sweep", str(suite), "--budget", "smoke", "--results", "--diagnose", "--markdown", store=store).stdout
+    assert "reward: free / trapped / dead, per seed" in table and second in table
+    refused = esr("sweep", str(suite), "--budget", "smoke", "--diagnose", store=store, check=False)
+    assert refused.returncode == 2 and "--diagnose applies with --results only" in refused.stderr
+    only_random = tmp_path / "random.yaml"
+    only_random.write_text(f"name: r\nspecs: [{ROOT / 'experiments' / 'grid_2_random.yaml'}]\n")
+    refused = esr("sweep", str(only_random), "--budget", "smoke", "--results", "--diagnose", store=store, check=False)
+    assert refused.returncode == 2 and "diagnoses are of robots that learn a policy" in refused.stderr

@@ -29,8 +29,11 @@ def doc_with(tmp_path: Path, command: str, body: str = "") -> Path:
 
 def test_a_tables_command_is_parsed_into_the_sweeps_own_options():
     cmd = doc_tables.parse_command("esr sweep experiments/suites/x.yaml --budget quick --results --markdown --any-code "
-                                   "--metric return --metric mi_estimate --metric return --exact", "page.md:4")
-    assert cmd == doc_tables.Command(Path("experiments/suites/x.yaml"), "quick", ("return", "mi_estimate"), True, True)
+                                   "--metric return --metric mi_estimate --metric return --diagnose --exact", "page.md:4")
+    # the checks in the table's own order, whatever the comment's
+    assert cmd == doc_tables.Command(Path("experiments/suites/x.yaml"), "quick", ("return", "mi_estimate"),
+                                     ("exact", "diagnosis"), True)
+    assert doc_tables.parse_command("esr sweep s.yaml --results --markdown --diagnose", "w").checks == ("diagnosis",)
     assert doc_tables.parse_command("esr sweep s.yaml --results --markdown", "w").budget == "paper"  # the CLI's default
 
 
