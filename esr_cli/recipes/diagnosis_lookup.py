@@ -14,8 +14,8 @@ from dataclasses import asdict
 from typing import Optional
 
 from esr_cli.recipes.diagnosis_runs import Options
-from esr_cli.storage.artifacts import read_summary
-from esr_cli.storage.store import DIAGNOSIS_KIND, Store, StoreError
+from esr_cli.storage.artifacts import summary_or_empty
+from esr_cli.storage.store import DIAGNOSIS_KIND, Store
 
 SHOWN_SITUATIONS = ("free", "trapped", "dead")  # of esr_cli.analysis.diagnose.SITUATIONS, in the table's order
 # The table's cells, each per seed ('a / b'), with their headings.
@@ -77,15 +77,6 @@ def read_diagnoses(store: Store) -> dict[tuple[str, int], object]:
     return found
 
 
-def summary(path) -> dict:
-    """A diagnosis's summary as a mapping; {} where it is missing, damaged or not a mapping."""
-    try:
-        s = read_summary(path)
-    except (StoreError, OSError, ValueError):
-        return {}
-    return s if isinstance(s, dict) else {}
-
-
 def seed_cells(report: dict) -> dict[str, str]:
     """One seed's cells of COLUMNS from its diagnosis ('' where the run has no such part: a
     method without representations, an environment without situations)."""
@@ -115,7 +106,7 @@ def run_cells(found: dict, run_key: str, seeds: int) -> tuple[dict[str, str], li
         path = found.get((run_key, i))
         if path is None:
             missing.append(i)
-        per_seed.append(None if path is None else seed_cells(summary(path)))
+        per_seed.append(None if path is None else seed_cells(summary_or_empty(path)))
     present = [c for c in per_seed if c is not None]
     cells = {}
     for col in COLUMNS:

@@ -12,8 +12,8 @@ import math
 from dataclasses import dataclass
 from typing import Optional
 
-from esr_cli.storage.artifacts import read_summary
-from esr_cli.storage.store import EXACT_KIND, FIGURE_KIND, Store, StoreError
+from esr_cli.storage.artifacts import summary_or_empty as _summary
+from esr_cli.storage.store import EXACT_KIND, FIGURE_KIND, Store
 
 
 @dataclass(frozen=True)
@@ -38,15 +38,6 @@ def _number(v) -> Optional[float]:
 
 def _count(v) -> Optional[int]:
     return v if isinstance(v, int) and not isinstance(v, bool) else None
-
-
-def _summary(path) -> dict:
-    """An artifact's summary as a mapping; {} where it is missing, damaged or not a mapping."""
-    try:
-        summary = read_summary(path)
-    except (StoreError, OSError, ValueError):
-        return {}
-    return summary if isinstance(summary, dict) else {}
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ from typing import Callable, NamedTuple
 from esr_cli.common.jsonl import read_json
 from esr_cli.common.stops import Interrupted, TimeLimitReached
 from esr_cli.storage import provenance
-from esr_cli.storage.store import KINDS, RUN_KIND, Store, atomic_write_text, content_key, read_pending
+from esr_cli.storage.store import KINDS, RUN_KIND, Store, StoreError, atomic_write_text, content_key, read_pending
 
 SUMMARY_FILE = "summary.json"
 MAX_SUMMARY_BYTES = 16 << 20  # a run's summary is a few KiB; a figure's lists the runs it read
@@ -74,6 +74,16 @@ def preview(recipe: Recipe, out_dir: Path, store: Store) -> dict:
 def read_summary(path: Path) -> dict:
     """An artifact's summary.json, read bounded (a store's files may come from an archive)."""
     return read_json(path / SUMMARY_FILE, MAX_SUMMARY_BYTES)
+
+
+def summary_or_empty(path: Path) -> dict:
+    """An artifact's summary as a mapping; {} where it is missing, damaged or not a mapping (for
+    tables that read many artifacts and show what one lacks as a dash)."""
+    try:
+        summary = read_summary(path)
+    except (StoreError, OSError, ValueError):
+        return {}
+    return summary if isinstance(summary, dict) else {}
 
 
 class Built(NamedTuple):
