@@ -304,3 +304,24 @@ def test_a_finished_runs_diagnosis_is_stored_and_read_back_by_its_suites_table(t
     only_random.write_text(f"name: r\nspecs: [{ROOT / 'experiments' / 'grid_2_random.yaml'}]\n")
     refused = esr("sweep", str(only_random), "--budget", "smoke", "--results", "--diagnose", store=store, check=False)
     assert refused.returncode == 2 and "diagnoses are of robots that learn a policy" in refused.stderr
+
+
+def test_a_damaged_stored_diagnosis_prints_dashes(capsys):
+    """`esr diagnose` prints a stored diagnosis (a cache hit, perhaps from an archive) with every
+    field read typed: wrong types and missing parts print as '—', text as text."""
+    from esr_cli.cli.runs import _print_gridworld_diagnosis, _print_play_check
+
+    _print_play_check({"robot": {"episodes": "16", "return": [1], "reward": "x"}, "uniform": None, "[bold]x": {}})
+    _print_gridworld_diagnosis({
+        "reward": {"free": {"n": True, "mean": "1"}, "trapped": [], "dead": {"mean": float("nan")}},
+        "free_vs_trapped": None,
+        "start": "[red]corner\x1b[2J",
+        "start_states": [{"human": [0, 4], "free": {"p": "1", "actions": 4.5}}, "not a row"],
+        "representations": {"accuracy_phi": "0.9"},
+    })
+    text = capsys.readouterr().out
+    assert "robot" in text and "[bold]x" not in text  # only the two players a play check has
+    assert "too few transitions to compare (0 free, 0 trapped)" in text
+    assert "[red]corner\\x1b[2J starts" in text  # the store's text as text, its escape shown, not sent
+    assert "MI estimate (phi minus phi' diagonal logit): — nats" in text
+    assert "1.000" not in text and "0.900" not in text  # no number made from text
