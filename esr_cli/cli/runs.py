@@ -14,8 +14,9 @@ from esr_cli.common import specs
 from esr_cli.common.printing import tagged
 from esr_cli.model import spec as spec_model
 from esr_cli.recipes import targets
+from esr_cli.recipes.diagnosis_runs import Options as DiagnosisOptions
 from esr_cli.recipes.targets import MAX_SAMPLE_PAIRS, MIN_SAMPLE_PAIRS
-from esr_cli.storage.artifacts import ensure
+from esr_cli.storage.artifacts import ensure, summary_or_empty
 
 
 @app.command()
@@ -157,15 +158,17 @@ def diagnose(
     ctx: typer.Context,
     run: str = typer.Argument(..., help="a training run (key, key prefix or path), finished or not", show_default=False),
     seed_index: int = typer.Option(0, "--seed-index", help="which seed of the run"),
-    batches: int = typer.Option(40, "--batches", min=1, max=10_000, help="critic batches to score"),
-    episodes: int = typer.Option(16, "--episodes", min=1, max=1024, help="episodes each robot plays for the play check"),
-    refit: int = typer.Option(0, "--refit", min=0, max=100_000, help="ESR: also fit fresh representations to each robot's "
+    batches: int = typer.Option(DiagnosisOptions().batches, "--batches", min=1, max=10_000, help="critic batches to score"),
+    episodes: int = typer.Option(DiagnosisOptions().episodes, "--episodes", min=1, max=1024,
+                                 help="episodes each robot plays for the play check"),
+    refit: int = typer.Option(DiagnosisOptions().refit, "--refit", min=0, max=100_000, help="ESR: also fit fresh representations to each robot's "
                               "play for this many updates and compare their MI estimates (0: off)"),
     as_json: bool = typer.Option(False, "--json", help="print JSON instead of tables"),
 ):
     """Why a robot helps or not: its own reward on its play against a uniform robot's, and on
     the gridworld its reward by the human's situation and its critic and policy at a few
-    distinct start states. An unfinished run is read at its newest checkpoint."""
+    distinct start states. An unfinished run is read at its newest checkpoint. A finished run's
+    diagnosis is stored (`esr sweep --results --diagnose` reads it back); an unfinished run's is not."""
     path, record, finished = targets.run_record(ctx.obj.store, run)
     if not 0 <= seed_index < len(record["seeds"]):
         raise Exit(2, f"--seed-index: the run has {len(record['seeds'])} seed(s)")
@@ -177,15 +180,19 @@ def diagnose(
     from esr_cli.recipes import diagnosis_runs as dr  # JAX and the training code: after the options are checked
 
     options = dr.Options(batches=batches, episodes=episodes, refit=refit)
+    run_key = path.name.split(".")[0]
     if finished:  # stored: a table reads it back, and the same diagnosis again is a cache hit
         built = ensure(dr.diagnosis_recipe(ctx.obj.store, path, seed_index, options), ctx.obj.store)
-        report = built.summary()
+        report = summary_or_empty(built.path)
+        if not report:
+            raise Exit(1, f"{built.path}: its summary.json cannot be read as a diagnosis; `esr verify {built.path.name[:12]}` "
+                          "says why (remove the folder to compute it again)")
         err.print(tagged("cache hit" if built.cached else "computed", "green", f": {built.path}"))
     else:  # an unfinished run changes with every chunk: shown, never stored
         from esr_cli.recipes.runs import load_run_so_far
 
         trainer, state, epoch = load_run_so_far(ctx.obj.store, path, finished)
-        report = dr.compute(trainer, state, epoch, seed_index, options, False, path.name.split(".")[0])
+        report = dr.compute(trainer, state, epoch, seed_index, options, False, run_key)
     if as_json:
         out.print_json(json.dumps(report))
         return
@@ -193,10 +200,17 @@ def diagnose(
     out.print(f"{record['name']} ({record['budget']} budget, {method}), seed index {seed_index}{when}")
     if isinstance(report.get("play"), dict):
         _print_play_check(report["play"])
-    else:
+    elif method in spec_model.POLICY_FREE_METHODS:
         out.print(f"{method} learns no robot policy: no play check")
+    else:
+        out.print("the stored diagnosis holds no play check")
     if isinstance(report.get("reward"), dict):  # a gridworld run
         _print_gridworld_diagnosis(report)
+
+
+def _at_absent(tree: dict, outer: str, inner: str) -> bool:
+    """No `inner` field under `outer`: a method whose reward has no MI estimate (not a damaged one)."""
+    return not isinstance(tree.get(outer), dict) or inner not in tree[outer]
 
 
 def _print_play_check(play: dict) -> None:
@@ -214,7 +228,8 @@ def _print_play_check(play: dict) -> None:
         episodes = count(r, "episodes")
         cells = [player, "—" if episodes is None else str(episodes), fmt(number(r, "return"), ".2f"),
                  fmt(number(r, "reward", "mean"), "+.3f"), fmt(number(r, "reward", "sd"), ".3f"),
-                 fmt(number(r, "reward", "mi_estimate"), "+.4f"), fmt(number(r, "human_moves"), ".3f")]
+                 "" if _at_absent(r, "reward", "mi_estimate") else fmt(number(r, "reward", "mi_estimate"), "+.4f"),
+                 fmt(number(r, "human_moves"), ".3f")]
         if refit:
             cells += [fmt(number(r, "refit", "fit"), "+.4f"), fmt(number(r, "refit", "held_out"), "+.4f")]
         table.add_row(*cells)
@@ -242,7 +257,8 @@ def _print_gridworld_diagnosis(report: dict) -> None:
     else:
         out.print(f"free vs trapped: {fmt(number(report, 'free_vs_trapped', 'difference'), '+.3f')} in mean reward, "
                   f"effect size {fmt(number(report, 'free_vs_trapped', 'effect_size'), '.2f')} (pooled standard deviations)")
-    starts = [row for row in report.get("start_states") or () if isinstance(row, dict)]
+    listed = report.get("start_states")
+    starts = [row for row in listed if isinstance(row, dict)] if isinstance(listed, list) else []
     if starts:
         table = Table(title=f"{report.get('start')} starts: robot actions by what they do (the human staying)")
         table.add_column("human at")

@@ -22,7 +22,7 @@ from esr_cli.storage.store import Store
 
 @dataclass(frozen=True)
 class CheckColumns:
-    name: str  # the row's field (JSON) and the table's option without its dashes
+    name: str  # the row's field (JSON) and the name a table's checks are asked for by
     option: str  # the command-line flag
     columns: dict[str, str]  # cell -> heading
     note: str  # printed below a table that has these columns
@@ -92,7 +92,8 @@ EXACT = CheckColumns(
 
 
 def _diagnosis_cells(run: Run, budget: str, esr: str, found) -> tuple[dict[str, str], list[str]]:
-    cells, missing = diagnosis_lookup.run_cells(found, run.key, len(run.spec.train.seeds))
+    applicable = diagnosis_lookup.applicable(run.spec.env.kind, run.spec.method.kind)
+    cells, missing = diagnosis_lookup.run_cells(found, run.key, len(run.spec.train.seeds), applicable)
     return cells, [printable(f"{esr} diagnose {run.key[:8]} --seed-index {i}") for i in missing]
 
 

@@ -28,10 +28,14 @@ COLUMNS = {
     "play": "play check: return, its robot vs a uniform robot, per seed",
 }
 NOTE = ("Diagnoses (`esr diagnose RUN --seed-index I`, its default options), seed by seed: the reward on critic "
-        "batches of the run's final buffer by the human's situation, Cohen's d of free against trapped, how often "
+        f"batches of the run's final buffer by the human's situation, Cohen's d of free against trapped, how often "
         "phi(s, aR, aH) and phi'(s, aR) pick a transition's future among a batch's and how often its block layout "
         "alone would, the start states at which the policy puts over half its probability on freeing the human, "
-        "and the return of 16 episodes of its robot against a uniform robot with the same human.")
+        f"and the return of {Options().episodes} episodes of its robot against a uniform robot with the same human.")
+# Which cells a run has, by what it is (not by what a stored summary happens to hold: a damaged
+# part then shows as '—', never as a part the run lacks).
+GRIDWORLD_CELLS = ("reward_by_situation", "effect_size", "starts_freed")
+REPRESENTATION_CELLS = ("future_picked", "layout_only")
 
 
 def _at(tree, *path):
@@ -62,8 +66,8 @@ def read_diagnoses(store: Store) -> dict[tuple[str, int], object]:
     diagnose`'s default options; entries whose manifests or key components are damaged are
     passed over."""
     defaults, newest, found = asdict(Options()), {}, {}
-    for entry in store.entries():
-        if entry.status != "complete" or entry.kind != DIAGNOSIS_KIND or entry.manifest is None:
+    for entry in store.entries((DIAGNOSIS_KIND,)):
+        if entry.status != "complete" or entry.manifest is None:
             continue
         comps = entry.manifest.get("key_components")
         if not isinstance(comps, dict) or any(comps.get(k) != v for k, v in defaults.items()):
@@ -77,41 +81,43 @@ def read_diagnoses(store: Store) -> dict[tuple[str, int], object]:
     return found
 
 
-def seed_cells(report: dict) -> dict[str, str]:
-    """One seed's cells of COLUMNS from its diagnosis ('' where the run has no such part: a
-    method without representations, an environment without situations)."""
-    gridworld = isinstance(report.get("reward"), dict)
+def applicable(env_kind: str, method_kind: str) -> tuple[str, ...]:
+    """The cells of COLUMNS a diagnosis of such a run has (every run it applies to learns a policy,
+    so each has the play check)."""
+    cells = {"play"}
+    if env_kind == "gridworld":
+        cells.update(GRIDWORLD_CELLS)
+        if method_kind == "esr":
+            cells.update(REPRESENTATION_CELLS)
+    return tuple(c for c in COLUMNS if c in cells)
+
+
+def seed_cells(report: dict, cells: tuple[str, ...] = tuple(COLUMNS)) -> dict[str, str]:
+    """One seed's `cells` (of COLUMNS) from its diagnosis; '—' for a part missing or damaged."""
     reprs = report.get("representations")
     starts = report.get("start_states")
-    cells = dict.fromkeys(COLUMNS, "")
-    if gridworld:
-        cells["reward_by_situation"] = ", ".join(fmt(number(report, "reward", s, "mean"), "+.2f") for s in SHOWN_SITUATIONS)
-        cells["effect_size"] = fmt(number(report, "free_vs_trapped", "effect_size"), ".2f")
-    if isinstance(reprs, dict):
-        cells["future_picked"] = f"{fmt(number(reprs, 'accuracy_phi'), '.3f')}, {fmt(number(reprs, 'accuracy_phi_prime'), '.3f')}"
-        cells["layout_only"] = fmt(number(reprs, "layout_only"), ".3f")
-    if gridworld and isinstance(starts, list) and starts:
-        freed = sum(1 for row in starts if (number(row, "free", "p") or 0.0) > 0.5)
-        cells["starts_freed"] = f"{freed} of {len(starts)}"
-    if isinstance(report.get("play"), dict):
-        cells["play"] = f"{fmt(number(report, 'play', 'robot', 'return'), '.2f')} vs {fmt(number(report, 'play', 'uniform', 'return'), '.2f')}"
-    return cells
+    out = {
+        "reward_by_situation": ", ".join(fmt(number(report, "reward", s, "mean"), "+.2f") for s in SHOWN_SITUATIONS),
+        "effect_size": fmt(number(report, "free_vs_trapped", "effect_size"), ".2f"),
+        "future_picked": f"{fmt(number(reprs, 'accuracy_phi'), '.3f')}, {fmt(number(reprs, 'accuracy_phi_prime'), '.3f')}",
+        "layout_only": fmt(number(reprs, "layout_only"), ".3f"),
+        "starts_freed": "—",
+        "play": f"{fmt(number(report, 'play', 'robot', 'return'), '.2f')} vs {fmt(number(report, 'play', 'uniform', 'return'), '.2f')}",
+    }
+    rows = [row for row in starts if isinstance(row, dict)] if isinstance(starts, list) else []
+    if rows:
+        freed = sum(1 for row in rows if (number(row, "free", "p") or 0.0) > 0.5)
+        out["starts_freed"] = f"{freed} of {len(rows)}"
+    return {c: (out[c] if c in cells else "") for c in COLUMNS}
 
 
-def run_cells(found: dict, run_key: str, seeds: int) -> tuple[dict[str, str], list[int]]:
-    """The cells of a run's seeds joined seed by seed ('a / b'), and the seed indices the store
-    has no diagnosis of ('—' in their place)."""
+def run_cells(found: dict, run_key: str, seeds: int, cells: tuple[str, ...] = tuple(COLUMNS)) -> tuple[dict[str, str], list[int]]:
+    """The run's `cells` joined seed by seed ('a / b'; '' for the others), and the seed indices
+    whose diagnosis the store lacks or cannot read ('—' in their place)."""
     per_seed, missing = [], []
     for i in range(seeds):
-        path = found.get((run_key, i))
-        if path is None:
+        report = summary_or_empty(found[(run_key, i)]) if (run_key, i) in found else {}
+        if not report:  # none, or unreadable: made again by the same command
             missing.append(i)
-        per_seed.append(None if path is None else seed_cells(summary_or_empty(path)))
-    present = [c for c in per_seed if c is not None]
-    cells = {}
-    for col in COLUMNS:
-        if present and all(c[col] == "" for c in present):  # no such part in this run
-            cells[col] = ""
-        else:
-            cells[col] = " / ".join("—" if c is None else c[col] or "—" for c in per_seed)
-    return cells, missing
+        per_seed.append(seed_cells(report, cells) if report else None)
+    return {col: " / ".join("—" if c is None else c[col] for c in per_seed) if col in cells else "" for col in COLUMNS}, missing

@@ -65,15 +65,17 @@ def compute(trainer, state, epoch: int, seed_index: int, options: Options, finis
 
 
 def diagnosis_recipe(store: Store, run_path: Path, seed_index: int, options: Options) -> Recipe:
-    """The stored diagnosis of seed `seed_index` of the finished run at `run_path`."""
+    """The stored diagnosis of seed `seed_index` of the finished run at `run_path` (its key is
+    the name of its folder, as `esr diagnose` names an unfinished one's)."""
     manifest = store.read_manifest(run_path)
-    comps = components(manifest["key"], seed_index, options)
+    run_key = run_path.name.split(".")[0]
+    comps = components(run_key, seed_index, options)
 
     def build(out: Path, store: Store) -> dict:
         from esr_cli.recipes.runs import load_run_so_far
 
         trainer, state, epoch = load_run_so_far(store, run_path, True)
-        return compute(trainer, state, epoch, seed_index, options, True, manifest["key"])
+        return compute(trainer, state, epoch, seed_index, options, True, run_key)
 
     seeds = manifest.get("seeds")
     seed = seeds[seed_index] if isinstance(seeds, list) and 0 <= seed_index < len(seeds) else seed_index

@@ -39,8 +39,7 @@ from rich.table import Table
 from rich.text import Text
 
 from esr_cli.common import specs
-from esr_cli.common.printing import plain_console, printable, tagged, train_line
-from esr_cli.model import spec as spec_model
+from esr_cli.common.printing import plain_console, tagged
 from esr_cli.recipes import check_columns
 from esr_cli.recipes.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
 from esr_cli.storage import provenance

@@ -192,8 +192,9 @@ class Store:
         except StoreError as e:
             raise StoreError(f"{path}: {e}") from None
 
-    def entries(self) -> Iterator[Entry]:
-        for kind in KINDS:
+    def entries(self, kinds: tuple[str, ...] = KINDS) -> Iterator[Entry]:
+        """Every artifact of `kinds` (default: all), committed or partial, in key order."""
+        for kind in kinds:
             base = self.root / kind
             if not base.is_dir():
                 continue

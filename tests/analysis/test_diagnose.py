@@ -240,6 +240,12 @@ def test_a_runs_stored_diagnoses_become_its_cells_seed_by_seed(tmp_path):
     assert only_play["play"].endswith(" / —")
     one_seed, _ = dl.run_cells({(run, 0): found[(run, 0)]}, run, 1)
     assert all(one_seed[c] and " / " not in one_seed[c] for c in dl.COLUMNS)
+    overcooked, _ = dl.run_cells(dl.read_diagnoses(store), run, 2, dl.applicable("overcooked", "esr"))
+    assert overcooked["play"] == "26.12 vs 11.00 / 26.12 vs 11.00" and overcooked["layout_only"] == ""
+    unreadable = _stored_diagnosis(store, "ef" * 16, 0, {})
+    (unreadable / "summary.json").write_text("[1, 2]")  # not a diagnosis: made again by its command
+    cells, missing = dl.run_cells(dl.read_diagnoses(store), "ef" * 16, 1)
+    assert missing == [0] and set(cells.values()) == {"—"}
 
 
 def test_a_damaged_stored_diagnosis_shows_dashes_never_a_crash_or_a_number():
@@ -254,9 +260,13 @@ def test_a_damaged_stored_diagnosis_shows_dashes_never_a_crash_or_a_number():
     }
     assert dl.seed_cells(hostile) == {
         "reward_by_situation": "—, —, —", "effect_size": "—", "future_picked": "—, —", "layout_only": "—",
-        "starts_freed": "1 of 3", "play": "— vs —",
+        "starts_freed": "1 of 2", "play": "— vs —",  # of the rows that are rows
     }
-    assert set(dl.seed_cells({}).values()) == {""}  # nothing of a gridworld, ESR or a learned policy: no cells
+    assert set(dl.seed_cells(hostile, ("play",)).values()) == {"— vs —", ""}  # the cells asked for alone
+    # which cells a run has comes from what it is, never from what a summary holds
+    assert dl.applicable("overcooked", "esr") == ("play",)
+    assert dl.applicable("gridworld", "ave") == ("reward_by_situation", "effect_size", "starts_freed", "play")
+    assert dl.applicable("gridworld", "esr") == tuple(dl.COLUMNS)
 
 
 @pytest.mark.slow
