@@ -215,6 +215,12 @@ def validate(raw: dict, source: str = "") -> Spec:
         # The spec's preset step runs before field types are checked, and looks the name up.
         raise SpecError(source, "human.preset", f"expected a preset's name ({', '.join(HUMAN_PRESETS)}), "
                                                 f"got {_described(human['preset'])}")
+    if isinstance(human, dict) and human.get("preset") in HUMAN_PRESETS:
+        # ... and looks the layout up in it by name, so the name must be text first
+        env = raw.get("env") if isinstance(raw.get("env"), dict) else {}
+        for where, layout in (("human.layout", human.get("layout")), ("env.layout", env.get("layout"))):
+            if not isinstance(layout, (str, type(None))):
+                raise SpecError(source, where, f"expected a layout's name, got {_described(layout)}")
     try:
         return Spec.model_validate(raw)
     except ValidationError as e:

@@ -263,6 +263,10 @@ def test_a_human_preset_is_refused_where_it_has_no_settings():
             specs.load(Path("experiments/cramped_room.yaml"), "quick", [f"human.preset={value}"])
     with pytest.raises(specs.SpecError, match=r"human.preset: null is not a preset"):
         specs.load(Path("experiments/cramped_room.yaml"), "quick", ["human.preset=null"])
+    # the preset looks its layout up by name: a layout that is no name is one line, wherever it is written
+    for key in ("env.layout", "human.layout"):
+        with pytest.raises(specs.SpecError, match=rf"{key}: expected a layout's name, got a mapping$"):
+            specs.load(Path("experiments/cramped_room.yaml"), "quick", [f"{key}={{k: [0, 1]}}"])
 
 
 def test_a_bad_value_names_the_set_or_budget_that_gave_it(tmp_path):
