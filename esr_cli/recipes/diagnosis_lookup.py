@@ -28,7 +28,7 @@ COLUMNS = {
     "play": "play check: return, its robot vs a uniform robot, per seed",
 }
 NOTE = ("Diagnoses (`esr diagnose RUN --seed-index I`, its default options), seed by seed: the reward on critic "
-        f"batches of the run's final buffer by the human's situation, Cohen's d of free against trapped, how often "
+        "batches of the run's final buffer by the human's situation, Cohen's d of free against trapped, how often "
         "phi(s, aR, aH) and phi'(s, aR) pick a transition's future among a batch's and how often its block layout "
         "alone would, the start states at which the policy puts over half its probability on freeing the human, "
         f"and the return of {Options().episodes} episodes of its robot against a uniform robot with the same human.")
