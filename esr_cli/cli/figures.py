@@ -11,7 +11,7 @@ from esr_cli.cli.app import Exit, app, check_budget, check_output_file, draw_pre
 from esr_cli.common.printing import printable, tagged
 from esr_cli.recipes import targets
 from esr_cli.storage.artifacts import ensure
-from esr_cli.storage.store import RUN_KIND, Store
+from esr_cli.storage.store import RUN_KIND, Store, parse_dirname
 
 PAPER_FIGURES = ("gridworld", "overcooked", "no-robot-action", "greedy", "mi", "representations", "filmstrip")
 
@@ -107,7 +107,7 @@ def _plot_curve(ref: str, out_file: Optional[Path], store: Store) -> None:
     total = field(record, "key_components", "spec", "train", "epochs")
     done = rows[-1]["epoch"]
     state = "" if finished else f" (unfinished: epoch {done:,}" + (f" of {total:,})" if total else ")")
-    name, key = str(record.get("name", "run")), str(record.get("key", path.name.split(".")[0]))
+    name, key = str(record.get("name", "run")), str(record.get("key", parse_dirname(path.name)[0]))
     out_png = out_file or Path(f"{name}-{key[:8]}-curve.png")
     refuse_inside_store(out_png, "--out", store)
     check_output_file(out_png, "--out")

@@ -17,6 +17,7 @@ from esr_cli.recipes import targets
 from esr_cli.recipes.diagnosis_runs import Options as DiagnosisOptions
 from esr_cli.recipes.targets import MAX_SAMPLE_PAIRS, MIN_SAMPLE_PAIRS
 from esr_cli.storage.artifacts import ensure, summary_or_empty
+from esr_cli.storage.store import parse_dirname
 
 
 @app.command()
@@ -180,7 +181,7 @@ def diagnose(
     from esr_cli.recipes import diagnosis_runs as dr  # JAX and the training code: after the options are checked
 
     options = dr.Options(batches=batches, episodes=episodes, refit=refit)
-    run_key = path.name.split(".")[0]
+    run_key = parse_dirname(path.name)[0]
     if finished:  # stored: a table reads it back, and the same diagnosis again is a cache hit
         built = ensure(dr.diagnosis_recipe(ctx.obj.store, path, seed_index, options), ctx.obj.store)
         report = summary_or_empty(built.path)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from esr_cli.storage import provenance
 from esr_cli.storage.artifacts import Recipe
-from esr_cli.storage.store import DIAGNOSIS_KIND, Store
+from esr_cli.storage.store import DIAGNOSIS_KIND, Store, parse_dirname
 
 # The code behind a diagnosis: the model and the analysis package (their import closure) and
 # this module's own steps; not the store and checkpoint plumbing they import, which decides
@@ -68,7 +68,7 @@ def diagnosis_recipe(store: Store, run_path: Path, seed_index: int, options: Opt
     """The stored diagnosis of seed `seed_index` of the finished run at `run_path` (its key is
     the name of its folder, as `esr diagnose` names an unfinished one's)."""
     manifest = store.read_manifest(run_path)
-    run_key = run_path.name.split(".")[0]
+    run_key = parse_dirname(run_path.name)[0]
     comps = components(run_key, seed_index, options)
 
     def build(out: Path, store: Store) -> dict:
