@@ -13,6 +13,7 @@ from rich.text import Text
 
 from esr_cli.cli.app import Exit, app, check_budget, check_output_file, err, out, refuse_inside_store
 from esr_cli.common.printing import print_table, printable, tagged
+from esr_cli.storage.provenance import wall_time
 from esr_cli.storage.store import KINDS, RUN_KIND, Store
 
 
@@ -100,6 +101,13 @@ def _flat_scalars(tree, prefix: str = "", depth: int = 3) -> list[tuple[str, obj
     return out
 
 
+def _wall_time(manifest: dict) -> str | None:
+    seconds, whole = wall_time(manifest)
+    if seconds is None:
+        return None
+    return f"{seconds:,.0f} s" + ("" if whole else " at least (a session of this run did not record its own)")
+
+
 def _show_lines(r: dict, manifest: dict) -> list[tuple[str, object]]:
     from esr_cli.report.listing import field
 
@@ -107,7 +115,7 @@ def _show_lines(r: dict, manifest: dict) -> list[tuple[str, object]]:
     for label, value in (("budget", r["budget"]), ("seeds", r["seeds"]), ("status", r["status"]),
                          ("method", r["method"]), ("env", r["env"]), ("created", r["created"]),
                          ("commit", manifest.get("commit")), ("device", manifest.get("device")),
-                         ("wall time", f"{manifest['wall_time_s']:,.0f} s" if isinstance(manifest.get("wall_time_s"), (int, float)) else None)):
+                         ("wall time", _wall_time(manifest))):
         if value is not None:
             lines.append((label, value))
     if r["epochs"] is not None:

@@ -461,8 +461,9 @@ def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESUL
             row["made_by"] = r.made_by
         if r.state == "done":
             logged = set(read_rows(r.path)[-1]) if metrics != DEFAULT_RESULT_METRICS else set(metrics)
+            wall_s, wall_whole = provenance.wall_time(store.read_manifest(r.path))
             row.update(run_finals(r.path, tuple(m for m in metrics if m in logged)),
-                       wall_s=store.read_manifest(r.path).get("wall_time_s"), path=str(r.path))
+                       wall_s=wall_s, wall_whole=wall_whole, path=str(r.path))
             for group in groups:
                 if group.applies(r.run.spec):
                     if group.name not in stored:
@@ -512,6 +513,13 @@ def _check_todo(rows: list[dict], checks: tuple[str, ...]) -> list[str]:
     return [line for g in check_columns.chosen(checks) for r in rows for line in r.get(f"{g.name}_todo", ())]
 
 
+def _wall(row: dict) -> str:
+    """A run's working time; '≥' where some session of a resumed run did not record its own."""
+    if row.get("wall_s") is None:
+        return ""
+    return f"{'' if row.get('wall_whole', True) else '≥ '}{row['wall_s']:.0f} s"
+
+
 def _check_notes(checks: tuple[str, ...]) -> list[str]:
     return [g.note for g in check_columns.chosen(checks)]
 
@@ -524,7 +532,7 @@ def results_table(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = DEF
         table.add_column(col, overflow="fold")
     for r in rows:
         if r["state"] == "done":
-            wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
+            wall = _wall(r)
             table.add_row(_label(r), r["method"], str(r["seeds"]), *(_cell(r, m) for m in metrics), wall, *_check_cells(r, checks))
         else:
             table.add_row(r["run"], r["method"], "", Text(r["state"], style=_STYLE[r["state"]]), *[""] * len(metrics),
@@ -548,7 +556,7 @@ def results_markdown(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = 
              "| run | method | seeds | " + " | ".join(heads) + " |", "|---|---|---|" + "---|" * len(heads)]
     for r in rows:
         if r["state"] == "done":
-            wall = f"{r['wall_s']:.0f} s" if r.get("wall_s") is not None else ""
+            wall = _wall(r)
             lines.append(f"| {_label(r)} | {r['method']} | {r['seeds']} | " + " | ".join([*(_cell(r, m) for m in metrics), wall,
                                                                                       *_check_cells(r, checks)]) + " |")
         else:

@@ -131,7 +131,8 @@ def ensure(recipe: Recipe, store: Store) -> Built:
             # partial run that nobody holds and that says nothing was killed). The next start
             # writes pending.json afresh, without this mark.
             why = "interrupted" if isinstance(e, Interrupted) else "its time limit"
-            store.begin(recipe.kind, key, {**record, "stopped": {"epoch": e.epoch, "why": why, "at": provenance.now_iso()}})
+            store.begin(recipe.kind, key, {**record, "sessions": provenance.with_wall(sessions, time.time() - started),
+                                           "stopped": {"epoch": e.epoch, "why": why, "at": provenance.now_iso()}})
             raise
         except BaseException:
             # Only a training run resumes from what it wrote, and only a played episode is
@@ -142,8 +143,8 @@ def ensure(recipe: Recipe, store: Store) -> Built:
             raise
         if recipe.summary_file:
             atomic_write_text(out / SUMMARY_FILE, json.dumps(summary, indent=2, default=float))
-        manifest = provenance.complete_manifest(pending, recipe.components, summary, started, **first,
-                                                sessions=sessions, **recipe.record)
+        manifest = provenance.complete_manifest(pending, recipe.components, summary, **first,
+                                                sessions=provenance.with_wall(sessions, time.time() - started), **recipe.record)
         return store.commit(recipe.kind, key, manifest)
 
     path, cached = store.get_or_make(recipe.kind, key, make, on_wait=recipe.on_wait)

@@ -18,6 +18,7 @@ import os
 import platform
 import subprocess
 import time
+from datetime import datetime
 from functools import cache
 from importlib import metadata
 from pathlib import Path
@@ -44,9 +45,12 @@ MODEL_SOURCES = ("model",)
 PACKAGES = ("jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy", "esr-cli")
 
 
+ISO_FORMAT = "%Y-%m-%dT%H:%M:%S%z"
+
+
 def now_iso() -> str:
     """Local time with its UTC offset, as every record of the store writes it."""
-    return time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    return time.strftime(ISO_FORMAT)
 
 
 def _module_file(dotted: str) -> Path | None:
@@ -210,24 +214,67 @@ MAX_SESSIONS = 100  # a run resumed by many short jobs keeps its first and its l
 
 def with_session(earlier: list[dict], new: dict) -> list[dict]:
     """`earlier` and then `new`, at most MAX_SESSIONS records: past that the first (where the
-    artifact was made) is kept, then one record counting those left out, then the latest."""
+    artifact was made) is kept, then one record counting those left out (and their seconds,
+    when every one of them recorded its own), then the latest."""
     sessions = earlier + [new]
     if len(sessions) <= MAX_SESSIONS:
         return sessions
-    dropped = sum(s.get("omitted", 1) for s in sessions[1:len(sessions) - MAX_SESSIONS + 2])
-    return [sessions[0], {"omitted": dropped}] + sessions[len(sessions) - MAX_SESSIONS + 2:]
+    left_out = sessions[1:len(sessions) - MAX_SESSIONS + 2]
+    merged = {"omitted": sum(s.get("omitted", 1) for s in left_out)}
+    walls = [session_wall(s) for s in left_out]
+    if all(w is not None for w in walls):
+        merged["wall_s"] = round(sum(walls), 2)
+    return [sessions[0], merged] + sessions[len(sessions) - MAX_SESSIONS + 2:]
+
+
+def session_wall(session: dict) -> float | None:
+    """The seconds a session recorded that it worked (None: it was killed before it could say,
+    or an older esr made it)."""
+    wall = session.get("wall_s")
+    return float(wall) if isinstance(wall, (int, float)) and not isinstance(wall, bool) and 0 <= wall < 1e12 else None
+
+
+def with_wall(sessions: list[dict], seconds: float) -> list[dict]:
+    """`sessions` with the latest one's working time recorded."""
+    return sessions[:-1] + [{**sessions[-1], "wall_s": round(seconds, 2)}]
+
+
+def wall_time(info: dict | None) -> tuple[float | None, bool]:
+    """(seconds, whether that is every session's) of a manifest: the sum over its sessions when
+    they recorded their own (a resumed run's sessions add up), else its `wall_time_s`, which an
+    older esr wrote for the last session only; a lower bound when some session did not say."""
+    total = info.get("wall_time_s") if isinstance(info, dict) else None
+    total = float(total) if isinstance(total, (int, float)) and not isinstance(total, bool) else None
+    sessions = earlier_sessions(info) if isinstance(info, dict) and isinstance(info.get("sessions"), list) else []
+    return total, len(sessions) <= 1 or all(session_wall(s) is not None for s in sessions)
 
 
 def earlier_sessions(pending: dict | None) -> list[dict]:
     """The sessions that a resumed artifact's pending.json records, oldest first. One written
-    before sessions were recorded names only the session that last resumed it."""
+    before sessions were recorded names only the session that last resumed it. A session that
+    stopped at a chunk boundary without its own working time (an older esr) gets it from when it
+    started and when it stopped."""
     if not pending:
         return []
     sessions = pending.get("sessions")
     if isinstance(sessions, list):
-        return [s for s in sessions if isinstance(s, dict)]
+        sessions = [s for s in sessions if isinstance(s, dict)]
+        stopped = pending.get("stopped")
+        if sessions and session_wall(sessions[-1]) is None and isinstance(stopped, dict):
+            seconds = _seconds_between(sessions[-1].get("started_at"), stopped.get("at"))
+            if seconds is not None:
+                sessions = with_wall(sessions, seconds)
+        return sessions
     last = {k: pending[k] for k in ("commit", "device") if isinstance(pending.get(k), str)}
     return [last] if last else []
+
+
+def _seconds_between(start: object, end: object) -> float | None:
+    try:
+        seconds = (datetime.strptime(end, ISO_FORMAT) - datetime.strptime(start, ISO_FORMAT)).total_seconds()
+    except (TypeError, ValueError):
+        return None
+    return seconds if seconds >= 0 else None
 
 
 class Origin(NamedTuple):
@@ -284,12 +331,13 @@ def provenance() -> dict:
     }
 
 
-def complete_manifest(pending: dict, components: dict, summary: dict, started: float | None = None, **extra) -> dict:
+def complete_manifest(pending: dict, components: dict, summary: dict, **extra) -> dict:
     """The manifest every artifact commits with: what `begin` recorded, its key components,
-    when it was made (and how long it took, from `started`), the toolchain and its summary."""
+    when it was made (and, with `sessions` in `extra`, how long all of them worked), the
+    toolchain and its summary."""
     manifest = {**pending, "format": 1, "status": "complete", **extra, "key_components": components,
                 "created_at": now_iso()}
-    if started is not None:
-        manifest["wall_time_s"] = round(time.time() - started, 2)
+    walls = [session_wall(s) for s in manifest.get("sessions", ())]
+    if walls:
+        manifest["wall_time_s"] = round(sum(w for w in walls if w is not None), 2)
     return {**manifest, "provenance": provenance(), "summary": summary}
-

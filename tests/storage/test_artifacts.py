@@ -193,6 +193,51 @@ def test_a_pending_record_from_before_sessions_counts_as_the_last_session(tmp_pa
     assert provenance.earlier_sessions(None) == [] == provenance.earlier_sessions({"commit": 5})
 
 
+def test_a_resumed_run_counts_the_working_time_of_every_session(tmp_path, monkeypatch):
+    """A run stopped at a chunk boundary records its session's seconds; the one that finishes it
+    adds its own, and the manifest's wall time is the sum (not the last session's alone)."""
+    from esr_cli.common.stops import Interrupted
+    from esr_cli.recipes.sweep import _wall
+    from esr_cli.storage import provenance
+
+    clock = iter([1000.0, 1600.0, 5000.0, 5090.0])  # each session: its start, then its end
+    monkeypatch.setattr(artifacts.time, "time", lambda: next(clock))
+    store = Store(tmp_path / "store")
+
+    def stops(out, store):
+        raise Interrupted(26)
+
+    with pytest.raises(Interrupted):
+        ensure(Recipe(RUN_KIND, "run", {"n": "timed"}, stops), store)
+    recipe = Recipe(RUN_KIND, "run", {"n": "timed"}, _writer([], "run"))
+    pending = json.loads((store.partial_path(RUN_KIND, recipe.key) / "pending.json").read_text())
+    assert [s["wall_s"] for s in pending["sessions"]] == [600.0] and pending["stopped"]["epoch"] == 26
+    manifest = json.loads((ensure(recipe, store).path / MANIFEST).read_text())
+    assert [s["wall_s"] for s in manifest["sessions"]] == [600.0, 90.0]
+    assert manifest["wall_time_s"] == 690.0 and provenance.wall_time(manifest) == (690.0, True)
+    assert _wall({"wall_s": 690.0, "wall_whole": True}) == "690 s"
+
+
+def test_an_older_manifests_wall_time_is_a_lower_bound_and_a_damaged_one_is_none():
+    from esr_cli.recipes.sweep import _wall
+    from esr_cli.storage import provenance
+
+    # an older esr: wall_time_s is the last session's, the sessions say nothing of their own
+    older = {"wall_time_s": 79.3, "sessions": [{"started_at": "2026-12-01T20:12:38+0000"}, {"started_at": "2026-12-01T20:29:20+0000"}]}
+    assert provenance.wall_time(older) == (79.3, False)
+    assert _wall({"wall_s": 79.3, "wall_whole": False}) == "≥ 79 s"
+    assert provenance.wall_time({"wall_time_s": 12.0, "sessions": [{"commit": "a"}]}) == (12.0, True)
+    for damaged in ({"wall_time_s": "79"}, {"wall_time_s": True}, {"wall_time_s": None}, [], None, {}):
+        assert provenance.wall_time(damaged)[0] is None
+    assert provenance.session_wall({"wall_s": -1}) is None and provenance.session_wall({"wall_s": "5"}) is None
+    # an older esr's stopped record: the session's time is when it stopped less when it started
+    stopped = {"sessions": [{"started_at": "2026-12-01T20:16:38+0000"}],
+               "stopped": {"epoch": 26, "at": "2026-12-01T20:28:49+0000"}}
+    assert provenance.earlier_sessions(stopped)[0]["wall_s"] == 731.0
+    for bad in ("yesterday", 5, None, "2026-12-01T20:00:00+0000"):  # unreadable, or before it started
+        assert "wall_s" not in provenance.earlier_sessions({**stopped, "stopped": {"at": bad}})[0]
+
+
 def test_a_run_resumed_by_many_jobs_keeps_its_first_and_latest_sessions():
     from esr_cli.storage import provenance
 
@@ -203,6 +248,12 @@ def test_a_run_resumed_by_many_jobs_keeps_its_first_and_latest_sessions():
     assert sessions[0] == {"commit": "0"} and sessions[-1] == {"commit": "249"}
     assert sessions[1]["omitted"] + len(sessions) - 1 == 250  # every session is counted once
     assert [s["commit"] for s in sessions[2:]] == [str(i) for i in range(152, 250)]
+    assert "wall_s" not in sessions[1]  # the sessions left out did not record their seconds
+    timed = []
+    for i in range(250):
+        timed = provenance.with_session(timed, {"commit": str(i), "wall_s": 2.0})
+    assert timed[1]["wall_s"] == 2.0 * timed[1]["omitted"]  # their seconds are kept in the count
+    assert provenance.wall_time({"wall_time_s": 500.0, "sessions": timed}) == (500.0, True)
 
 
 def test_where_an_artifact_was_made_is_read_from_its_sessions_and_a_damaged_manifest_says_nothing():
