@@ -563,16 +563,17 @@ def train_command(ev: Evidence, store: Store) -> str:
 MIN_CURVE_EPOCHS = 500
 
 
-def learning_curves(findings: list[Finding], out_png: Path, title: str) -> Optional[Path]:
+def learning_curves(findings: list[Finding], out_png: Path, title: str) -> list[Evidence]:
     """The curves of every run behind the report with at least MIN_CURVE_EPOCHS epochs: a row per
     figure of the paper (its MI estimate for figure 5, returns otherwise), a panel per
-    environment, a line per run (esr_cli/report/reproduction_figure.py)."""
+    environment, a line per run (esr_cli/report/reproduction_figure.py). Returns the runs drawn
+    (none: no figure)."""
     from esr_cli.report import figures as figs, reproduction_figure
 
     def panel_order(e: Evidence):
         return (e.spec.env.kind, getattr(e.spec.env, "blocks", 0), figs.env_title(e.spec))
 
-    rows = []
+    rows, drawn = [], {}
     for figure in dict.fromkeys(f.claim.figure for f in findings):
         runs: dict[str, Evidence] = {}
         for f in (x for x in findings if x.claim.figure == figure):
@@ -580,6 +581,7 @@ def learning_curves(findings: list[Finding], out_png: Path, title: str) -> Optio
             for ev in f.evidence():
                 if ev.key not in others and ev.epochs_done >= MIN_CURVE_EPOCHS:
                     runs[ev.key] = ev
+        drawn.update(runs)
         panels: dict[str, list] = {}
         for ev in sorted(runs.values(), key=lambda e: (panel_order(e), run_label(e.spec), e.key)):
             panels.setdefault(figs.env_title(ev.spec), []).append((run_label(ev.spec), ev.spec, ev.rows))
@@ -587,8 +589,21 @@ def learning_curves(findings: list[Finding], out_png: Path, title: str) -> Optio
             metric = "mi_estimate" if any(f.claim.kind == "mi_positive" for f in findings if f.claim.figure == figure) else "return"
             rows.append((figure, metric, list(panels.items())))
     if not rows:
-        return None
-    return reproduction_figure.draw(rows, out_png, title)
+        return []
+    reproduction_figure.draw(rows, out_png, title)
+    return list(drawn.values())
+
+
+def devices_line(runs: list[Evidence]) -> str:
+    """Which devices made the runs of a figure, with how many runs each (a run resumed elsewhere
+    names both, in order)."""
+    made: dict[str, list[str]] = {}
+    for ev in sorted(runs, key=lambda e: e.key):
+        made.setdefault(ev.device or "unknown", []).append(ev.key[:8])
+    parts = [f"{device} ({len(keys)} run{'s' if len(keys) != 1 else ''}"
+             + (f": {', '.join(f'`{k}`' for k in keys)})" if not device.startswith("cpu") else ")")
+             for device, keys in sorted(made.items(), key=lambda kv: (kv[0].startswith("cpu"), kv[0]))]
+    return "Made on: " + "; ".join(parts) + " (each run's device as its manifest records it)."
 
 
 def estimator_run(index: dict[str, list[Evidence]]) -> Optional[Evidence]:
@@ -741,9 +756,10 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
                          f"{ev.commit_label} | `{train_command(ev, store)}` |")
         lines.append("")
     img = out.parent / "img" / "reproduction_curves.png"
-    if learning_curves(findings, img, f"Runs of at least {MIN_CURVE_EPOCHS:,} epochs behind the report: the interquartile "
-                                      "mean over seeds with its 95% bootstrap band (seeds per run: the tables above); dashed: esr's variants"):
-        lines += ["## Learning curves", "", f"![learning curves](img/{img.name})", ""]
+    drawn = learning_curves(findings, img, f"Runs of at least {MIN_CURVE_EPOCHS:,} epochs behind the report: the interquartile "
+                                           "mean over seeds with its 95% bootstrap band (seeds per run: the tables above); dashed: esr's variants")
+    if drawn:
+        lines += ["## Learning curves", "", f"![learning curves](img/{img.name})", "", devices_line(drawn), ""]
     lines += estimator_section(index, store, console, exact, out.parent / "img")
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, "\n".join(lines))

@@ -66,6 +66,17 @@ def test_a_run_cell_names_an_accelerator_and_leaves_the_cpu_unsaid():
     assert rep._run_cell(ev).endswith("10 seeds, commit e60b1a1)")
 
 
+def test_the_figure_names_the_devices_of_the_runs_it_draws():
+    runs = [_evidence("grid_10", finals=(6.0,) * 4), _evidence("grid_5", finals=(9.0,)),
+            _evidence("grid_7", finals=(9.0,)), _evidence("grid_2", finals=(9.0,))]
+    for ev, device in zip(runs, ("gpu:NVIDIA H200", "cpu:cpu", "cpu:cpu", None)):
+        ev.device = device
+    line = rep.devices_line(runs)
+    # accelerators first, each with its runs named; the CPU's runs counted; an unrecorded device said so
+    assert line == (f"Made on: gpu:NVIDIA H200 (1 run: `{runs[0].key[:8]}`); unknown (1 run: `{runs[3].key[:8]}`); "
+                    "cpu:cpu (2 runs) (each run's device as its manifest records it).")
+
+
 def test_a_run_without_its_checkpoint_says_it_starts_again():
     ev = _evidence("grid_10", finals=(6.0,) * 10, epochs=1200, status="partial")
     ev.resumable = False
