@@ -23,6 +23,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
@@ -48,9 +49,14 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+# A spec's field names, dotted: the key is written into `--set KEY=VALUE` text, so nothing but
+# names and dots may be in it (an '=' or a '#' there would set another field than it names).
+_KEY_PATH = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*")
+
+
 def _check_key_paths(v: dict) -> dict:
     for dotted in v:
-        if not isinstance(dotted, str) or not all(dotted.split(".")):
+        if not isinstance(dotted, str) or not _KEY_PATH.fullmatch(dotted):
             raise ValueError(f"{dotted!r} is not a key path like train.seeds")
     return v
 
@@ -102,6 +108,13 @@ class _Overrides(_Model):
 
 class EntryModel(_Overrides):
     spec: str = Field(..., min_length=1)
+
+    @field_validator("spec")
+    @classmethod
+    def _a_path(cls, v):
+        if "\0" in v:  # no file system names such a file
+            raise ValueError("a spec file's path cannot hold a NUL character")
+        return v
 
 
 class SuiteModel(_Overrides):

@@ -39,7 +39,7 @@ from rich.table import Table
 from rich.text import Text
 
 from esr_cli.common import specs
-from esr_cli.common.printing import plain_console, tagged
+from esr_cli.common.printing import plain_console, printable, tagged
 from esr_cli.recipes import check_columns
 from esr_cli.recipes.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
 from esr_cli.storage import provenance
@@ -460,7 +460,8 @@ def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESUL
         if r.made_by:
             row["made_by"] = r.made_by
         if r.state == "done":
-            logged = set(read_rows(r.path)[-1]) if metrics != DEFAULT_RESULT_METRICS else set(metrics)
+            last = read_rows(r.path)[-1:] if metrics != DEFAULT_RESULT_METRICS else [dict.fromkeys(metrics)]
+            logged = set(last[0]) if last else set()  # no sound epoch logged: every metric shows no value
             wall_s, wall_whole = provenance.wall_time(store.read_manifest(r.path))
             row.update(run_finals(r.path, tuple(m for m in metrics if m in logged)),
                        wall_s=wall_s, wall_whole=wall_whole, path=str(r.path))
@@ -556,19 +557,24 @@ def results_markdown(suite: Suite, rows: list[dict], metrics: tuple[str, ...] = 
              "| run | method | seeds | " + " | ".join(heads) + " |", "|---|---|---|" + "---|" * len(heads)]
     for r in rows:
         if r["state"] == "done":
-            wall = _wall(r)
-            lines.append(f"| {_label(r)} | {r['method']} | {r['seeds']} | " + " | ".join([*(_cell(r, m) for m in metrics), wall,
-                                                                                      *_check_cells(r, checks)]) + " |")
+            cells = [_label(r), r["method"], str(r["seeds"]), *(_cell(r, m) for m in metrics), _wall(r), *_check_cells(r, checks)]
         else:
-            lines.append(f"| {r['run']} | {r['method']} | | {r['state']}: `{r['command']}` |" + " |" * (len(heads) - 1))
+            cells = [r["run"], r["method"], "", f"{r['state']}: `{r['command']}`", *[""] * (len(heads) - 1)]
+        lines.append("| " + " | ".join(map(_markdown_cell, cells)) + " |")
     if any("made_by" in r for r in rows):
         lines += ["", OTHER_CODE_NOTE]
     for note in _check_notes(checks):
         lines += ["", note]
     todo = _check_todo(rows, checks)
     if todo:
-        lines += ["", "Missing from the store, made by:", "", "```bash", *todo, "```"]
+        lines += ["", "Missing from the store, made by:", "", "```bash", *map(printable, todo), "```"]
     return "\n".join(lines)
+
+
+def _markdown_cell(text: str) -> str:
+    """A table cell that stays one cell of one row whatever a store or suite put in it: control
+    characters (a newline too) as escapes, '|' escaped."""
+    return printable(text).replace("|", "\\|")
 
 
 # ---------------------------------------------------------------- running

@@ -129,8 +129,11 @@ def index_store(store: Store) -> dict[str, list[Evidence]]:
         info = entry.manifest or {}
         made = provenance.origin(info)
         resumable = entry.status == "complete" or bool(verified_steps(entry.path))
-        ev = Evidence(entry.key, entry.path, entry.status, info.get("budget", spec.budget), spec,
-                      read_rows(entry.path), made.commit, made.device, resumable, modified=made.modified)
+        # The page is markdown: what the manifest says of the device keeps to its cell.
+        device = made.device.replace("|", "\\|") if made.device else None
+        budget = info.get("budget") if info.get("budget") in spec_model.BUDGETS else spec.budget
+        ev = Evidence(entry.key, entry.path, entry.status, budget, spec,
+                      read_rows(entry.path), made.commit, device, resumable, modified=made.modified)
         if ev.rows:
             out.setdefault(_without_train(spec), []).append(ev)
     return out

@@ -17,9 +17,53 @@ from esr_cli.common.jsonl import read_jsonl
 FINAL_FRACTION = 0.1
 
 
+MAX_EPOCH = 10**9
+
+
 def read_rows(run_path: Path) -> list[dict]:
-    """A run's metrics.jsonl, one dict per epoch (a line cut short by a kill ends it)."""
-    return read_jsonl(Path(run_path) / "metrics.jsonl")
+    """A run's metrics.jsonl, one dict per epoch, as training writes them: a line cut short by a
+    kill ends it, as does the first row that is not an epoch's (see `epoch_rows`)."""
+    return epoch_rows(read_jsonl(Path(run_path) / "metrics.jsonl"))
+
+
+def epoch_rows(rows: list[dict]) -> list[dict]:
+    """`rows` up to the first that is not an epoch's metrics as training writes them: an integer
+    epoch above the row before's, a number of environment steps, and every metric (the return
+    always) a list of numbers over the seeds (None where undefined), as long in every row. What follows such a row is not
+    trusted (a file from an archive or an older esr), so tables and figures read the run as far
+    as it is sound instead of failing on it, and never turn a value too large for a float into
+    an error."""
+    out, widths, last = [], {}, 0
+    for row in rows:
+        epoch = row.get("epoch")
+        if type(epoch) is not int or not last < epoch <= MAX_EPOCH or not isinstance(row.get("return"), list):
+            break
+        if not all(_sound(name, value, widths) for name, value in row.items() if name != "epoch"):
+            break
+        out.append(row)
+        last = epoch
+    return out
+
+
+def _number(x) -> bool:
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        return False
+    try:
+        float(x)
+    except OverflowError:
+        return False
+    return True
+
+
+SCALARS = ("env_steps",)  # a row's values for the whole epoch; every other metric is a list over seeds
+
+
+def _sound(name: str, value, widths: dict) -> bool:
+    if name in SCALARS:
+        return _number(value)
+    if not isinstance(value, list) or widths.setdefault(name, len(value)) != len(value):
+        return False
+    return all(x is None or _number(x) for x in value)
 
 
 def series(rows: list[dict], name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -55,7 +99,7 @@ def run_progress(run_path: Path) -> tuple[int, float | None]:
         if not rows:
             return 0, None
         epochs, per_seed = int(rows[-1]["epoch"]), final_per_seed(rows)
-    except (KeyError, TypeError, ValueError, AttributeError, OSError):
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError, OSError):
         return 0, None
     return epochs, float(np.nanmean(per_seed)) if np.isfinite(per_seed).any() else None
 
@@ -66,7 +110,8 @@ def run_finals(run_path: Path, names: tuple[str, ...] = ("return", "success")) -
     from esr_cli.common.stats import describe  # scipy: only where statistics are made
 
     rows = read_rows(run_path)
-    out: dict = {"seeds": len(rows[-1]["return"]) if rows else 0, "epochs": rows[-1]["epoch"] if rows else 0}
+    seeds = series(rows, "return")[1].shape[1] if any("return" in r for r in rows) else 0
+    out: dict = {"seeds": seeds, "epochs": rows[-1]["epoch"] if rows else 0}
     for name in names:
         out[name] = describe(final_per_seed(rows, name) if rows else [])
     return out

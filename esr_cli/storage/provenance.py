@@ -16,6 +16,7 @@ import ast
 import hashlib
 import os
 import platform
+import re
 import subprocess
 import time
 from datetime import datetime
@@ -23,6 +24,8 @@ from functools import cache
 from importlib import metadata
 from pathlib import Path
 from typing import NamedTuple
+
+from esr_cli.common.printing import printable
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1]  # esr_cli/
 
@@ -277,6 +280,10 @@ def _seconds_between(start: object, end: object) -> float | None:
     return seconds if seconds >= 0 else None
 
 
+COMMIT = re.compile(r"[0-9a-f]{7,64}")  # a git object name: anything else a manifest says is no commit
+MAX_DEVICE_CHARS = 200
+
+
 class Origin(NamedTuple):
     """Where a stored artifact was made, from its manifest (or an unfinished one's pending.json)."""
 
@@ -290,14 +297,17 @@ def origin(info: dict | None) -> Origin:
         value = record.get(name) if isinstance(record, dict) else None
         return value if isinstance(value, dict) else {}
 
-    def text(value: object) -> str | None:
-        return value if isinstance(value, str) and value else None
+    def text(value: object) -> str | None:  # shown in tables and pages: never a control character
+        return printable(value[:MAX_DEVICE_CHARS]) if isinstance(value, str) and value else None
+
+    def commit_of(value: object) -> str | None:
+        return value if isinstance(value, str) and COMMIT.fullmatch(value) else None
 
     sessions = earlier_sessions(info)
     made = part(info, "provenance")
     # A manifest from before sessions were recorded names only the last one.
-    commit = next((s["commit"] for s in sessions if text(s.get("commit"))), None) or text(part(made, "git").get("commit"))
-    devices = list(dict.fromkeys(s["device"] for s in sessions if text(s.get("device"))))
+    commit = next((s["commit"] for s in sessions if commit_of(s.get("commit"))), None) or commit_of(part(made, "git").get("commit"))
+    devices = list(dict.fromkeys(text(s["device"]) for s in sessions if text(s.get("device"))))
     # An unfinished run made by an esr whose pending.json named only its backend (part of its key) says just that.
     backend = part(part(info, "key_components"), "toolchain").get("backend")
     device = ", then ".join(devices) or text(made.get("device")) or text(backend)

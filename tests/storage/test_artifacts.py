@@ -256,6 +256,21 @@ def test_a_run_resumed_by_many_jobs_keeps_its_first_and_latest_sessions():
     assert provenance.wall_time({"wall_time_s": 500.0, "sessions": timed}) == (500.0, True)
 
 
+def test_where_an_artifact_was_made_is_never_text_that_breaks_a_page():
+    """A manifest may come from an archive: its device is shown with control characters as
+    escapes (a table row stays one line), and a commit that is no git object name is none."""
+    from esr_cli.recipes.sweep import _markdown_cell
+    from esr_cli.storage.provenance import origin
+
+    forged = {"sessions": [{"commit": "deadbee\n<!-- end of generated table -->", "device": "cpu\n\nINJECTED | 999"}],
+              "provenance": {"git": {"commit": "not a commit"}}}
+    made = origin(forged)
+    assert made.commit is None and made.device == "cpu\\n\\nINJECTED | 999" and "\n" not in made.device
+    assert _markdown_cell(made.device) == "cpu\\n\\nINJECTED \\| 999"  # one cell of one row
+    assert _markdown_cell("a\x1b[2Jb") == "a\\x1b[2Jb"
+    assert origin({"sessions": [{"commit": "ab12cd3" + "0" * 33, "device": "x" * 10_000}]}).device == "x" * 200
+
+
 def test_where_an_artifact_was_made_is_read_from_its_sessions_and_a_damaged_manifest_says_nothing():
     from esr_cli.storage.provenance import Origin, origin
 

@@ -1,0 +1,60 @@
+"""A run's metrics read back (esr_cli/storage/finals.py): only rows as training writes them, so a
+damaged or forged metrics.jsonl shortens what tables and figures read instead of failing them."""
+
+import json
+
+import numpy as np
+import pytest
+
+from esr_cli.storage import finals
+
+
+def _write(tmp_path, rows):
+    (tmp_path / "metrics.jsonl").write_text("".join((r if isinstance(r, str) else json.dumps(r)) + "\n" for r in rows))
+    return tmp_path
+
+
+def _row(epoch, ret=(1.0, 2.0), **more):
+    return {"epoch": epoch, "env_steps": 100 * epoch, "return": list(ret), **more}
+
+
+def test_sound_rows_are_read_whole_and_their_finals_computed_by_hand(tmp_path):
+    rows = [_row(e, (float(e), 2.0 * e), mi_estimate=[None, 0.5]) for e in range(1, 21)]
+    run = _write(tmp_path, rows)
+    assert finals.read_rows(run) == rows
+    # the last 10% of 20 epochs is epochs 19 and 20: seed 0 (19 + 20) / 2, seed 1 (38 + 40) / 2
+    assert finals.final_per_seed(rows).tolist() == [19.5, 39.0]
+    out = finals.run_finals(run, ("return",))
+    assert (out["seeds"], out["epochs"]) == (2, 20) and out["return"]["mean"] == pytest.approx(29.25)
+    assert np.isnan(finals.final_per_seed(rows, "mi_estimate")[0])
+    assert finals.run_progress(run) == (20, pytest.approx(29.25))
+
+
+@pytest.mark.parametrize("bad", [
+    {"epoch": 3, "env_steps": 300, "return": [10 ** 400, 1.0]},  # too large for a float
+    {"epoch": 3, "env_steps": 300},  # no return
+    {"epoch": 3, "env_steps": 300, "return": 5.0},  # a number where a list over seeds goes
+    {"epoch": 3, "env_steps": 300, "return": [1.0]},  # another seed count
+    {"epoch": 3, "env_steps": 300, "return": ["7", 1.0]},
+    {"epoch": 3, "env_steps": 300, "return": [[1.0], 1.0]},
+    {"epoch": 3, "env_steps": 300, "return": [True, 1.0]},
+    {"epoch": 3, "env_steps": 300, "return": [1.0, 2.0], "mi_estimate": {"a": 1}},
+    {"epoch": 3, "env_steps": "300", "return": [1.0, 2.0]},
+    {"epoch": 2, "env_steps": 300, "return": [1.0, 2.0]},  # not after the epoch before
+    {"epoch": None, "env_steps": 300, "return": [1.0, 2.0]},
+    {"epoch": 3.0, "env_steps": 300, "return": [1.0, 2.0]},
+    {"epoch": 10 ** 30, "env_steps": 300, "return": [1.0, 2.0]},
+    {"env_steps": 300, "return": [1.0, 2.0]},
+])
+def test_reading_ends_at_the_first_row_that_is_not_an_epochs(tmp_path, bad):
+    run = _write(tmp_path, [_row(1), _row(2), bad, _row(4)])
+    assert finals.read_rows(run) == [_row(1), _row(2)]  # what follows is not trusted either
+    assert finals.run_finals(run, ("return",))["epochs"] == 2
+    assert finals.run_progress(run) == (2, 1.5)
+
+
+def test_a_metrics_file_with_no_sound_row_reads_as_no_epoch(tmp_path):
+    run = _write(tmp_path, ['{"epoch": "one"}', _row(2)])
+    assert finals.read_rows(run) == [] and finals.run_progress(run) == (0, None)
+    out = finals.run_finals(run, ("return",))
+    assert (out["seeds"], out["epochs"]) == (0, 0)
