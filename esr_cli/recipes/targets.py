@@ -14,8 +14,9 @@ from pydantic import ValidationError
 
 from esr_cli.analysis.state_count import TooManyStates, check_size
 from esr_cli.common import specs, yamlio
+from esr_cli.common.printing import printable
 from esr_cli.model import spec as spec_model
-from esr_cli.storage.store import EXACT_KIND, PLAY_KIND, RUN_KIND, Store, StoreError
+from esr_cli.storage.store import EXACT_KIND, PLAY_KIND, RUN_KIND, Store, StoreError, load_manifest, parse_dirname, read_pending
 
 EVAL_PARTNERS = ("training", "proxy")
 PLAY_PARTNER = "play:"  # --human play:KEY,KEY,...: a BC human cloned from played episodes
@@ -89,9 +90,20 @@ def stored_run(store: Store, ref: str) -> Path:
 
 
 def run_spec(run_path: Path):
-    """The validated spec a run was trained from (its spec.yaml)."""
+    """The validated spec a run was trained from (its spec.yaml), once it is the spec the run's
+    key was computed from: a spec.yaml swapped under a genuine key (an archive's, a damaged
+    store's) would make an evaluation or diagnosis of another spec stored as this run's."""
+    from esr_cli.storage.transfer import spec_problem
+
     source = run_path / "spec.yaml"
-    return specs.validate(yamlio.read(source), str(source))
+    record = read_pending(run_path) if parse_dirname(run_path.name)[1] == "partial" else load_manifest(run_path)
+    problem = spec_problem(run_path, record or {}) if source.exists() else "it has no spec.yaml"
+    if problem:
+        raise StoreError(f"{run_path}: {problem}; the run cannot be read (`esr verify {run_path.name[:12]}`)")
+    try:
+        return specs.validate(yamlio.read(source), str(source))
+    except (specs.SpecError, yamlio.YamlInputError) as e:
+        raise StoreError(f"{source}: not a spec this esr reads ({printable(str(e))})") from None
 
 
 def run_record(store: Store, ref: str) -> tuple[Path, dict, bool]:
@@ -103,7 +115,8 @@ def run_record(store: Store, ref: str) -> tuple[Path, dict, bool]:
     finished = entry.status == "complete"
     record = store.read_manifest(entry.path) if finished else entry.manifest
     if not isinstance(record, dict) or not isinstance(record.get("seeds"), list):
-        raise StoreError(f"{entry.path}: its pending.json cannot be read; the run cannot be inspected")
+        made = "manifest.json" if finished else "pending.json"
+        raise StoreError(f"{entry.path}: its {made} names no list of seeds; the run cannot be inspected")
     return entry.path, record, finished
 
 

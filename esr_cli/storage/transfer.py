@@ -28,8 +28,9 @@ from pathlib import Path, PurePosixPath
 from typing import BinaryIO, Iterator
 
 from esr_cli.common import faults, tar_reader, yamlio
+from esr_cli.common.jsonl import read_jsonl
 from esr_cli.storage.checkpoint_files import CHECKPOINT_DIR, epochs_problem, run_length, state_epochs_problem, verified_steps, verify_artifact
-from esr_cli.storage.finals import read_rows
+from esr_cli.storage.finals import epoch_rows
 from esr_cli.storage.store import KINDS, LEFT_OUT, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, load_manifest, parse_dirname, read_pending
 
 KEY_RE = re.compile(r"[0-9a-f]{32}")
@@ -322,7 +323,7 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
         if problems:
             more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
             raise StoreError(f"{archive}: {kind}/{key[:2]}/{key}: {problems[0]}{more}; nothing imported")
-        problem = _spec_problem(stage, load_manifest(stage)) if kind == RUN_KIND else None
+        problem = spec_problem(stage, load_manifest(stage)) if kind == RUN_KIND else None
         if problem:
             raise StoreError(f"{archive}: {kind}/{key[:2]}/{key}: {problem}; nothing imported")
         return False, 0
@@ -334,7 +335,7 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
     if pending.get("key") != key:
         raise StoreError(f"{archive}: unfinished run {key[:12]}: its pending.json names key "
                          f"{str(pending.get('key'))[:40]!r}, not the directory's; nothing imported")
-    problem = components_problem(pending, "pending.json") or _spec_problem(stage, pending)
+    problem = components_problem(pending, "pending.json") or spec_problem(stage, pending)
     if problem:
         raise StoreError(f"{archive}: unfinished run {key[:12]}: {problem}; nothing imported")
     steps = verified_steps(stage)  # newest first
@@ -349,21 +350,22 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
         raise StoreError(f"{archive}: unfinished run {key[:12]} has no checkpoint matching its recorded digests; "
                          "nothing imported (`esr import --without-checkpoint` keeps its logged epochs for reports; "
                          "training it again would start from epoch 0)")
-    rows = read_rows(stage)
-    if not rows:
+    logged = read_jsonl(stage / "metrics.jsonl")
+    if not logged:
         raise StoreError(f"{archive}: unfinished run {key[:12]} has neither an intact checkpoint nor a logged epoch; nothing imported")
     # A record is read only for its rows: each must be an epoch's, as training writes them.
-    for i, row in enumerate(rows, 1):
-        if not (isinstance(row, dict) and type(row.get("epoch")) is int and isinstance(row.get("return"), list)):
-            raise StoreError(f"{archive}: unfinished run {key[:12]}: line {i} of metrics.jsonl is not an epoch's "
-                             "metrics (an object with an integer 'epoch' and a 'return' list); nothing imported")
+    sound = len(epoch_rows(logged))
+    if sound < len(logged):
+        raise StoreError(f"{archive}: unfinished run {key[:12]}: line {sound + 1} of metrics.jsonl is not an epoch's "
+                         "metrics (an integer 'epoch' after the line before's, and each metric a list of numbers "
+                         "over the seeds); nothing imported")
     return True, 0
 
 
 TRAINING_SECTIONS = ("env", "human", "method", "network", "learner", "train")  # spec.Spec.training_part's
 
 
-def _spec_problem(run_dir: Path, record: dict) -> str | None:
+def spec_problem(run_dir: Path, record: dict) -> str | None:
     """Why a run's spec.yaml is not the spec its key components hold (`record`: its manifest or
     pending.json, whose components digest to its key), or None (also where it has none: then
     nothing reads one). Evaluating, extending and reporting a run read that file, so one swapped
@@ -380,7 +382,9 @@ def _spec_problem(run_dir: Path, record: dict) -> str | None:
         return "its spec.yaml is not a spec"
     trained = {section: spec.get(section) for section in TRAINING_SECTIONS}
     trained["human"] = {k: v for k, v in spec["human"].items() if k != "preset"}  # keyed by its values
-    components = record["key_components"]
+    components = record.get("key_components")
+    if not isinstance(components, dict):
+        return "its record holds no key components to check its spec.yaml against"
     if trained != components.get("spec") or spec.get("budget") != components.get("budget"):
         return "its spec.yaml is not the spec its key was computed from (the key components' spec and budget)"
     return None

@@ -944,3 +944,23 @@ def test_an_archive_without_out_is_refused_where_the_current_folder_is_in_the_st
     monkeypatch.chdir(tmp_path)
     assert main(["--store", str(tmp_path / "store"), "export", key[:8]]) == 0
     assert capsys.readouterr().out.strip() == f"{key[:8]}.tar.gz" and (tmp_path / f"{key[:8]}.tar.gz").is_file()
+
+
+@pytest.mark.slow  # trains the shared smoke run
+@pytest.mark.parametrize("damage, problem", [
+    (lambda text: text.replace("  lr: 0.001", "  lr: 0.002"), "its spec.yaml is not the spec its key was computed from"),
+    (lambda text: text + "\n: [", "its spec.yaml cannot be read"),
+])
+def test_a_run_whose_spec_yaml_is_not_its_keys_is_not_evaluated_or_diagnosed(smoke_run, tmp_path, damage, problem):
+    """A spec.yaml swapped or broken under a genuine key, in a store: evaluating or diagnosing the
+    run would store another spec's numbers as this key's, so both refuse in one line first."""
+    import shutil
+
+    _, path, _ = smoke_run
+    run = tmp_path / "store" / "runs" / path.parent.name / path.name
+    shutil.copytree(path, run)
+    (run / "spec.yaml").write_text(damage((run / "spec.yaml").read_text()))
+    for command in ("diagnose", "eval"):
+        proc = esr(command, path.name[:12], store=tmp_path / "store", check=False)
+        assert proc.returncode == 2 and problem in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert not (tmp_path / "store" / "diagnoses").exists() and not (tmp_path / "store" / "evals").exists()
