@@ -112,9 +112,11 @@ def parse_override(text: str) -> tuple[str, Any]:
     path, raw = text.split("=", 1)
     if not path.strip():
         raise SpecError("--set", text[:60], "no key path before '=': expected key.path=value")
-    if "[" in path:
+    if re.fullmatch(r"[^\[\]]+(\[\s*-?\d+\s*\])+", path.strip()):  # train.seeds[0]
         name = path.split("[")[0].strip()
         raise SpecError("--set", path.strip(), f"a list is set whole, not item by item: --set {name}=[...]")
+    if "[" in path or "]" in path:
+        raise SpecError("--set", path.strip(), "not a key path like train.seeds (field names and dots)")
     if len(raw) > MAX_OVERRIDE_CHARS:
         raise SpecError("--set", path, f"value is {len(raw):,} characters long; at most {MAX_OVERRIDE_CHARS:,}")
     try:
@@ -127,13 +129,18 @@ def parse_override(text: str) -> tuple[str, Any]:
 MAX_OVERRIDE_CHARS = 10_000
 
 
+# How pydantic names a validator or type in an error's location (`function-after[...]`,
+# `list[int]`); a key the user wrote is kept even with a '[' in it.
+_VALIDATOR_TAG = re.compile(r"[a-z][a-z0-9_-]*\[.*\]", re.S)
+
+
 def _format_loc(loc: tuple) -> str:
     out = []
     for i, part in enumerate(loc):
         if isinstance(part, int):
             out.append(f"[{part}]")
-        elif (i == 1 and loc[0] in KIND_MODELS and part in KIND_MODELS[loc[0]]) or "[" in str(part):
-            continue  # pydantic's discriminated-union tags (`method.esr.x`) are not user key paths
+        elif (i == 1 and loc[0] in KIND_MODELS and part in KIND_MODELS[loc[0]]) or _VALIDATOR_TAG.fullmatch(str(part)):
+            continue  # pydantic's discriminated-union and validator tags (`method.esr.x`) are not user key paths
         else:
             out.append(("." if out else "") + str(part))
     return "".join(out)

@@ -290,6 +290,24 @@ def test_a_bad_value_names_the_set_or_budget_that_gave_it(tmp_path):
         specs.load("experiments/grid_2.yaml", "paper", ["network.conv_channels[0]=8"])
 
 
+@pytest.mark.parametrize("sets, path, problem", [
+    (["train.ep[ochs=1"], "train.ep[ochs", "not a key path"),  # a bracket that is no list index
+    (["train.epochs]=1"], "train.epochs]", "not a key path"),
+])
+def test_a_key_path_with_brackets_is_named_as_written(sets, path, problem):
+    with pytest.raises(specs.SpecError) as e:
+        specs.load("experiments/grid_2.yaml", "paper", sets)
+    assert e.value.path == path and problem in str(e.value)
+
+
+def test_a_file_key_with_a_bracket_is_named_and_not_mistaken_for_a_validator(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(f"extends: {Path('experiments/grid_2.yaml').resolve()}\ntrain: {{'ep[ochs': 5}}\n")
+    with pytest.raises(specs.SpecError) as e:
+        specs.load(bad, "paper")
+    assert e.value.path == "train.ep[ochs" and "did you mean `epochs`" in str(e.value)
+
+
 def test_setting_a_kind_starts_that_section_again_as_extends_does():
     """--set method.kind=random on an ESR spec is the Random spec (ESR's fields would be unknown
     keys of the new kind), at every budget; a kind --set leaves unchanged keeps the section."""
