@@ -44,8 +44,12 @@ def parse(data: bytes) -> Any:
         value = json.loads(data)
     except RecursionError:  # far deeper than the limit: the parser gave up first
         raise too_deep from None
-    except ValueError:  # bad UTF-8, bad JSON, an integer too long to read
+    except UnicodeDecodeError:
         raise JsonInputError("not UTF-8 JSON") from None
+    except json.JSONDecodeError as e:
+        raise JsonInputError(f"not UTF-8 JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
+    except ValueError:  # what else json refuses: an integer of more digits than it converts
+        raise JsonInputError("JSON with an integer too long to read") from None
     if _depth(value) > MAX_DEPTH:
         raise too_deep
     return value
