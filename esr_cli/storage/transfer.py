@@ -276,6 +276,7 @@ def _checked_members(f: BinaryIO, archive: Path) -> tuple[str, str, list[tar_rea
     or folders inside one `<kind>/<kk>/<key>[.partial]`."""
     members, top = [], None
     files: set[tuple[str, ...]] = set()
+    folders: set[tuple[str, ...]] = set()  # inside the artifact: named, or above a member
     with _reading(archive):
         for m in tar_reader.members(f):
             path = PurePosixPath(m.name)
@@ -295,7 +296,12 @@ def _checked_members(f: BinaryIO, archive: Path) -> tuple[str, str, list[tar_rea
             here = tuple(parts)
             if here in files or any(here[:i] in files for i in range(4, len(here))):
                 raise StoreError(f"{archive}: member {m.name!r} repeats a file or lies inside one: not an esr artifact")
-            if not m.is_dir:
+            if not m.is_dir and here in folders:
+                raise StoreError(f"{archive}: member {m.name!r} is a file where a folder of the archive is: not an esr artifact")
+            folders.update(here[:i] for i in range(4, len(here)))
+            if m.is_dir:
+                folders.add(here)
+            else:
                 files.add(here)
             members.append(m)
     if top is None:

@@ -250,6 +250,8 @@ def _pending(**fields) -> bytes:
         ([], "holds no artifact"),
         ([(f"{RUN_DIR}/a", b"x"), (f"{RUN_DIR}/a/b", b"y")], "member .*a/b' repeats a file or lies inside one"),
         ([(f"{RUN_DIR}/a", b"x"), (f"{RUN_DIR}/a", b"y")], "member .*/a' repeats a file or lies inside one"),
+        ([(f"{RUN_DIR}/a", None), (f"{RUN_DIR}/a", b"y")], "member .*/a' is a file where a folder of the archive is"),
+        ([(f"{RUN_DIR}/a/b", b"x"), (f"{RUN_DIR}/a", b"y")], "member .*/a' is a file where a folder of the archive is"),
     ],
 )
 def test_a_bad_archive_is_refused_and_changes_nothing(tmp_path, members, message):
