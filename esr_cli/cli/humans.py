@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import List, Optional
 
@@ -10,6 +9,7 @@ import typer
 from rich.table import Table
 
 from esr_cli.cli.app import BudgetOpt, Exit, SetOpt, app, err, load_spec, out
+from esr_cli.common import jsonl
 from esr_cli.common.printing import own, printable, tagged
 from esr_cli.storage.artifacts import ensure
 from esr_cli.storage.store import Store
@@ -74,7 +74,7 @@ def human_calibrate(
 
     rows = [hc.calibrate_spec(s, human_seeds, episodes, ctx.obj.store, err) for s in loaded]
     if as_json:
-        out.print_json(json.dumps({"rows": [r.as_json() for r in rows], "score": hc.score(rows),
+        out.print_json(jsonl.dumps({"rows": [r.as_json() for r in rows], "score": hc.score(rows),
                                    "human_seeds": human_seeds, "episodes": episodes}))
         return
     if markdown:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import List, Optional
 
@@ -10,7 +9,7 @@ import typer
 from rich.table import Table
 
 from esr_cli.cli.app import BudgetOpt, Exit, SetOpt, app, check_budget, err, load_spec, out, parse_duration, quick_spec, refuse_spec_options
-from esr_cli.common import specs
+from esr_cli.common import jsonl, specs
 from esr_cli.common.printing import tagged
 from esr_cli.model import spec as spec_model
 from esr_cli.recipes import targets
@@ -195,7 +194,7 @@ def diagnose(
         trainer, state, epoch = load_run_so_far(ctx.obj.store, path, finished)
         report = dr.compute(trainer, state, epoch, seed_index, options, False, run_key)
     if as_json:
-        out.print_json(json.dumps(report))
+        out.print_json(jsonl.dumps(report))
         return
     when = "" if finished else f", unfinished: checkpoint at epoch {report['epoch']:,} of {report['epochs']:,}"
     out.print(f"{record['name']} ({record['budget']} budget, {method}), seed index {seed_index}{when}")

@@ -12,6 +12,7 @@ from rich.table import Table
 from rich.text import Text
 
 from esr_cli.cli.app import Exit, app, check_budget, check_output_file, err, out, refuse_inside_store
+from esr_cli.common import jsonl
 from esr_cli.common.printing import print_table, printable, tagged
 from esr_cli.storage.provenance import wall_time
 from esr_cli.storage.store import KINDS, RUN_KIND, Store
@@ -35,7 +36,7 @@ def ls(
         check_budget(budget)
     found = list(listing.rows(ctx.obj.store, kind, name, method, budget))
     if as_json:
-        out.print_json(json.dumps([r for r, _ in found]))
+        out.print_json(jsonl.dumps([r for r, _ in found]))
         return
     if not found:
         filtered = any(v is not None for v in (kind, name, method, budget))
@@ -73,9 +74,9 @@ def show(
     """Print what an artifact is: a readable summary, or its manifest with --json."""
     path = ctx.obj.store.resolve(ref)
     manifest = ctx.obj.store.read_manifest(path)
-    if as_json:
-        out.print(Text(printable(str(path)), style="bold"), highlight=False)
-        out.print_json(json.dumps(manifest))
+    if as_json:  # stdout is the JSON alone, for a pipe (`| jq`); the path goes beside it
+        err.print(Text(printable(str(path)), style="bold"), highlight=False)
+        out.print_json(jsonl.dumps(manifest))
         return
     from esr_cli.report import listing
     from esr_cli.storage.store import Entry

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Optional
 
 import typer
 
 from esr_cli.cli.app import BudgetOpt, Exit, app, check_budget, check_executor, check_output_file, draw_preview, err, out
+from esr_cli.common import jsonl
 from esr_cli.common.printing import own, tagged
 from esr_cli.storage.artifacts import ensure
 
@@ -97,7 +97,7 @@ def sweep(
             except sw.SuiteError as e:
                 raise Exit(2, str(e)) from None
             if as_json:
-                out.print_json(json.dumps(rows))
+                out.print_json(jsonl.dumps(rows))
             elif markdown:
                 out.print(own(sw.results_markdown(suite, rows, metrics, checks)), highlight=False)
             else:
@@ -121,7 +121,7 @@ def sweep(
         if show_status:
             rows = sw.status(suite, ctx.obj.store)
             if as_json:
-                out.print_json(json.dumps(sw.status_json(rows)))
+                out.print_json(jsonl.dumps(sw.status_json(rows)))
             else:
                 out.print(sw.status_table(suite, rows))
             return
@@ -200,7 +200,7 @@ def paper_(
         err.print(reproduction.summary_line(findings))
         err.print(tagged("reproduction report", "green", f": {report_out}"))
         if as_json:
-            out.print(own(json.dumps(reproduction.findings_json(findings), indent=2)), highlight=False)
+            out.print(own(jsonl.dumps(reproduction.findings_json(findings), indent=2)), highlight=False)
         else:
             out.print(str(report_out), highlight=False)
         return

@@ -124,3 +124,19 @@ def read_jsonl(path: Path) -> list[dict]:
                 break
             rows.append(row)
     return rows
+
+
+def dumps(value: Any, **options) -> str:
+    """`value` as strict JSON, which every reader parses: a NaN or an infinity (which a manifest
+    read from an archive may hold, and Python's json would write as the non-JSON `NaN`) is null."""
+
+    def finite(v: Any) -> Any:
+        if isinstance(v, float):
+            return v if v == v and v not in (float("inf"), float("-inf")) else None
+        if isinstance(v, dict):
+            return {k: finite(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [finite(x) for x in v]
+        return v
+
+    return json.dumps(finite(value), allow_nan=False, **options)

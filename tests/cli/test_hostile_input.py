@@ -557,7 +557,8 @@ def test_a_store_path_that_looks_like_markup_is_printed_as_written(tmp_path, cap
     assert main(["--store", str(there), "import", str(archive)]) == 0
     assert capsys.readouterr().out.strip() == str(there / "runs" / key[:2] / key)
     assert main(["--store", str(there), "show", key[:8], "--json"]) == 0
-    assert capsys.readouterr().out.splitlines()[0] == str(there / "runs" / key[:2] / key)
+    shown = capsys.readouterr()
+    assert shown.err.strip() == str(there / "runs" / key[:2] / key) and json.loads(shown.out)["key"] == key
 
 
 def test_only_the_printing_module_makes_consoles():

@@ -58,3 +58,13 @@ def test_a_metrics_file_with_no_sound_row_reads_as_no_epoch(tmp_path):
     assert finals.read_rows(run) == [] and finals.run_progress(run) == (0, None)
     out = finals.run_finals(run, ("return",))
     assert (out["seeds"], out["epochs"]) == (0, 0)
+
+
+def test_json_esr_prints_is_strict_whatever_a_manifest_held():
+    """A manifest from an archive may hold NaN or an infinity, which Python writes as non-JSON
+    `NaN`: what `--json` prints is null there, so every JSON reader parses it."""
+    from esr_cli.common.jsonl import dumps
+
+    text = dumps({"summary": {"return": {"mean": float("nan"), "per_seed": [1.5, float("inf"), float("-inf")]}}, "k": (1, "a")})
+    assert text == '{"summary": {"return": {"mean": null, "per_seed": [1.5, null, null]}}, "k": [1, "a"]}'
+    json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} is not JSON"))
