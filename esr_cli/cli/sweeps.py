@@ -14,7 +14,8 @@ from esr_cli.storage.artifacts import ensure
 
 
 def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait, job_opts,
-                                  unfinished=False, out_dir=None, exact=False, any_code=False, diagnose=False):
+                                  unfinished=False, out_dir=None, exact=False, any_code=False, diagnose=False,
+                                  evals=False):
     """An option that would change nothing is a mistake to name, not to ignore."""
     for flag, given in (("--unfinished", unfinished), ("--out", out_dir is not None)):
         if given and not plot:
@@ -24,7 +25,7 @@ def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, 
     if as_json and markdown:
         raise Exit(2, "--json and --markdown: choose one")
     for flag, given in (("--markdown", markdown), ("--metric", metric), ("--plot", plot), ("--exact", exact),
-                        ("--diagnose", diagnose), ("--any-code", any_code)):
+                        ("--diagnose", diagnose), ("--eval", evals), ("--any-code", any_code)):
         if given and not show_results:
             raise Exit(2, f"{flag} applies with --results only")
     if any_code and plot:
@@ -65,6 +66,9 @@ def sweep(
     diagnose: bool = typer.Option(False, "--diagnose", help="--results: also each robot's diagnoses as the store holds "
                                   "them, seed by seed (esr diagnose RUN --seed-index I), and the commands that make "
                                   "the missing ones; computes nothing"),
+    evals: bool = typer.Option(False, "--eval", help="--results: also each run's evaluations as the store holds them "
+                               "(esr eval RUN, and --human proxy for a BC human's run), and the commands that make "
+                               "the missing ones; computes nothing"),
     any_code: bool = typer.Option(False, "--any-code", help="--results: a run this code has not made is read from a "
                                   "finished run of the same spec, budget and seeds made by other training code "
                                   "(another commit, device or jax: an imported archive), its row naming that commit"),
@@ -76,12 +80,12 @@ def sweep(
     mem_gb: Optional[float] = typer.Option(None, "--mem-gb", help="slurm: memory per job, GB"),
 ):
     """Train every run of a suite that the store lacks: here, or as SLURM jobs (docs/cluster.md)."""
-    from esr_cli.recipes import sweep as sw
+    from esr_cli.recipes import check_columns, sweep as sw
 
     check_executor(executor, sw.EXECUTORS)
     _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait,
                                   {"--partition": partition, "--time-min": time_min, "--gpus": gpus,
-                                   "--cpus": cpus, "--mem-gb": mem_gb}, unfinished, out_dir, exact, any_code, diagnose)
+                                   "--cpus": cpus, "--mem-gb": mem_gb}, unfinished, out_dir, exact, any_code, diagnose, evals)
     overrides = {"partition": partition, "time_min": time_min, "gpus": gpus, "cpus": cpus, "mem_gb": mem_gb}
     try:
         sw.slurm_options(sw.SlurmOptions(), overrides, "")  # before the suite's runs are built
@@ -91,7 +95,8 @@ def sweep(
         suite = sw.load_suite(suite_file, budget)
         if show_results:
             metrics = tuple(dict.fromkeys(metric)) if metric else sw.DEFAULT_RESULT_METRICS
-            checks = tuple(name for name, given in (("exact", exact), ("diagnosis", diagnose)) if given)
+            given = {"--exact": exact, "--diagnose": diagnose, "--eval": evals}
+            checks = tuple(c.name for c in check_columns.REGISTRY.values() if given[c.option])
             try:
                 rows = sw.results(suite, ctx.obj.store, metrics, checks, any_code)  # refuses a metric no run can log
             except sw.SuiteError as e:

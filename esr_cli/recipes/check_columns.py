@@ -1,6 +1,6 @@
 """Columns a table of results (`esr sweep --results`) can carry beside each done run's finals,
-read from the store's other artifacts of that run: its exact checks (`--exact`) and its
-diagnoses (`--diagnose`). Nothing here computes: a check the store lacks shows as '—' and is
+read from the store's other artifacts of that run: its exact checks (`--exact`), its
+diagnoses (`--diagnose`) and its evaluations (`--eval`). Nothing here computes: a check the store lacks shows as '—' and is
 named by the command that makes it, printed below the table.
 
 Each kind of check is a `CheckColumns` in `REGISTRY`; a table's columns are those of the checks
@@ -14,7 +14,7 @@ from typing import Callable, Optional
 
 from esr_cli.common.printing import printable, train_line
 from esr_cli.model import spec as spec_model
-from esr_cli.recipes import diagnosis_lookup, exact_lookup
+from esr_cli.recipes import diagnosis_lookup, eval_lookup, exact_lookup
 from esr_cli.recipes.suite import Run, Suite
 from esr_cli.recipes.targets import exact_defaults
 from esr_cli.storage.store import Store
@@ -108,7 +108,19 @@ DIAGNOSIS = CheckColumns(
     applies=_learns_a_policy, read=diagnosis_lookup.read_diagnoses, cells=_diagnosis_cells, refusal=_no_policy,
 )
 
-REGISTRY = {c.name: c for c in (EXACT, DIAGNOSIS)}
+def _eval_cells(run: Run, budget: str, esr: str, found) -> tuple[dict[str, str], list[str]]:
+    shown = eval_lookup.partners(run.spec)
+    cells, missing = eval_lookup.run_cells(found, run.key, run.spec.eval.episodes, shown)
+    todo = [f"{esr} eval {run.key[:8]}" + ("" if partner == "training" else f" --human {partner}") for partner in missing]
+    return cells, [printable(line) for line in todo]
+
+
+EVAL = CheckColumns(
+    name="eval", option="--eval", columns=eval_lookup.COLUMNS, note=eval_lookup.NOTE,
+    applies=lambda spec: True, read=eval_lookup.read_evals, cells=_eval_cells, refusal=lambda suite: None,
+)
+
+REGISTRY = {c.name: c for c in (EXACT, DIAGNOSIS, EVAL)}
 
 
 def chosen(names) -> tuple[CheckColumns, ...]:

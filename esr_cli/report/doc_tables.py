@@ -23,14 +23,15 @@ import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
+from esr_cli.recipes import check_columns
 from esr_cli.storage.store import Store
 
 END = "<!-- end of generated table -->"
 _START = re.compile(r"^<!-- (esr\s.*) -->$")  # any esr command: one that is not a sweep table is named
 MAX_DOC_BYTES = 4 << 20  # a markdown page of this project is tens of KiB
 MAX_DIFF_LINES = 60
-_FLAGS = {"--results", "--markdown", "--any-code", "--exact", "--diagnose"}
-_CHECK_FLAGS = {"--exact": "exact", "--diagnose": "diagnosis"}  # flag -> check_columns name
+_CHECK_FLAGS = {c.option: c.name for c in check_columns.REGISTRY.values()}  # flag -> check_columns name
+_FLAGS = {"--results", "--markdown", "--any-code", *_CHECK_FLAGS}
 _VALUED = {"--budget": "budget", "-b": "budget", "--metric": "metric"}
 
 
@@ -43,7 +44,7 @@ class Command:
     suite: Path
     budget: str
     metrics: tuple[str, ...]
-    checks: tuple[str, ...]  # check_columns names: "exact", "diagnosis"
+    checks: tuple[str, ...]  # check_columns names ("exact", "diagnosis", "eval")
     any_code: bool
 
 

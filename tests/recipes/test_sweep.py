@@ -231,6 +231,15 @@ def test_sweep_through_submitit_local(smoke_run, tmp_path):
     last = json.loads((result.paths[0] / "metrics.jsonl").read_text().splitlines()[-1])
     first_row = next(line for line in md.splitlines() if line.startswith("| grid_2 train.seeds="))
     assert f"| {last['mi_estimate'][0]:.3f} (1 seed) | — |" in first_row
+    # --eval: each run's stored evaluation beside its finals, the command for each missing one
+    evaluated = Path(esr("eval", result.paths[0].name[:8], store=store).stdout.strip().splitlines()[-1])
+    mode = next(iter(json.loads((evaluated / "summary.json").read_text())["results"].values()))
+    md = esr("sweep", str(three), "--budget", "smoke", "--results", "--markdown", "--eval", store=store).stdout
+    assert "| wall | eval return, training human (first policy mode) | eval return, held-out proxy human" in md
+    rows_md = [line for line in md.splitlines() if line.startswith("| grid_2 train.seeds=")]
+    assert f"| {mode['return_per_seed'][0]:.2f} (1 seed) |  |" in rows_md[0]  # a gridworld human has no proxy
+    assert rows_md[1].endswith("| — |  |") and f"esr eval {result.paths[1].name[:8]}\n" in md
+    assert f"esr eval {result.paths[0].name[:8]}" not in md
 
     # --plot: their learning curves and table as a figures artifact naming every run it read.
     proc = esr("sweep", str(three), "--budget", "smoke", "--results", "--plot", store=store, **WIDE)
