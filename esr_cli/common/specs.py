@@ -134,12 +134,15 @@ MAX_OVERRIDE_CHARS = 10_000
 _VALIDATOR_TAG = re.compile(r"[a-z][a-z0-9_-]*\[.*\]", re.S)
 
 
-def _format_loc(loc: tuple) -> str:
+def _format_loc(loc: tuple, user_key_last: bool = False) -> str:
+    """A pydantic error location as the key path the user wrote; `user_key_last`: its last part
+    is a key of the input (an unknown key), kept whatever it looks like."""
     out = []
     for i, part in enumerate(loc):
-        if isinstance(part, int):
+        last_key = user_key_last and i == len(loc) - 1
+        if isinstance(part, int) and not last_key:
             out.append(f"[{part}]")
-        elif (i == 1 and loc[0] in KIND_MODELS and part in KIND_MODELS[loc[0]]) or _VALIDATOR_TAG.fullmatch(str(part)):
+        elif not last_key and ((i == 1 and loc[0] in KIND_MODELS and part in KIND_MODELS[loc[0]]) or _VALIDATOR_TAG.fullmatch(str(part))):
             continue  # pydantic's discriminated-union and validator tags (`method.esr.x`) are not user key paths
         else:
             out.append(("." if out else "") + str(part))
@@ -252,7 +255,7 @@ def validate(raw: dict, source: str = "") -> Spec:
                 loc, msg = loc + (typo[0],), f"unknown key; did you mean `kind`? (the section {msg})"
         elif err["type"] == "union_tag_invalid":
             msg = f"kind {err.get('ctx', {}).get('tag')!r} is not one of {', '.join(section)}"
-        raise SpecError(source, _format_loc(loc), msg + other_problems(e)) from None
+        raise SpecError(source, _format_loc(loc, err["type"] == "extra_forbidden"), msg + other_problems(e)) from None
 
 
 def _merge(base: dict, child: dict) -> dict:

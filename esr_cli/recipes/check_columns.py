@@ -111,7 +111,11 @@ DIAGNOSIS = CheckColumns(
 def _eval_cells(run: Run, budget: str, esr: str, found) -> tuple[dict[str, str], list[str]]:
     shown = eval_lookup.partners(run.spec)
     cells, missing = eval_lookup.run_cells(found, run.key, run.spec.eval.episodes, shown)
-    todo = [f"{esr} eval {run.key[:8]}" + ("" if partner == "training" else f" --human {partner}") for partner in missing]
+    # The episode count named: `esr eval KEY` takes its default from the stored run's spec, whose
+    # eval section is not part of the run's key (another spec of the same run may differ there).
+    episodes = run.spec.eval.episodes
+    todo = [f"{esr} eval {run.key[:8]} --episodes {episodes}" + ("" if partner == "training" else f" --human {partner}")
+            for partner in missing]
     return cells, [printable(line) for line in todo]
 
 

@@ -101,7 +101,12 @@ def run_spec(run_path: Path):
     if problem:
         raise StoreError(f"{run_path}: {problem}; the run cannot be read (`esr verify {run_path.name[:12]}`)")
     try:
-        return specs.validate(yamlio.read(source), str(source))
+        raw = yamlio.read(source)
+        if isinstance(raw, dict) and isinstance(raw.get("human"), dict):
+            # The stored fields are the preset's values when the run trained: read again, a named
+            # preset would lay today's table over them (the key is of the values, not the name).
+            raw["human"] = {k: v for k, v in raw["human"].items() if k != "preset"}
+        return specs.validate(raw, str(source))
     except (specs.SpecError, yamlio.YamlInputError) as e:
         raise StoreError(f"{source}: not a spec this esr reads ({printable(str(e))})") from None
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import Iterator
 
-from esr_cli.storage.store import RUN_KIND, Entry, Store
+from esr_cli.storage.store import RUN_KIND, Entry, Store, StoreError
 
 FINAL_RETURN = ("final return: a run's mean over each seed's last 10% of epochs (so far, if unfinished), averaged "
                 "over seeds, as in figures and reports")
@@ -47,15 +47,15 @@ def created_of(manifest: dict) -> str | None:
 
 def overrides_of(entry: Entry) -> list[str] | None:
     """The --set values that make this run from experiments/<name>.yaml at its budget."""
-    from esr_cli.common import specs, yamlio
+    from esr_cli.recipes.targets import run_spec
     from esr_cli.report.reproduction import train_overrides
 
     spec_file = entry.path / "spec.yaml"
     if entry.kind != RUN_KIND or not spec_file.is_file():
         return None
     try:
-        spec = specs.validate(yamlio.read(spec_file), str(spec_file))
-    except (specs.SpecError, yamlio.YamlInputError):
+        spec = run_spec(entry.path)  # only the spec its key was computed from
+    except StoreError:
         return None
     found = train_overrides(spec, spec.budget)
     return None if found is None else found[1]

@@ -23,11 +23,12 @@ from esr_cli.common import specs, yamlio
 from esr_cli.common.printing import train_line
 from esr_cli.common.stats import describe, format_summary, mean_difference_ci, probability_of_improvement, scored_seeds
 from esr_cli.model import spec as spec_model
+from esr_cli.recipes.targets import run_spec
 from esr_cli.storage import provenance
 from esr_cli.storage.artifacts import ensure
 from esr_cli.storage.checkpoint_files import verified_steps
 from esr_cli.storage.finals import FINAL_FRACTION, final_per_seed, read_rows, series
-from esr_cli.storage.store import RUN_KIND, Store, atomic_write_bytes, atomic_write_text
+from esr_cli.storage.store import RUN_KIND, Store, StoreError, atomic_write_bytes, atomic_write_text
 
 EXPERIMENTS = provenance.experiments_dir()
 PAPER_EPOCHS = 10_000
@@ -123,9 +124,9 @@ def index_store(store: Store) -> dict[str, list[Evidence]]:
         if entry.kind != RUN_KIND or not (entry.path / "spec.yaml").is_file():
             continue
         try:
-            spec = specs.validate(yamlio.read(entry.path / "spec.yaml"), str(entry.path))
-        except (specs.SpecError, yamlio.YamlInputError):
-            continue  # made by code whose spec fields this version no longer reads
+            spec = run_spec(entry.path)  # only the spec its key was computed from
+        except StoreError:
+            continue  # made by code whose spec fields this version no longer reads, or not its key's spec
         info = entry.manifest or {}
         made = provenance.origin(info)
         resumable = entry.status == "complete" or bool(verified_steps(entry.path))

@@ -110,7 +110,7 @@ def run_finals(run_path: Path, names: tuple[str, ...] = ("return", "success")) -
     from esr_cli.common.stats import describe  # scipy: only where statistics are made
 
     rows = read_rows(run_path)
-    seeds = series(rows, "return")[1].shape[1] if any("return" in r for r in rows) else 0
+    seeds = max((len(r["return"]) for r in rows), default=0)  # every sound row has its return list
     out: dict = {"seeds": seeds, "epochs": rows[-1]["epoch"] if rows else 0}
     for name in names:
         out[name] = describe(final_per_seed(rows, name) if rows else [])

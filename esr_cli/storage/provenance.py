@@ -234,7 +234,9 @@ def session_wall(session: dict) -> float | None:
     """The seconds a session recorded that it worked (None: it was killed before it could say,
     or an older esr made it)."""
     wall = session.get("wall_s")
-    return float(wall) if isinstance(wall, (int, float)) and not isinstance(wall, bool) and 0 <= wall < 1e12 else None
+    if isinstance(wall, bool) or not isinstance(wall, (int, float)) or not 0 <= wall < 1e12:  # NaN fails the range too
+        return None
+    return float(wall)
 
 
 def with_wall(sessions: list[dict], seconds: float) -> list[dict]:
@@ -246,8 +248,7 @@ def wall_time(info: dict | None) -> tuple[float | None, bool]:
     """(seconds, whether that is every session's) of a manifest: the sum over its sessions when
     they recorded their own (a resumed run's sessions add up), else its `wall_time_s`, which an
     older esr wrote for the last session only; a lower bound when some session did not say."""
-    total = info.get("wall_time_s") if isinstance(info, dict) else None
-    total = float(total) if isinstance(total, (int, float)) and not isinstance(total, bool) else None
+    total = session_wall({"wall_s": info.get("wall_time_s")}) if isinstance(info, dict) else None
     sessions = earlier_sessions(info) if isinstance(info, dict) and isinstance(info.get("sessions"), list) else []
     return total, len(sessions) <= 1 or all(session_wall(s) is not None for s in sessions)
 

@@ -965,3 +965,29 @@ def test_a_run_whose_spec_yaml_is_not_its_keys_is_not_evaluated_or_diagnosed(smo
         proc = esr(command, path.name[:12], store=tmp_path / "store", check=False)
         assert proc.returncode == 2 and problem in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert not (tmp_path / "store" / "diagnoses").exists() and not (tmp_path / "store" / "evals").exists()
+
+
+def test_a_stored_run_keeps_the_human_it_trained_with_when_its_preset_changes(tmp_path, monkeypatch):
+    """A run's spec.yaml holds its human's fields as its preset resolved them when it trained;
+    read back, the preset's name must not lay a later table of values over them."""
+    import yaml
+
+    from esr_cli.common import specs
+    from esr_cli.model import spec as spec_model
+    from esr_cli.recipes.targets import run_spec
+    from esr_cli.storage.transfer import TRAINING_SECTIONS
+
+    trained = specs.load("experiments/cramped_room.yaml", "quick").model_dump(mode="json")
+    assert trained["human"]["preset"] == "paper" and trained["human"]["total_steps"] == 1_000_000
+    run = tmp_path / "runs" / "ab" / ("ab" * 16)
+    run.mkdir(parents=True)
+    (run / "spec.yaml").write_text(yaml.safe_dump(trained))
+    spec_part = {s: trained[s] for s in TRAINING_SECTIONS}
+    spec_part["human"] = {k: v for k, v in trained["human"].items() if k != "preset"}
+    (run / "manifest.json").write_text(json.dumps({"kind": "runs", "key": "ab" * 16, "files": {},
+                                                   "key_components": {"spec": spec_part, "budget": "quick"}}))
+    later = {**spec_model.HUMAN_PRESETS["paper"], "cramped_room": {**spec_model.HUMAN_PRESETS["paper"]["cramped_room"],
+                                                                     "total_steps": 2_000_000}}
+    monkeypatch.setitem(spec_model.HUMAN_PRESETS, "paper", later)
+    assert specs.load("experiments/cramped_room.yaml", "quick").human.total_steps == 2_000_000  # a new run: today's table
+    assert run_spec(run).human.total_steps == 1_000_000  # the stored run: the human it trained with

@@ -238,7 +238,7 @@ def test_sweep_through_submitit_local(smoke_run, tmp_path):
     assert "| wall | eval return, training human (first policy mode) | eval return, held-out proxy human" in md
     rows_md = [line for line in md.splitlines() if line.startswith("| grid_2 train.seeds=")]
     assert f"| {mode['return_per_seed'][0]:.2f} (1 seed) |  |" in rows_md[0]  # a gridworld human has no proxy
-    assert rows_md[1].endswith("| — |  |") and f"esr eval {result.paths[1].name[:8]}\n" in md
+    assert rows_md[1].endswith("| — |  |") and f"esr eval {result.paths[1].name[:8]} --episodes " in md
     assert f"esr eval {result.paths[0].name[:8]}" not in md
 
     # --plot: their learning curves and table as a figures artifact naming every run it read.

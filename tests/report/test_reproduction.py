@@ -242,6 +242,18 @@ def test_finished_runs_that_differ_only_in_their_seeds_are_pooled():
     assert rep.judge(above, _index(seed1, seed0, random)).a.parts == ()
 
 
+def _components_of(spec_file):
+    """The key components a run's spec.yaml must match (what training keys it by)."""
+    import yaml
+
+    from esr_cli.storage.transfer import TRAINING_SECTIONS
+
+    raw = yaml.safe_load(spec_file.read_text())
+    part = {s: raw.get(s) for s in TRAINING_SECTIONS}
+    part["human"] = {k: v for k, v in raw["human"].items() if k != "preset"}
+    return {"spec": part, "budget": raw["budget"]}
+
+
 def test_a_run_resumed_elsewhere_names_where_it_started_and_every_device(tmp_path):
     """The commit is the one it started from (flagged when that checkout's esr_cli/ had edits);
     the devices are every one it ran on, in order."""
@@ -258,7 +270,8 @@ def test_a_run_resumed_elsewhere_names_where_it_started_and_every_device(tmp_pat
                 {"commit": "b" * 40, "dirty": False, "device": "gpu:NVIDIA H200"},
                 {"commit": "b" * 40, "dirty": False, "device": "gpu:NVIDIA H200"}]
     manifest = {"kind": "runs", "key": key, "files": {}, "budget": "paper", "sessions": sessions,
-                "provenance": {"git": {"commit": "b" * 40}, "device": "gpu:NVIDIA H200"}}
+                "provenance": {"git": {"commit": "b" * 40}, "device": "gpu:NVIDIA H200"},
+                "key_components": _components_of(run / "spec.yaml")}
     (run / "manifest.json").write_text(json.dumps(manifest))
     [ev] = [e for evs in rep.index_store(Store(tmp_path)).values() for e in evs]
     assert ev.commit == "a" * 40 and ev.device == "gpu:NVIDIA H100, then gpu:NVIDIA H200"

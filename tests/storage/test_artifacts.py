@@ -227,7 +227,8 @@ def test_an_older_manifests_wall_time_is_a_lower_bound_and_a_damaged_one_is_none
     assert provenance.wall_time(older) == (79.3, False)
     assert _wall({"wall_s": 79.3, "wall_whole": False}) == "≥ 79 s"
     assert provenance.wall_time({"wall_time_s": 12.0, "sessions": [{"commit": "a"}]}) == (12.0, True)
-    for damaged in ({"wall_time_s": "79"}, {"wall_time_s": True}, {"wall_time_s": None}, [], None, {}):
+    for damaged in ({"wall_time_s": "79"}, {"wall_time_s": True}, {"wall_time_s": None}, {"wall_time_s": 10 ** 400},
+                    {"wall_time_s": float("nan")}, {"wall_time_s": float("inf")}, {"wall_time_s": -5}, [], None, {}):
         assert provenance.wall_time(damaged)[0] is None
     assert provenance.session_wall({"wall_s": -1}) is None and provenance.session_wall({"wall_s": "5"}) is None
     # an older esr's stopped record: the session's time is when it stopped less when it started
