@@ -13,6 +13,7 @@ import math
 from dataclasses import asdict
 from typing import Optional
 
+from esr_cli.common.numbers import as_count, as_number
 from esr_cli.recipes.diagnosis_runs import Options
 from esr_cli.storage.artifacts import summary_or_empty
 from esr_cli.storage.store import DIAGNOSIS_KIND, Store
@@ -48,13 +49,11 @@ def _at(tree, *path):
 
 def number(tree, *path) -> Optional[float]:
     """The number at `path` in a summary (never a bool or text), or None."""
-    v = _at(tree, *path)
-    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+    return as_number(_at(tree, *path))
 
 
 def count(tree, *path) -> Optional[int]:
-    v = _at(tree, *path)
-    return v if isinstance(v, int) and not isinstance(v, bool) else None
+    return as_count(_at(tree, *path))
 
 
 def fmt(v: Optional[float], spec: str) -> str:

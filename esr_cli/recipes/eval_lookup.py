@@ -9,8 +9,10 @@ as '—', never a crash or a number made up.
 
 from __future__ import annotations
 
+import math
 from typing import Optional
 
+from esr_cli.common.numbers import as_number
 from esr_cli.common.stats import describe, format_summary
 from esr_cli.storage.artifacts import summary_or_empty
 from esr_cli.storage.store import EVAL_KIND, Store
@@ -65,9 +67,10 @@ def per_seed_returns(summary: dict) -> Optional[list[float]]:
     values = first.get("return_per_seed") if isinstance(first, dict) else None
     if not isinstance(values, list) or not values or len(values) > 10_000:
         return None
-    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and abs(v) < 1e300 for v in values):
+    numbers = [as_number(v) for v in values]
+    if not all(v is not None and math.isfinite(v) for v in numbers):
         return None
-    return [float(v) for v in values]
+    return numbers
 
 
 def run_cells(found: dict, run_key: str, episodes: int, shown: tuple[str, ...]) -> tuple[dict[str, str], list[str]]:

@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass
 from typing import Optional
 
+from esr_cli.common.numbers import as_count, as_number
 from esr_cli.storage.artifacts import summary_or_empty as _summary
 from esr_cli.storage.store import EXACT_KIND, FIGURE_KIND, Store
 
@@ -31,15 +32,6 @@ class SeedCheck:
     visited_pairs: Optional[int] = None
 
 
-def _number(v) -> Optional[float]:
-    """A number read from a store (never a bool or text), or None."""
-    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
-
-
-def _count(v) -> Optional[int]:
-    return v if isinstance(v, int) and not isinstance(v, bool) else None
-
-
 @dataclass(frozen=True)
 class Target:
     """What an exact check of a run is of: the run's environment and human (its spec's training
@@ -53,8 +45,8 @@ class Target:
 
     def matches(self, comps: dict) -> Optional[int]:
         """The seed index of an exact artifact's key components when they are of this target."""
-        robot, goal, gamma = comps.get("robot"), comps.get("goal"), _number(comps.get("gamma"))
-        if not isinstance(robot, dict) or robot.get("run") != self.run_key or _count(robot.get("seed_index")) is None:
+        robot, goal, gamma = comps.get("robot"), comps.get("goal"), as_number(comps.get("gamma"))
+        if not isinstance(robot, dict) or robot.get("run") != self.run_key or as_count(robot.get("seed_index")) is None:
             return None
         if not isinstance(goal, list) or tuple(goal) != self.goal or gamma is None or not math.isclose(gamma, self.gamma):
             return None
@@ -108,19 +100,19 @@ def run_checks(checks: StoreChecks, target: Target, seeds: int) -> list[SeedChec
             continue
         sampled, _, key, path = max(exacts[i], key=lambda e: e[:2])
         summary = _summary(path)
-        fields = {"exact": key, "effective_empowerment": _number(summary.get("effective_empowerment")),
+        fields = {"exact": key, "effective_empowerment": as_number(summary.get("effective_empowerment")),
                   # summaries made before `pairs` was recorded were always of every pair
                   "complete": summary.get("pairs", "all") == "all" if summary else None, "sampled": sampled}
         result = _summary(checks.estimators[key]) if key in checks.estimators else {}
-        if _number(result.get("spearman_visited")) is not None:  # NaN too: a constant estimate has no rank correlation
-            fields.update(spearman_visited=_number(result.get("spearman_visited")),
-                          visited_pairs=_count(result.get("visited_pairs")))
+        if as_number(result.get("spearman_visited")) is not None:  # NaN too: a constant estimate has no rank correlation
+            fields.update(spearman_visited=as_number(result.get("spearman_visited")),
+                          visited_pairs=as_count(result.get("visited_pairs")))
             if result.get("complete", fields["complete"]) is True:
-                fields["spearman_all"] = _number(result.get("spearman"))
+                fields["spearman_all"] = as_number(result.get("spearman"))
             ci = result.get("spearman_sample_ci")
-            rho = _number(result.get("spearman_sample"))
-            if rho is not None and isinstance(ci, list) and len(ci) == 2 and all(_number(c) is not None for c in ci):
-                fields.update(spearman_sample=(rho, float(ci[0]), float(ci[1])), sample_pairs=_count(result.get("sample_pairs")))
+            rho = as_number(result.get("spearman_sample"))
+            if rho is not None and isinstance(ci, list) and len(ci) == 2 and all(as_number(c) is not None for c in ci):
+                fields.update(spearman_sample=(rho, float(ci[0]), float(ci[1])), sample_pairs=as_count(result.get("sample_pairs")))
         out.append(SeedCheck(**fields))
     return out
 

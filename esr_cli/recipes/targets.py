@@ -93,21 +93,25 @@ def run_spec(run_path: Path):
     """The validated spec a run was trained from (its spec.yaml), once it is the spec the run's
     key was computed from: a spec.yaml swapped under a genuine key (an archive's, a damaged
     store's) would make an evaluation or diagnosis of another spec stored as this run's."""
-    from esr_cli.storage.transfer import spec_problem
+    from esr_cli.storage.transfer import spec_mismatch
 
     source = run_path / "spec.yaml"
     record = read_pending(run_path) if parse_dirname(run_path.name)[1] == "partial" else load_manifest(run_path)
-    problem = spec_problem(run_path, record or {}) if source.exists() else "it has no spec.yaml"
+    raw, problem = None, "it has no spec.yaml"
+    if source.exists():
+        try:
+            raw = yamlio.read(source)
+            problem = spec_mismatch(raw, record or {})  # None: a mapping with a human section
+        except yamlio.YamlInputError as e:
+            problem = f"its spec.yaml cannot be read ({e})"
     if problem:
         raise StoreError(f"{run_path}: {problem}; the run cannot be read (`esr verify {run_path.name[:12]}`)")
+    # The stored fields are the preset's values when the run trained: read again, a named preset
+    # would lay today's table over them (the key is of the values, not the name).
+    raw["human"] = {k: v for k, v in raw["human"].items() if k != "preset"}
     try:
-        raw = yamlio.read(source)
-        if isinstance(raw, dict) and isinstance(raw.get("human"), dict):
-            # The stored fields are the preset's values when the run trained: read again, a named
-            # preset would lay today's table over them (the key is of the values, not the name).
-            raw["human"] = {k: v for k, v in raw["human"].items() if k != "preset"}
         return specs.validate(raw, str(source))
-    except (specs.SpecError, yamlio.YamlInputError) as e:
+    except specs.SpecError as e:
         raise StoreError(f"{source}: not a spec this esr reads ({printable(str(e))})") from None
 
 

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from esr_cli.common.jsonl import read_jsonl
+from esr_cli.common.jsonl import JsonInputError, read_jsonl
+from esr_cli.common.numbers import as_number
 
 FINAL_FRACTION = 0.1
 
@@ -46,13 +47,7 @@ def epoch_rows(rows: list[dict]) -> list[dict]:
 
 
 def _number(x) -> bool:
-    if isinstance(x, bool) or not isinstance(x, (int, float)):
-        return False
-    try:
-        float(x)
-    except OverflowError:
-        return False
-    return True
+    return as_number(x) is not None
 
 
 SCALARS = ("env_steps",)  # a row's values for the whole epoch; every other metric is a list over seeds
@@ -92,16 +87,17 @@ def final_per_seed(rows: list[dict], name: str = "return") -> np.ndarray:
 
 def run_progress(run_path: Path) -> tuple[int, float | None]:
     """(epochs logged, the mean across seeds of each seed's final return); (0, None) while no
-    epoch is logged or where the rows are not a run's (a damaged or foreign file: listing a
-    store must not fail on it)."""
+    epoch is logged or where the file cannot be read (a link, too large, unreadable: listing a
+    store must not fail on it). `read_rows` keeps only rows as training writes them, so what
+    follows cannot fail on their contents."""
     try:
         rows = read_rows(run_path)
-        if not rows:
-            return 0, None
-        epochs, per_seed = int(rows[-1]["epoch"]), final_per_seed(rows)
-    except (KeyError, TypeError, ValueError, AttributeError, OverflowError, OSError):
+    except (JsonInputError, OSError):
         return 0, None
-    return epochs, float(np.nanmean(per_seed)) if np.isfinite(per_seed).any() else None
+    if not rows:
+        return 0, None
+    per_seed = final_per_seed(rows)
+    return rows[-1]["epoch"], float(np.nanmean(per_seed)) if np.isfinite(per_seed).any() else None
 
 
 def run_finals(run_path: Path, names: tuple[str, ...] = ("return", "success")) -> dict:

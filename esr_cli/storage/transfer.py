@@ -384,6 +384,12 @@ def spec_problem(run_dir: Path, record: dict) -> str | None:
         spec = yamlio.read(run_dir / "spec.yaml")
     except yamlio.YamlInputError as e:
         return f"its spec.yaml cannot be read ({e})"
+    return spec_mismatch(spec, record)
+
+
+def spec_mismatch(spec, record: dict) -> str | None:
+    """Why `spec`, a run's spec.yaml as read, is not the spec its key components hold, or None
+    (`spec_problem` for a spec already read)."""
     if not isinstance(spec, dict) or not isinstance(spec.get("human"), dict):
         return "its spec.yaml is not a spec"
     trained = {section: spec.get(section) for section in TRAINING_SECTIONS}

@@ -254,7 +254,7 @@ def test_a_damaged_stored_diagnosis_shows_dashes_never_a_crash_or_a_number():
     hostile = {
         "play": {"robot": {"return": "26"}, "uniform": {"return": True}},
         "reward": {"free": {"mean": [1]}, "trapped": "x", "dead": {"mean": float("nan")}},
-        "free_vs_trapped": ["effect_size", 3],
+        "free_vs_trapped": {"effect_size": 10**400},  # JSON allows it; float() of it overflows
         "start_states": ["not a row", {"free": {"p": "1"}}, {"free": {"p": 0.99}}],
         "representations": {"accuracy_phi": {"v": 1}, "layout_only": None},
     }

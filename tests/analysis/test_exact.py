@@ -473,7 +473,8 @@ def test_run_checks_read_only_the_runs_own_checks_and_pass_over_damaged_entries(
     artifact("exact", "23" * 16, exact_comps(1, gamma=None, robot={"run": run, "seed_index": "1"}), visited)
     artifact("exact", "24" * 16, "not a mapping", visited)
     artifact("exact", "30" * 16, exact_comps(2), "[1, 2]")  # a summary that is no mapping
-    artifact("figures", "31" * 16, {"figure": "estimator", "exact": "30" * 16}, {"spearman_sample": 0.4, "spearman_sample_ci": "x"})
+    artifact("figures", "31" * 16, {"figure": "estimator", "exact": "30" * 16},
+             {"spearman_sample": 0.4, "spearman_sample_ci": "x", "spearman_visited": 10**400})  # too large for a float
     (tmp_path / "exact" / "40").mkdir()
     (tmp_path / "exact" / "40" / ("40" * 16)).mkdir()  # no manifest at all
     checks = run_checks(read_checks(Store(tmp_path)), Target(run, env, human, (2, 2), 0.9), 3)
