@@ -15,7 +15,7 @@ from esr_cli.storage.artifacts import ensure
 
 def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait, job_opts,
                                   unfinished=False, out_dir=None, exact=False, any_code=False, diagnose=False,
-                                  evals=False):
+                                  evals=False, play=False):
     """An option that would change nothing is a mistake to name, not to ignore."""
     for flag, given in (("--unfinished", unfinished), ("--out", out_dir is not None)):
         if given and not plot:
@@ -25,7 +25,7 @@ def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, 
     if as_json and markdown:
         raise Exit(2, "--json and --markdown: choose one")
     for flag, given in (("--markdown", markdown), ("--metric", metric), ("--plot", plot), ("--exact", exact),
-                        ("--diagnose", diagnose), ("--eval", evals), ("--any-code", any_code)):
+                        ("--diagnose", diagnose), ("--play", play), ("--eval", evals), ("--any-code", any_code)):
         if given and not show_results:
             raise Exit(2, f"{flag} applies with --results only")
     if any_code and plot:
@@ -66,6 +66,9 @@ def sweep(
     diagnose: bool = typer.Option(False, "--diagnose", help="--results: also each robot's diagnoses as the store holds "
                                   "them, seed by seed (esr diagnose RUN --seed-index I), and the commands that make "
                                   "the missing ones; computes nothing"),
+    play: bool = typer.Option(False, "--play", help="--results: also each robot's play check in full as its stored "
+                              "diagnoses hold it (return, the run's reward, MI estimate and the human's moves, its "
+                              "robot vs a uniform one), and the commands that make the missing ones; computes nothing"),
     evals: bool = typer.Option(False, "--eval", help="--results: also each run's evaluations as the store holds them "
                                "(esr eval RUN, and --human proxy for a BC human's run), and the commands that make "
                                "the missing ones; computes nothing"),
@@ -85,7 +88,7 @@ def sweep(
     check_executor(executor, sw.EXECUTORS)
     _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait,
                                   {"--partition": partition, "--time-min": time_min, "--gpus": gpus,
-                                   "--cpus": cpus, "--mem-gb": mem_gb}, unfinished, out_dir, exact, any_code, diagnose, evals)
+                                   "--cpus": cpus, "--mem-gb": mem_gb}, unfinished, out_dir, exact, any_code, diagnose, evals, play)
     overrides = {"partition": partition, "time_min": time_min, "gpus": gpus, "cpus": cpus, "mem_gb": mem_gb}
     try:
         sw.slurm_options(sw.SlurmOptions(), overrides, "")  # before the suite's runs are built
@@ -95,7 +98,7 @@ def sweep(
         suite = sw.load_suite(suite_file, budget)
         if show_results:
             metrics = tuple(dict.fromkeys(metric)) if metric else sw.DEFAULT_RESULT_METRICS
-            given = {"--exact": exact, "--diagnose": diagnose, "--eval": evals}
+            given = {"--exact": exact, "--diagnose": diagnose, "--play": play, "--eval": evals}
             checks = tuple(c.name for c in check_columns.REGISTRY.values() if given[c.option])
             try:
                 rows = sw.results(suite, ctx.obj.store, metrics, checks, any_code)  # refuses a metric no run can log

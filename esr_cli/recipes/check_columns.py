@@ -1,6 +1,6 @@
 """Columns a table of results (`esr sweep --results`) can carry beside each done run's finals,
 read from the store's other artifacts of that run: its exact checks (`--exact`), its
-diagnoses (`--diagnose`) and its evaluations (`--eval`). Nothing here computes: a check the store lacks shows as '—' and is
+diagnoses (`--diagnose`), their play checks in full (`--play`) and its evaluations (`--eval`). Nothing here computes: a check the store lacks shows as '—' and is
 named by the command that makes it, printed below the table.
 
 Each kind of check is a `CheckColumns` in `REGISTRY`; a table's columns are those of the checks
@@ -108,6 +108,19 @@ DIAGNOSIS = CheckColumns(
     applies=_learns_a_policy, read=diagnosis_lookup.read_diagnoses, cells=_diagnosis_cells, refusal=_no_policy,
 )
 
+def _play_cells(run: Run, budget: str, esr: str, found) -> tuple[dict[str, str], list[str]]:
+    applicable = diagnosis_lookup.play_applicable(run.spec.method.kind)
+    cells, missing = diagnosis_lookup.run_cells(found, run.key, len(run.spec.train.seeds), applicable,
+                                                diagnosis_lookup.PLAY_COLUMNS)
+    return cells, [printable(f"{esr} diagnose {run.key[:8]} --seed-index {i}") for i in missing]
+
+
+PLAY = CheckColumns(
+    name="play", option="--play", columns=diagnosis_lookup.PLAY_COLUMNS, note=diagnosis_lookup.PLAY_NOTE,
+    applies=_learns_a_policy, read=diagnosis_lookup.read_diagnoses, cells=_play_cells, refusal=_no_policy,
+)
+
+
 def _eval_cells(run: Run, budget: str, esr: str, found) -> tuple[dict[str, str], list[str]]:
     shown = eval_lookup.partners(run.spec)
     cells, missing = eval_lookup.run_cells(found, run.key, run.spec.eval.episodes, shown)
@@ -124,7 +137,7 @@ EVAL = CheckColumns(
     applies=lambda spec: True, read=eval_lookup.read_evals, cells=_eval_cells, refusal=lambda suite: None,
 )
 
-REGISTRY = {c.name: c for c in (EXACT, DIAGNOSIS, EVAL)}
+REGISTRY = {c.name: c for c in (EXACT, DIAGNOSIS, PLAY, EVAL)}
 
 
 def chosen(names) -> tuple[CheckColumns, ...]:

@@ -28,6 +28,19 @@ COLUMNS = {
     "starts_freed": "start states the policy frees, per seed",
     "play": "play check: return, its robot vs a uniform robot, per seed",
 }
+# The play check in full (`--play`): what `esr diagnose` prints of it, per seed, its robot's play
+# against a uniform robot's with the same human.
+PLAY_COLUMNS = {
+    "play_return": "return: its robot vs a uniform robot, per seed",
+    "play_reward": "the run's reward on that play, mean (sd), per seed",
+    "play_mi": "MI estimate on that play (nats), per seed",
+    "human_moves": "share of steps the human moves, per seed",
+}
+PLAY_NOTE = (f"Play checks (`esr diagnose RUN --seed-index I`, its default options), seed by seed: {Options().episodes} "
+             "episodes of the run's robot and of a uniform robot with the run's human, each cell 'its robot vs "
+             "uniform': the return, the run's own reward on each play (its mean over the steps, and sd), the MI "
+             "estimate of its representations on each play, and the share of steps on which the human's position "
+             "or orientation changes.")
 NOTE = ("Diagnoses (`esr diagnose RUN --seed-index I`, its default options), seed by seed: the reward on critic "
         "batches of the run's final buffer by the human's situation, Cohen's d of free against trapped, how often "
         "phi(s, aR, aH) and phi'(s, aR) pick a transition's future among a batch's and how often its block layout "
@@ -80,6 +93,11 @@ def read_diagnoses(store: Store) -> dict[tuple[str, int], object]:
     return found
 
 
+def play_applicable(method_kind: str) -> tuple[str, ...]:
+    """The cells of PLAY_COLUMNS a run's play check has: the MI estimate is ESR's alone."""
+    return tuple(c for c in PLAY_COLUMNS if c != "play_mi" or method_kind == "esr")
+
+
 def applicable(env_kind: str, method_kind: str) -> tuple[str, ...]:
     """The cells of COLUMNS a diagnosis of such a run has (every run it applies to learns a policy,
     so each has the play check)."""
@@ -91,11 +109,23 @@ def applicable(env_kind: str, method_kind: str) -> tuple[str, ...]:
     return tuple(c for c in COLUMNS if c in cells)
 
 
-def seed_cells(report: dict, cells: tuple[str, ...] = tuple(COLUMNS)) -> dict[str, str]:
-    """One seed's `cells` (of COLUMNS) from its diagnosis; '—' for a part missing or damaged."""
+def _versus(report: dict, cell) -> str:
+    """'its robot's vs the uniform robot's' of one play-check figure (`cell`: a player's record -> text)."""
+    play = report.get("play")
+    sides = [play.get(player) if isinstance(play, dict) else None for player in ("robot", "uniform")]
+    return " vs ".join(cell(side if isinstance(side, dict) else {}) for side in sides)
+
+
+def seed_cells(report: dict, cells: tuple[str, ...] = tuple(COLUMNS), columns: dict = COLUMNS) -> dict[str, str]:
+    """One seed's `cells` (of `columns`: COLUMNS or PLAY_COLUMNS) from its diagnosis; '—' for a
+    part missing or damaged."""
     reprs = report.get("representations")
     starts = report.get("start_states")
     out = {
+        "play_return": _versus(report, lambda r: fmt(number(r, "return"), ".2f")),
+        "play_reward": _versus(report, lambda r: f"{fmt(number(r, 'reward', 'mean'), '+.2f')} ({fmt(number(r, 'reward', 'sd'), '.1f')})"),
+        "play_mi": _versus(report, lambda r: fmt(number(r, "reward", "mi_estimate"), "+.3f")),
+        "human_moves": _versus(report, lambda r: fmt(number(r, "human_moves"), ".3f")),
         "reward_by_situation": ", ".join(fmt(number(report, "reward", s, "mean"), "+.2f") for s in SHOWN_SITUATIONS),
         "effect_size": fmt(number(report, "free_vs_trapped", "effect_size"), ".2f"),
         "future_picked": f"{fmt(number(reprs, 'accuracy_phi'), '.3f')}, {fmt(number(reprs, 'accuracy_phi_prime'), '.3f')}",
@@ -107,16 +137,17 @@ def seed_cells(report: dict, cells: tuple[str, ...] = tuple(COLUMNS)) -> dict[st
     if rows:
         freed = sum(1 for row in rows if (number(row, "free", "p") or 0.0) > 0.5)
         out["starts_freed"] = f"{freed} of {len(rows)}"
-    return {c: (out[c] if c in cells else "") for c in COLUMNS}
+    return {c: (out[c] if c in cells else "") for c in columns}
 
 
-def run_cells(found: dict, run_key: str, seeds: int, cells: tuple[str, ...] = tuple(COLUMNS)) -> tuple[dict[str, str], list[int]]:
-    """The run's `cells` joined seed by seed ('a / b'; '' for the others), and the seed indices
-    whose diagnosis the store lacks or cannot read ('—' in their place)."""
+def run_cells(found: dict, run_key: str, seeds: int, cells: tuple[str, ...] = tuple(COLUMNS),
+              columns: dict = COLUMNS) -> tuple[dict[str, str], list[int]]:
+    """The run's `cells` (of `columns`) joined seed by seed ('a / b'; '' for the others), and the
+    seed indices whose diagnosis the store lacks or cannot read ('—' in their place)."""
     per_seed, missing = [], []
     for i in range(seeds):
         report = summary_or_empty(found[(run_key, i)]) if (run_key, i) in found else {}
         if not report:  # none, or unreadable: made again by the same command
             missing.append(i)
-        per_seed.append(seed_cells(report, cells) if report else None)
-    return {col: " / ".join("—" if c is None else c[col] for c in per_seed) if col in cells else "" for col in COLUMNS}, missing
+        per_seed.append(seed_cells(report, cells, columns) if report else None)
+    return {col: " / ".join("—" if c is None else c[col] for c in per_seed) if col in cells else "" for col in columns}, missing

@@ -380,16 +380,26 @@ def _trained(spec_part: object, budget: object) -> str:
 def finished_runs_by_training(store: Store) -> dict[str, tuple[str, Path, provenance.Origin]]:
     """The store's finished runs by what they trained (`_trained`): key, path and origin of the
     newest of each. Runs made by other training code (another commit, device or jax) have other
-    keys; this is how `--any-code` finds them."""
+    keys; this is how `--any-code` finds them. What a run trained is its spec as this code reads
+    it (`targets.run_spec`, which refuses a spec.yaml that is not its key's): a field added since
+    the run was made reads at its default, the behaviour the run had, as the reproduction report
+    reads runs; a run whose spec this code no longer reads is passed over."""
+    from esr_cli.recipes.targets import run_spec
+    from esr_cli.storage.store import StoreError
+
     found: dict[str, tuple[str, str, Path, provenance.Origin]] = {}
     for entry in store.entries():
         info = entry.manifest
         if entry.kind != RUN_KIND or entry.status != "complete" or not isinstance(info, dict):
             continue
         comps = info.get("key_components")
-        if not isinstance(comps, dict) or not isinstance(comps.get("spec"), dict):
+        if not isinstance(comps, dict):
             continue
-        what = _trained(comps["spec"], comps.get("budget"))
+        try:
+            spec = run_spec(entry.path)
+        except StoreError:
+            continue
+        what = _trained(spec.training_part(), comps.get("budget"))
         created = str(info.get("created_at") or "")
         if what not in found or created > found[what][0]:
             found[what] = (created, entry.key, entry.path, provenance.origin(info))
@@ -511,7 +521,8 @@ def _check_heads(checks: tuple[str, ...]) -> list[str]:
 
 
 def _check_todo(rows: list[dict], checks: tuple[str, ...]) -> list[str]:
-    return [line for g in check_columns.chosen(checks) for r in rows for line in r.get(f"{g.name}_todo", ())]
+    # once each: two checks read from the same artifacts (--diagnose, --play) name the same commands
+    return list(dict.fromkeys(line for g in check_columns.chosen(checks) for r in rows for line in r.get(f"{g.name}_todo", ())))
 
 
 def _wall(row: dict) -> str:

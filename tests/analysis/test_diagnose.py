@@ -269,6 +269,22 @@ def test_a_damaged_stored_diagnosis_shows_dashes_never_a_crash_or_a_number():
     assert dl.applicable("gridworld", "esr") == tuple(dl.COLUMNS)
 
 
+def test_the_play_check_columns_read_both_players_and_dash_what_is_damaged():
+    from esr_cli.recipes import diagnosis_lookup as dl
+
+    report = {"play": {
+        "robot": {"return": 0.0, "reward": {"mean": 1.812, "sd": 10.298, "mi_estimate": 0.0566}, "human_moves": 0.2188},
+        "uniform": {"return": 18.75, "reward": {"mean": -4.491, "sd": 21.668, "mi_estimate": -0.1403}, "human_moves": 0.468},
+    }}
+    cells = dl.seed_cells(report, dl.play_applicable("esr"), dl.PLAY_COLUMNS)
+    assert cells == {"play_return": "0.00 vs 18.75", "play_reward": "+1.81 (10.3) vs -4.49 (21.7)",
+                     "play_mi": "+0.057 vs -0.140", "human_moves": "0.219 vs 0.468"}
+    assert dl.play_applicable("ave") == ("play_return", "play_reward", "human_moves")  # no MI estimate of its own
+    damaged = {"play": {"robot": {"return": True, "reward": "x", "human_moves": 10**400}, "uniform": [1]}}
+    assert set(dl.seed_cells(damaged, tuple(dl.PLAY_COLUMNS), dl.PLAY_COLUMNS).values()) == {"— vs —", "— (—) vs — (—)"}
+    assert set(dl.seed_cells({"play": None}, tuple(dl.PLAY_COLUMNS), dl.PLAY_COLUMNS).values()) == {"— vs —", "— (—) vs — (—)"}
+
+
 @pytest.mark.slow
 def test_a_finished_runs_diagnosis_is_stored_and_read_back_by_its_suites_table(tmp_path):
     """`esr diagnose` of a finished run stores it (the same again is a cache hit), and `esr sweep
@@ -308,6 +324,15 @@ def test_a_finished_runs_diagnosis_is_stored_and_read_back_by_its_suites_table(t
                                             f"{summary['play']['uniform']['return']:.2f} / —")
     table = esr("sweep", str(suite), "--budget", "smoke", "--results", "--diagnose", "--markdown", store=store).stdout
     assert "reward: free / trapped / dead, per seed" in table and second in table
+    # --play reads the same diagnoses' play checks in full; with --diagnose too, each missing
+    # diagnosis is named once.
+    both = esr("sweep", str(suite), "--budget", "smoke", "--results", "--diagnose", "--play", "--markdown", store=store).stdout
+    robot = summary["play"]["robot"]
+    assert "share of steps the human moves, per seed" in both and both.count(second) == 1
+    assert f"| {robot['return']:.2f} vs {summary['play']['uniform']['return']:.2f} / — |" in both
+    assert f"{robot['human_moves']:.3f} vs {summary['play']['uniform']['human_moves']:.3f} / —" in both
+    refused = esr("sweep", str(suite), "--budget", "smoke", "--play", store=store, check=False)
+    assert refused.returncode == 2 and "--play applies with --results only" in refused.stderr
     refused = esr("sweep", str(suite), "--budget", "smoke", "--diagnose", store=store, check=False)
     assert refused.returncode == 2 and "--diagnose applies with --results only" in refused.stderr
     only_random = tmp_path / "random.yaml"

@@ -149,6 +149,37 @@ def test_any_code_reads_a_run_of_the_same_spec_made_by_other_training_code(smoke
     assert other["state"] == "missing" and "made_by" not in other
 
 
+@pytest.mark.slow
+def test_any_code_reads_a_run_made_before_a_field_with_a_default_existed(smoke_run, tmp_path, monkeypatch):
+    """A run made by code that had no `method.future` yet (its spec.yaml and key components lack
+    the field) trained what the field's default trains: --any-code reads it for a spec at the
+    default, as the reproduction report does, and never for a spec that sets another value."""
+    import shutil
+
+    import yaml
+
+    store, run_path, _ = smoke_run
+    older = tmp_path / "store"
+    key = "ab" * 16
+    copy = older / "runs" / key[:2] / key
+    shutil.copytree(run_path, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["key"] = key
+    assert manifest["key_components"]["spec"]["method"].pop("future") == "full"
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    spec = yaml.safe_load((copy / "spec.yaml").read_text())
+    del spec["method"]["future"]
+    (copy / "spec.yaml").write_text(yaml.safe_dump(spec))
+    monkeypatch.setattr(provenance, "code_digest", lambda *a, **k: "f" * 32)  # this checkout made nothing
+
+    (found,) = sweep.results(sweep.load_suite(one_run_suite(tmp_path), "smoke"), Store(older), ("return",), any_code=True)
+    assert found["state"] == "done" and found["key"] == key
+    human = tmp_path / "human.yaml"
+    human.write_text(f"name: human\nspecs: [{GRID_2}]\nset: {{method.future: human}}\n")
+    (other,) = sweep.results(sweep.load_suite(human, "smoke"), Store(older), ("return",), any_code=True)
+    assert other["state"] == "missing"
+
+
 def test_any_code_is_refused_where_it_would_change_nothing(tmp_path):
     suite = one_run_suite(tmp_path)
     for args, problem in ((["--any-code"], "--any-code applies with --results only"),
