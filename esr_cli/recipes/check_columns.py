@@ -91,10 +91,14 @@ EXACT = CheckColumns(
 )
 
 
+def _diagnosis_todo(run: Run, esr: str, missing: list[int]) -> list[str]:
+    return [printable(f"{esr} diagnose {run.key[:8]} --seed-index {i}") for i in missing]
+
+
 def _diagnosis_cells(run: Run, budget: str, esr: str, found) -> tuple[dict[str, str], list[str]]:
     applicable = diagnosis_lookup.applicable(run.spec.env.kind, run.spec.method.kind)
     cells, missing = diagnosis_lookup.run_cells(found, run.key, len(run.spec.train.seeds), applicable)
-    return cells, [printable(f"{esr} diagnose {run.key[:8]} --seed-index {i}") for i in missing]
+    return cells, _diagnosis_todo(run, esr, missing)
 
 
 def _no_policy(suite: Suite) -> Optional[str]:
@@ -112,11 +116,11 @@ def _play_cells(run: Run, budget: str, esr: str, found) -> tuple[dict[str, str],
     applicable = diagnosis_lookup.play_applicable(run.spec.method.kind)
     cells, missing = diagnosis_lookup.run_cells(found, run.key, len(run.spec.train.seeds), applicable,
                                                 diagnosis_lookup.PLAY_COLUMNS)
-    return cells, [printable(f"{esr} diagnose {run.key[:8]} --seed-index {i}") for i in missing]
+    return cells, _diagnosis_todo(run, esr, missing)
 
 
 PLAY = CheckColumns(
-    name="play", option="--play", columns=diagnosis_lookup.PLAY_COLUMNS, note=diagnosis_lookup.PLAY_NOTE,
+    name="play_check", option="--play", columns=diagnosis_lookup.PLAY_COLUMNS, note=diagnosis_lookup.PLAY_NOTE,
     applies=_learns_a_policy, read=diagnosis_lookup.read_diagnoses, cells=_play_cells, refusal=_no_policy,
 )
 

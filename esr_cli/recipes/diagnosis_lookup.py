@@ -116,9 +116,10 @@ def _versus(report: dict, cell) -> str:
     return " vs ".join(cell(side if isinstance(side, dict) else {}) for side in sides)
 
 
-def seed_cells(report: dict, cells: tuple[str, ...] = tuple(COLUMNS), columns: dict = COLUMNS) -> dict[str, str]:
-    """One seed's `cells` (of `columns`: COLUMNS or PLAY_COLUMNS) from its diagnosis; '—' for a
-    part missing or damaged."""
+def seed_cells(report: dict, cells: Optional[tuple[str, ...]] = None, columns: dict = COLUMNS) -> dict[str, str]:
+    """One seed's `cells` (of `columns`, COLUMNS or PLAY_COLUMNS; default: all of them) from its
+    diagnosis, '' for the others; '—' for a part missing or damaged."""
+    cells = tuple(columns) if cells is None else cells
     reprs = report.get("representations")
     starts = report.get("start_states")
     out = {
@@ -140,10 +141,12 @@ def seed_cells(report: dict, cells: tuple[str, ...] = tuple(COLUMNS), columns: d
     return {c: (out[c] if c in cells else "") for c in columns}
 
 
-def run_cells(found: dict, run_key: str, seeds: int, cells: tuple[str, ...] = tuple(COLUMNS),
+def run_cells(found: dict, run_key: str, seeds: int, cells: Optional[tuple[str, ...]] = None,
               columns: dict = COLUMNS) -> tuple[dict[str, str], list[int]]:
-    """The run's `cells` (of `columns`) joined seed by seed ('a / b'; '' for the others), and the
-    seed indices whose diagnosis the store lacks or cannot read ('—' in their place)."""
+    """The run's `cells` (of `columns`; default: all of them) joined seed by seed ('a / b'; ''
+    for the others), and the seed indices whose diagnosis the store lacks or cannot read ('—'
+    in their place)."""
+    cells = tuple(columns) if cells is None else cells
     per_seed, missing = [], []
     for i in range(seeds):
         report = summary_or_empty(found[(run_key, i)]) if (run_key, i) in found else {}

@@ -9,7 +9,6 @@ as '—', never a crash or a number made up.
 
 from __future__ import annotations
 
-import math
 from typing import Optional
 
 from esr_cli.common.numbers import as_number
@@ -68,7 +67,7 @@ def per_seed_returns(summary: dict) -> Optional[list[float]]:
     if not isinstance(values, list) or not values or len(values) > 10_000:
         return None
     numbers = [as_number(v) for v in values]
-    if not all(v is not None and math.isfinite(v) for v in numbers):
+    if not all(v is not None and abs(v) < 1e300 for v in numbers):  # NaN too: a damaged record, never a statistic
         return None
     return numbers
 

@@ -377,29 +377,35 @@ def _trained(spec_part: object, budget: object) -> str:
     return json.dumps({"spec": spec_part, "budget": budget}, sort_keys=True)
 
 
-def finished_runs_by_training(store: Store) -> dict[str, tuple[str, Path, provenance.Origin]]:
-    """The store's finished runs by what they trained (`_trained`): key, path and origin of the
-    newest of each. Runs made by other training code (another commit, device or jax) have other
-    keys; this is how `--any-code` finds them. What a run trained is its spec as this code reads
-    it (`targets.run_spec`, which refuses a spec.yaml that is not its key's): a field added since
-    the run was made reads at its default, the behaviour the run had, as the reproduction report
-    reads runs; a run whose spec this code no longer reads is passed over."""
-    from esr_cli.recipes.targets import run_spec
-    from esr_cli.storage.store import StoreError
+def _trained_as_read(comps: dict) -> Optional[str]:
+    """What a run trained (`_trained`), read from its key components (what its key digests) as
+    this code reads a spec: a field added since the run was made reads at its default, the
+    behaviour the run had (new fields default to the behaviour before them; docs/specs.md), as
+    the reproduction report reads runs. None where this code no longer reads them as a spec."""
+    part, budget = comps.get("spec"), comps.get("budget")
+    if not isinstance(part, dict):
+        return None
+    try:
+        spec = specs.validate({**part, "name": "run", **({} if budget is None else {"budget": budget})}, "key components")
+    except specs.SpecError:
+        return None
+    return _trained(spec.training_part(), spec.budget)
 
+
+def finished_runs_by_training(store: Store) -> dict[str, tuple[str, Path, provenance.Origin]]:
+    """The store's finished runs by what they trained (`_trained_as_read`): key, path and origin
+    of the newest of each. Runs made by other training code (another commit, device or jax) have
+    other keys; this is how `--any-code` finds them. A run whose key components this code no
+    longer reads as a spec is passed over."""
     found: dict[str, tuple[str, str, Path, provenance.Origin]] = {}
     for entry in store.entries():
         info = entry.manifest
         if entry.kind != RUN_KIND or entry.status != "complete" or not isinstance(info, dict):
             continue
         comps = info.get("key_components")
-        if not isinstance(comps, dict):
+        what = _trained_as_read(comps) if isinstance(comps, dict) else None
+        if what is None:
             continue
-        try:
-            spec = run_spec(entry.path)
-        except StoreError:
-            continue
-        what = _trained(spec.training_part(), comps.get("budget"))
         created = str(info.get("created_at") or "")
         if what not in found or created > found[what][0]:
             found[what] = (created, entry.key, entry.path, provenance.origin(info))
@@ -441,7 +447,7 @@ def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESUL
     seeds, esr_cli.storage.finals) and wall time, read from the committed artifacts; a metric a run does
     not log is left out of its row; runs not done carry their state and the command. A metric
     no run of the suite can log is refused (SuiteError). With `checks` (names of
-    check_columns.REGISTRY: "exact", "diagnosis"), each done run a check applies to also carries
+    check_columns.REGISTRY: "exact", "diagnosis", "play_check", "eval"), each done run a check applies to also carries
     its seeds' checks of that kind as the store holds them, under the check's name, and the
     commands that make what is missing, under NAME_todo. With `any_code`, a run this code
     has not made is read from a run of the same spec made by other code (`with_runs_made_elsewhere`),
@@ -463,7 +469,7 @@ def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESUL
     if paths_from is not None:
         rows = [replace(r, run=_shown_from(r.run, paths_from)) for r in rows]
     check_metrics(suite, store, metrics, rows)
-    stored: dict[str, object] = {}  # each check's artifacts, read once for the whole table
+    stored: dict = {}  # each kind of check's artifacts (by its reader), read once for the whole table
     out = []
     for r in rows:
         row = {"run": r.run.label, "method": r.run.spec.method.kind, "key": r.run.key, "state": r.state}
@@ -477,9 +483,9 @@ def results(suite: Suite, store: Store, metrics: tuple[str, ...] = DEFAULT_RESUL
                        wall_s=wall_s, wall_whole=wall_whole, path=str(r.path))
             for group in groups:
                 if group.applies(r.run.spec):
-                    if group.name not in stored:
-                        stored[group.name] = group.read(store)
-                    row[group.name], row[f"{group.name}_todo"] = group.cells(r.run, suite.budget, esr, stored[group.name])
+                    if group.read not in stored:  # --diagnose and --play read the same artifacts
+                        stored[group.read] = group.read(store)
+                    row[group.name], row[f"{group.name}_todo"] = group.cells(r.run, suite.budget, esr, stored[group.read])
         else:
             row["command"] = r.run.command(suite.budget, esr)
         out.append(row)

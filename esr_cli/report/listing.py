@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from typing import Iterator
 
+from esr_cli.common.numbers import as_number
 from esr_cli.storage.store import RUN_KIND, Entry, Store, StoreError
 
 FINAL_RETURN = ("final return: a run's mean over each seed's last 10% of epochs (so far, if unfinished), averaged "
@@ -109,9 +110,9 @@ def row(entry: Entry, with_overrides: bool = True) -> dict:
         if with_overrides:
             out["overrides"] = overrides_of(entry)
     else:
-        ret = field(m, "summary", "return", "mean")
-        if isinstance(ret, (int, float)) and not isinstance(ret, bool):
-            out["final_return"] = float(ret)
+        ret = as_number(field(m, "summary", "return", "mean"))
+        if ret is not None:
+            out["final_return"] = ret
             of = field(m, "summary", "return", "of")
             out["return_of"] = of if isinstance(of, str) else "mean episode return"
     return out

@@ -46,19 +46,15 @@ def epoch_rows(rows: list[dict]) -> list[dict]:
     return out
 
 
-def _number(x) -> bool:
-    return as_number(x) is not None
-
-
 SCALARS = ("env_steps",)  # a row's values for the whole epoch; every other metric is a list over seeds
 
 
 def _sound(name: str, value, widths: dict) -> bool:
     if name in SCALARS:
-        return _number(value)
+        return as_number(value) is not None
     if not isinstance(value, list) or widths.setdefault(name, len(value)) != len(value):
         return False
-    return all(x is None or _number(x) for x in value)
+    return all(x is None or as_number(x) is not None for x in value)
 
 
 def series(rows: list[dict], name: str) -> tuple[np.ndarray, np.ndarray]:

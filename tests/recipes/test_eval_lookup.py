@@ -39,6 +39,8 @@ def test_each_partners_evaluation_is_found_and_summarised_from_its_seeds(tmp_pat
 @pytest.mark.parametrize("summary", [
     {"human": "training", "results": {"sample": {"return_per_seed": ["10", 2.0]}}},
     {"human": "training", "results": {"sample": {"return_per_seed": [10 ** 400]}}},
+    {"human": "training", "results": {"sample": {"return_per_seed": [1.7e308, -1.7e308, 1.0]}}},  # sums overflow
+    {"human": "training", "results": {"sample": {"return_per_seed": [float("nan"), 1.0]}}},
     {"human": "training", "results": {"sample": {"return_per_seed": [True]}}},
     {"human": "training", "results": {"sample": {"return_per_seed": []}}},
     {"human": "training", "results": {"sample": "x"}},

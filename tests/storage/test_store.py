@@ -287,6 +287,17 @@ def test_ls_shows_a_runs_final_return_as_figures_and_reports_do(tmp_path):
     assert "30 of 3,000" in next(line for line in listed.splitlines() if "efefef" in line)
 
 
+def test_ls_lists_an_evaluation_whose_return_no_float_holds_without_one(tmp_path):
+    """JSON allows a 401-digit mean return; float() of it overflows. The listing shows the entry
+    with no return instead of failing whole."""
+    store = Store(tmp_path)
+    for key, mean in (("ab" * 16, 10**400), ("cd" * 16, 12.5)):
+        store.begin("evals", key, {"name": "an eval", "key": key})
+        store.commit("evals", key, {"kind": "evals", "name": "an eval", "key": key, "summary": {"return": {"mean": mean}}})
+    listed = esr("ls", store=tmp_path).stdout
+    assert "ababab" in listed and "12.50" in next(line for line in listed.splitlines() if "cdcdcd" in line)
+
+
 def test_a_printed_command_names_the_store_unless_it_is_the_default(tmp_path, monkeypatch):
     monkeypatch.delenv("ESR_STORE", raising=False)
     monkeypatch.chdir(tmp_path)
