@@ -37,11 +37,29 @@ def _depth(value: Any) -> int:
     return deepest
 
 
+class _KeyTwice(Exception):
+    pass
+
+
+def _object(pairs: list) -> dict:
+    """One JSON object, refusing a key named twice: esr never writes one, and readers disagree
+    on which value counts (Python's keeps the last, others the first), so a manifest could show
+    one reader one record and another reader another."""
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        seen: set = set()
+        raise _KeyTwice(next(k for k, _ in pairs if k in seen or seen.add(k)))
+    return out
+
+
 def parse(data: bytes) -> Any:
-    """The JSON value of `data`; JsonInputError where it is not UTF-8 JSON or nests too deeply."""
+    """The JSON value of `data`; JsonInputError where it is not UTF-8 JSON, names a key twice in
+    one object or nests too deeply."""
     too_deep = JsonInputError(f"nested deeper than {MAX_DEPTH} levels")
     try:
-        value = json.loads(data)
+        value = json.loads(data, object_pairs_hook=_object)
+    except _KeyTwice as e:
+        raise JsonInputError(f"JSON with an object naming the key {ascii(str(e.args[0])[:64])} twice") from None
     except RecursionError:  # far deeper than the limit: the parser gave up first
         raise too_deep from None
     except UnicodeDecodeError:
