@@ -194,7 +194,8 @@ def export_(
     without_checkpoint: bool = typer.Option(False, "--without-checkpoint", help="a run without its networks (a finished "
                                             "one as metrics, spec and manifest: reports and figures, not eval; an "
                                             "unfinished one as a record of its logged epochs); an exact check without "
-                                            "its arrays (its summary: tables, not the estimator check)"),
+                                            "its arrays (its summary: tables, not the estimator check); an evaluation without its "
+                                            "rollout GIF"),
     sign: bool = typer.Option(False, "--sign", help="also write ARCHIVE.sig, an HMAC-SHA256 of the archive under the "
                               "key in the file $ESR_ARCHIVE_KEY names (`esr import --require-signature` checks it)"),
 ):

@@ -31,7 +31,7 @@ from esr_cli.storage import provenance
 from esr_cli.storage.artifacts import Recipe
 from esr_cli.storage.checkpoint_files import run_length
 from esr_cli.storage.finals import read_rows
-from esr_cli.storage.store import EVAL_KIND, HUMAN_KIND, RUN_KIND, LockBusy, Store, StoreError, atomic_write_text, content_key, nearest_existing, probe_writable
+from esr_cli.storage.store import EVAL_KIND, EVAL_ROLLOUT, HUMAN_KIND, RUN_KIND, LockBusy, Store, StoreError, atomic_write_text, content_key, nearest_existing, probe_writable
 
 # Rough upper bound of a checkpoint per seed plus metrics, checked before a run starts.
 MIN_FREE_BYTES_PER_SEED = 32 << 20
@@ -269,7 +269,7 @@ def eval_recipe(run_path: Path, store: Store, episodes: int | None, console: Con
         totals = np.concatenate([[0.0], np.cumsum(reward)])
         captions = [plots.frame_caption(t, steps, action_labels(spec.env.kind, trainer.env, robot[t - 1], human[t - 1]) if t else None,
                                         float(reward[t - 1]) if t else None, float(totals[t])) for t in range(steps + 1)]
-        plots.rollout_gif(frames, eval_dir / "rollout.gif", captions=captions)
+        plots.rollout_gif(frames, eval_dir / EVAL_ROLLOUT, captions=captions)
         prov = {"artifacts": {RUN_KIND: run_manifest["key"], EVAL_KIND: key}, "budget": spec.budget, "seeds": list(spec.train.seeds)}
         plots.learning_curve(
             read_rows(run_path), eval_dir / "learning_curve.png", f"{spec.name} [{spec.method.kind}]", prov,

@@ -417,10 +417,12 @@ def _folders(path: Path) -> list[Path]:
 
 
 EXACT_ARRAYS = "exact.npz"  # an exact artifact's state space, occupancies and MI (recipes/exact_runs.py)
+EVAL_ROLLOUT = "rollout.gif"  # an evaluation's first episode, drawn (recipes/runs.py): megabytes
 # What `esr export --without-checkpoint` leaves out of a finished artifact, by kind: a run's
-# networks, an exact check's arrays. What stays (manifest, summaries, metrics) is what reports
-# and tables read; the manifest keeps the digests of what was left out.
-LEFT_OUT = {RUN_KIND: CHECKPOINT_FOLDER, EXACT_KIND: EXACT_ARRAYS}
+# networks, an exact check's arrays, an evaluation's rollout GIF. What stays (manifest,
+# summaries, metrics) is what reports and tables read; the manifest keeps the digests of what
+# was left out.
+LEFT_OUT = {RUN_KIND: CHECKPOINT_FOLDER, EXACT_KIND: EXACT_ARRAYS, EVAL_KIND: EVAL_ROLLOUT}
 
 
 def kept_without(kind: str, path: Path) -> str | None:

@@ -60,10 +60,11 @@ def export(store: Store, ref: str, out: Path | None = None, without_checkpoint: 
     without_checkpoint: a finished run as metrics, spec, manifest and digests (it verifies,
     reports and plots, but cannot be evaluated or extended); an unfinished one as a record of its
     logged epochs (`esr import --without-checkpoint`); an exact check as its summary and manifest
-    (tables read it; the estimator check needs its arrays). Kinds: LEFT_OUT."""
+    (tables read it; the estimator check needs its arrays); an evaluation without its rollout GIF
+    (tables read its summary). Kinds: LEFT_OUT."""
     kind, key, src, status = _find(store, ref)
     if without_checkpoint and kind not in LEFT_OUT:
-        raise StoreError(f"{kind} {key[:12]} is kept whole: only a run's checkpoint and an exact check's arrays are left out")
+        raise StoreError(f"{kind} {key[:12]} is kept whole: only a run's checkpoint, an exact check's arrays and an evaluation's rollout GIF are left out")
     out = Path(out) if out is not None else Path(f"{key[:8]}.tar.gz")
     if out.is_dir():
         raise StoreError(f"{out} is a directory: give the archive's file name")

@@ -69,3 +69,26 @@ def test_a_held_out_proxy_is_shown_only_for_a_bc_human(spec_file, sets, expected
     from esr_cli.common import specs
 
     assert eval_lookup.partners(specs.load(spec_file, "quick", sets)) == expected
+
+
+def test_an_evaluation_kept_without_its_rollout_gif_still_fills_the_table_in_another_store(tmp_path):
+    """`esr export --without-checkpoint` of an evaluation leaves its GIF (megabytes) behind: the
+    copy verifies (its manifest keeps the GIF's digest) and gives the table the same cell."""
+    from conftest import esr
+
+    store, other = Store(tmp_path / "store"), tmp_path / "other"
+
+    def build(out, store):
+        (out / "rollout.gif").write_bytes(b"GIF89a" + bytes(1000))
+        return _summary([10.0, 20.0, 30.0])
+
+    path = ensure(Recipe(EVAL_KIND, "e", {"kind": "eval", "run": RUN, "episodes": 8}, build), store).path
+    archive = tmp_path / "e.tar.gz"
+    esr("export", path.name, "--without-checkpoint", "--out", str(archive), store=tmp_path / "store")
+    esr("import", str(archive), store=other)
+    (copy,) = (other / "evals").glob("*/" + path.name)
+    assert not (copy / "rollout.gif").exists() and (copy / "summary.json").exists()
+    assert esr("verify", store=other).returncode == 0
+    cell = eval_lookup.run_cells(eval_lookup.read_evals(Store(other)), RUN, 8, ("training",))[0]["training"]
+    assert cell == eval_lookup.run_cells(eval_lookup.read_evals(store), RUN, 8, ("training",))[0]["training"]
+    assert cell.startswith("20.00 ± 5.77")
