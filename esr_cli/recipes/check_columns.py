@@ -91,14 +91,15 @@ EXACT = CheckColumns(
 )
 
 
-def _diagnosis_todo(run: Run, esr: str, missing: list[int]) -> list[str]:
-    return [printable(f"{esr} diagnose {run.key[:8]} --seed-index {i}") for i in missing]
+def _diagnosis_cells(columns: dict, applicable: Callable[[object], tuple[str, ...]]):
+    """The cells function of a group read from diagnoses: `columns` (diagnosis_lookup.COLUMNS or
+    PLAY_COLUMNS) of each seed's, those `applicable` to the run's spec, and the `esr diagnose`
+    command of each seed the store lacks."""
+    def cells(run: Run, budget: str, esr: str, found) -> tuple[dict[str, str], list[str]]:
+        shown, missing = diagnosis_lookup.run_cells(found, run.key, len(run.spec.train.seeds), applicable(run.spec), columns)
+        return shown, [printable(f"{esr} diagnose {run.key[:8]} --seed-index {i}") for i in missing]
 
-
-def _diagnosis_cells(run: Run, budget: str, esr: str, found) -> tuple[dict[str, str], list[str]]:
-    applicable = diagnosis_lookup.applicable(run.spec.env.kind, run.spec.method.kind)
-    cells, missing = diagnosis_lookup.run_cells(found, run.key, len(run.spec.train.seeds), applicable)
-    return cells, _diagnosis_todo(run, esr, missing)
+    return cells
 
 
 def _no_policy(suite: Suite) -> Optional[str]:
@@ -109,19 +110,14 @@ def _no_policy(suite: Suite) -> Optional[str]:
 
 DIAGNOSIS = CheckColumns(
     name="diagnosis", option="--diagnose", columns=diagnosis_lookup.COLUMNS, note=diagnosis_lookup.NOTE,
-    applies=_learns_a_policy, read=diagnosis_lookup.read_diagnoses, cells=_diagnosis_cells, refusal=_no_policy,
+    applies=_learns_a_policy, read=diagnosis_lookup.read_diagnoses, refusal=_no_policy,
+    cells=_diagnosis_cells(diagnosis_lookup.COLUMNS, lambda spec: diagnosis_lookup.applicable(spec.env.kind, spec.method.kind)),
 )
-
-def _play_cells(run: Run, budget: str, esr: str, found) -> tuple[dict[str, str], list[str]]:
-    applicable = diagnosis_lookup.play_applicable(run.spec.method.kind)
-    cells, missing = diagnosis_lookup.run_cells(found, run.key, len(run.spec.train.seeds), applicable,
-                                                diagnosis_lookup.PLAY_COLUMNS)
-    return cells, _diagnosis_todo(run, esr, missing)
-
 
 PLAY = CheckColumns(
     name="play_check", option="--play", columns=diagnosis_lookup.PLAY_COLUMNS, note=diagnosis_lookup.PLAY_NOTE,
-    applies=_learns_a_policy, read=diagnosis_lookup.read_diagnoses, cells=_play_cells, refusal=_no_policy,
+    applies=_learns_a_policy, read=diagnosis_lookup.read_diagnoses, refusal=_no_policy,
+    cells=_diagnosis_cells(diagnosis_lookup.PLAY_COLUMNS, lambda spec: diagnosis_lookup.play_applicable(spec.method.kind)),
 )
 
 

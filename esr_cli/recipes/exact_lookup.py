@@ -110,9 +110,10 @@ def run_checks(checks: StoreChecks, target: Target, seeds: int) -> list[SeedChec
             if result.get("complete", fields["complete"]) is True:
                 fields["spearman_all"] = as_number(result.get("spearman"))
             ci = result.get("spearman_sample_ci")
+            bounds = [as_number(c) for c in ci] if isinstance(ci, list) and len(ci) == 2 else [None]
             rho = as_number(result.get("spearman_sample"))
-            if rho is not None and isinstance(ci, list) and len(ci) == 2 and all(as_number(c) is not None for c in ci):
-                fields.update(spearman_sample=(rho, float(ci[0]), float(ci[1])), sample_pairs=as_count(result.get("sample_pairs")))
+            if rho is not None and None not in bounds:
+                fields.update(spearman_sample=(rho, *bounds), sample_pairs=as_count(result.get("sample_pairs")))
         out.append(SeedCheck(**fields))
     return out
 

@@ -13,7 +13,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from esr_cli.analysis.state_count import TooManyStates, check_size
-from esr_cli.common import specs, yamlio
+from esr_cli.common import specs
 from esr_cli.common.printing import printable
 from esr_cli.model import spec as spec_model
 from esr_cli.storage.store import EXACT_KIND, PLAY_KIND, RUN_KIND, Store, StoreError, load_manifest, parse_dirname, read_pending
@@ -93,17 +93,12 @@ def run_spec(run_path: Path):
     """The validated spec a run was trained from (its spec.yaml), once it is the spec the run's
     key was computed from: a spec.yaml swapped under a genuine key (an archive's, a damaged
     store's) would make an evaluation or diagnosis of another spec stored as this run's."""
-    from esr_cli.storage.transfer import spec_mismatch
+    from esr_cli.storage.transfer import read_spec_yaml, spec_mismatch
 
     source = run_path / "spec.yaml"
     record = read_pending(run_path) if parse_dirname(run_path.name)[1] == "partial" else load_manifest(run_path)
-    raw, problem = None, "it has no spec.yaml"
-    if source.exists():
-        try:
-            raw = yamlio.read(source)
-            problem = spec_mismatch(raw, record or {})  # None: a mapping with a human section
-        except yamlio.YamlInputError as e:
-            problem = f"its spec.yaml cannot be read ({e})"
+    raw, problem = read_spec_yaml(run_path) if source.exists() else (None, "it has no spec.yaml")
+    problem = problem or spec_mismatch(raw, record or {})  # None: a mapping with a human section
     if problem:
         raise StoreError(f"{run_path}: {problem}; the run cannot be read (`esr verify {run_path.name[:12]}`)")
     # The stored fields are the preset's values when the run trained: read again, a named preset

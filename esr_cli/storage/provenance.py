@@ -25,6 +25,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import NamedTuple
 
+from esr_cli.common.numbers import as_number
 from esr_cli.common.printing import printable
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1]  # esr_cli/
@@ -233,10 +234,8 @@ def with_session(earlier: list[dict], new: dict) -> list[dict]:
 def session_wall(session: dict) -> float | None:
     """The seconds a session recorded that it worked (None: it was killed before it could say,
     or an older esr made it)."""
-    wall = session.get("wall_s")
-    if isinstance(wall, bool) or not isinstance(wall, (int, float)) or not 0 <= wall < 1e12:  # NaN fails the range too
-        return None
-    return float(wall)
+    wall = as_number(session.get("wall_s"))
+    return wall if wall is not None and 0 <= wall < 1e12 else None  # NaN fails the range too
 
 
 def with_wall(sessions: list[dict], seconds: float) -> list[dict]:

@@ -381,11 +381,16 @@ def spec_problem(run_dir: Path, record: dict) -> str | None:
     that code had."""
     if not (run_dir / "spec.yaml").exists():
         return None
+    spec, problem = read_spec_yaml(run_dir)
+    return problem or spec_mismatch(spec, record)
+
+
+def read_spec_yaml(run_dir: Path) -> tuple[object, str | None]:
+    """(a run's spec.yaml as read, None), or (None, why it cannot be read)."""
     try:
-        spec = yamlio.read(run_dir / "spec.yaml")
+        return yamlio.read(run_dir / "spec.yaml"), None
     except yamlio.YamlInputError as e:
-        return f"its spec.yaml cannot be read ({e})"
-    return spec_mismatch(spec, record)
+        return None, f"its spec.yaml cannot be read ({e})"
 
 
 def spec_mismatch(spec, record: dict) -> str | None:
