@@ -163,21 +163,30 @@ def _join_rows(runs: list[Evidence]) -> list[dict]:
 def pooled(index: dict[str, list[Evidence]], spec: spec_model.Spec) -> Optional[Evidence]:
     """The evidence for `spec`: its longest run, or, where several finished runs share that
     length and differ only in their seeds (same commit, device and every other training
-    field; no seed twice), all of them as one run of their joined seeds. Which of two
-    single-seed runs of one length to believe is otherwise an arbitrary choice."""
+    field; no seed twice), all of them as one run of their joined seeds: the group with the
+    most seeds, whichever commit's run happens to be listed first. Which of two single-seed
+    runs of one length to believe is otherwise an arbitrary choice."""
     top = best(index, spec)
-    if top is None or top.status != "complete" or not top.commit:
+    if top is None or top.status != "complete":
         return top
-    train_rest = _train_but_seeds(top)
-    mates = [e for e in index.get(_without_train(spec), [])
-             if e.status == "complete" and e.epochs_done == top.epochs_done and e.commit == top.commit
-             and e.device == top.device and _train_but_seeds(e) == train_rest]
+    groups: dict[tuple, list[Evidence]] = {}
+    for e in index[_without_train(spec)]:
+        if e.status == "complete" and e.epochs_done == top.epochs_done and e.commit:
+            groups.setdefault((e.commit, e.device, _train_but_seeds(e)), []).append(e)
+    pools = [_pool(mates) for mates in groups.values() if _poolable(mates)]
+    return max([top, *pools], key=lambda e: e.seeds)  # a tie keeps the longest stored run
+
+
+def _poolable(mates: list[Evidence]) -> bool:
     seeds = [s for e in mates for s in e.spec.train.seeds]
-    if len(mates) < 2 or len(set(seeds)) != len(seeds):
-        return top
-    mates.sort(key=lambda e: min(e.spec.train.seeds))
-    train = top.spec.train.model_copy(update={"seeds": seeds})
-    return replace(top, key="+".join(e.key[:8] for e in mates), spec=top.spec.model_copy(update={"train": train}),
+    return len(mates) > 1 and len(set(seeds)) == len(seeds)
+
+
+def _pool(mates: list[Evidence]) -> Evidence:
+    mates = sorted(mates, key=lambda e: min(e.spec.train.seeds))
+    first = mates[0]
+    train = first.spec.train.model_copy(update={"seeds": [s for e in mates for s in e.spec.train.seeds]})
+    return replace(first, key="+".join(e.key[:8] for e in mates), spec=first.spec.model_copy(update={"train": train}),
                    rows=_join_rows(mates), parts=tuple(mates), _finals={})
 
 

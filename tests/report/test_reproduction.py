@@ -242,6 +242,24 @@ def test_finished_runs_that_differ_only_in_their_seeds_are_pooled():
     assert rep.judge(above, _index(seed1, seed0, random)).a.parts == ()
 
 
+def test_the_pool_with_most_seeds_is_chosen_whichever_run_is_listed_first():
+    """An older commit's one-seed run beside three one-seed runs of a newer commit (seeds 0, 1
+    and 2): the three are the evidence, the older run is listed beside them."""
+    above = _claim("coord_ring: ESR ends above Random")
+    old = _evidence("coord_ring", ("train.seeds=1",), finals=(3.0,), epochs=10000)
+    old.key, old.commit = "c" * 32, "2b82b53"
+    new = []
+    for seed, final in enumerate((10.0, 12.0, 14.0)):
+        ev = _evidence("coord_ring", (f"train.seeds=[{seed}]",), finals=(final,), epochs=10000)
+        ev.key, ev.commit = str(seed) * 32, "3a61962"
+        new.append(ev)
+    random = _evidence("coord_ring_random", ("train.seeds=1",), finals=(16.39,), epochs=10000)
+    finding = rep.judge(above, _index(old, *new, random))
+    assert finding.a.seeds == 3 and [p.key for p in finding.a.parts] == [e.key for e in new]
+    assert finding.a.finals()["per_seed"] == pytest.approx([10.0, 12.0, 14.0])
+    assert [o[0].key for o in finding.others] == [old.key]
+
+
 def _components_of(spec_file):
     """The key components a run's spec.yaml must match (what training keys it by)."""
     import yaml
