@@ -86,7 +86,7 @@ sweep: install
 	$(BIN)/esr sweep $(SUITE) --budget $(BUDGET) --executor $(EXECUTOR)
 
 # docs/reproduction.md and the generated tables in docs/ (`esr tables`) from the archived runs,
-# exact checks, diagnoses and evaluations in evidence/ (imported into REPORT_STORE first; an import that is already
+# exact checks, diagnoses, evaluations and human calibrations in evidence/ (imported into REPORT_STORE first; an import that is already
 # there is skipped). report-check fails when any of them is not what the archives give.
 REPORT_STORE ?= artifacts
 DOCS_WITH_TABLES := $(filter-out docs/reproduction.md,$(wildcard docs/*.md))
@@ -96,6 +96,7 @@ report-store: install
 	$(if $(wildcard evidence/exact/*.tar.gz),$(BIN)/esr --store $(REPORT_STORE) import $(wildcard evidence/exact/*.tar.gz))
 	$(if $(wildcard evidence/diagnoses/*.tar.gz),$(BIN)/esr --store $(REPORT_STORE) import $(wildcard evidence/diagnoses/*.tar.gz))
 	$(if $(wildcard evidence/evals/*.tar.gz),$(BIN)/esr --store $(REPORT_STORE) import $(wildcard evidence/evals/*.tar.gz))
+	$(if $(wildcard evidence/calibrations/*.tar.gz),$(BIN)/esr --store $(REPORT_STORE) import $(wildcard evidence/calibrations/*.tar.gz))
 
 report: report-store
 	$(BIN)/esr --store $(REPORT_STORE) paper --report --no-exact --out docs/reproduction.md

@@ -65,14 +65,24 @@ def human_calibrate(
 ):
     """Each candidate human with a uniform random robot, a staying robot and itself, per layout
     and human seed, against the paper's Random column; no robot is trained. The humans are
-    made first where the store lacks them. The score is the selection rule's (docs/overcooked.md)."""
+    made first where the store lacks them, and each calibration is stored (kind calibrations): asked
+    again, it is read back. The score is the selection rule's (docs/overcooked.md)."""
     loaded = [_stored_human_spec(f, budget, set_, ctx.obj.store) for f in spec_files]
     layouts = [s.env.layout for s in loaded]
     if len(set(layouts)) != len(layouts):
         raise Exit(2, f"two specs share a layout ({', '.join(layouts)}): give one spec per layout")
+    from esr_cli.recipes import calibration_runs
     from esr_cli.report import human_calibration as hc
 
-    rows = [hc.calibrate_spec(s, human_seeds, episodes, ctx.obj.store, err) for s in loaded]
+    rows = []
+    for s in loaded:
+        built = ensure(calibration_runs.calibration_recipe(s, human_seeds, episodes, err), ctx.obj.store)
+        if built.cached:
+            err.print(tagged("cache hit", "green", f": {own(s.name)}'s calibration, {built.path}"), highlight=False)
+        row = calibration_runs.read_row(built.path, s, calibration_runs.human_keys(s, human_seeds))
+        if row is None:
+            raise Exit(1, f"{built.path}: the stored calibration's summary is damaged; remove it and calibrate again")
+        rows.append(row)
     if as_json:
         out.print_json(jsonl.dumps({"rows": [r.as_json() for r in rows], "score": hc.score(rows),
                                    "human_seeds": human_seeds, "episodes": episodes}))

@@ -13,22 +13,21 @@ from esr_cli.common.printing import own, tagged
 from esr_cli.storage.artifacts import ensure
 
 
-def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait, job_opts,
-                                  unfinished=False, out_dir=None, exact=False, any_code=False, diagnose=False,
-                                  evals=False, play=False):
-    """An option that would change nothing is a mistake to name, not to ignore."""
-    for flag, given in (("--unfinished", unfinished), ("--out", out_dir is not None)):
-        if given and not plot:
+def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, wait, job_opts,
+                                  results_only: dict[str, bool], plot_only: dict[str, bool]):
+    """An option that would change nothing is a mistake to name, not to ignore. `results_only`:
+    each --results option (flag -> given), `plot_only`: each --plot option."""
+    for flag, given in plot_only.items():
+        if given and not results_only["--plot"]:
             raise Exit(2, f"{flag} applies with --results --plot only")
     if show_status and show_results:
         raise Exit(2, "--status and --results: choose one")
-    if as_json and markdown:
+    if as_json and results_only["--markdown"]:
         raise Exit(2, "--json and --markdown: choose one")
-    for flag, given in (("--markdown", markdown), ("--metric", metric), ("--plot", plot), ("--exact", exact),
-                        ("--diagnose", diagnose), ("--play", play), ("--eval", evals), ("--any-code", any_code)):
+    for flag, given in results_only.items():
         if given and not show_results:
             raise Exit(2, f"{flag} applies with --results only")
-    if any_code and plot:
+    if results_only["--any-code"] and results_only["--plot"]:
         raise Exit(2, "--any-code applies to the table: --plot draws only the runs this code made")
     if as_json and not (show_status or show_results):
         raise Exit(2, "--json applies with --status or --results only")
@@ -86,9 +85,13 @@ def sweep(
     from esr_cli.recipes import check_columns, sweep as sw
 
     check_executor(executor, sw.EXECUTORS)
-    _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, metric, plot, wait,
-                                  {"--partition": partition, "--time-min": time_min, "--gpus": gpus,
-                                   "--cpus": cpus, "--mem-gb": mem_gb}, unfinished, out_dir, exact, any_code, diagnose, evals, play)
+    # The check columns' flags, by check_columns.REGISTRY's option names.
+    check_flags = {"--exact": exact, "--diagnose": diagnose, "--play": play, "--eval": evals}
+    _refuse_ignored_sweep_options(
+        executor, show_status, show_results, as_json, wait,
+        {"--partition": partition, "--time-min": time_min, "--gpus": gpus, "--cpus": cpus, "--mem-gb": mem_gb},
+        results_only={"--markdown": markdown, "--metric": bool(metric), "--plot": plot, **check_flags, "--any-code": any_code},
+        plot_only={"--unfinished": unfinished, "--out": out_dir is not None})
     overrides = {"partition": partition, "time_min": time_min, "gpus": gpus, "cpus": cpus, "mem_gb": mem_gb}
     try:
         sw.slurm_options(sw.SlurmOptions(), overrides, "")  # before the suite's runs are built
@@ -98,8 +101,7 @@ def sweep(
         suite = sw.load_suite(suite_file, budget)
         if show_results:
             metrics = tuple(dict.fromkeys(metric)) if metric else sw.DEFAULT_RESULT_METRICS
-            given = {"--exact": exact, "--diagnose": diagnose, "--play": play, "--eval": evals}
-            checks = tuple(c.name for c in check_columns.REGISTRY.values() if given[c.option])
+            checks = tuple(c.name for c in check_columns.REGISTRY.values() if check_flags[c.option])
             try:
                 rows = sw.results(suite, ctx.obj.store, metrics, checks, any_code)  # refuses a metric no run can log
             except sw.SuiteError as e:
@@ -229,8 +231,9 @@ def tables(
     check: bool = typer.Option(False, "--check", help="write nothing; exit 1 if a table differs from what the store gives now"),
 ):
     """Result tables inside markdown files, generated from the store: each table between
-    `<!-- esr sweep SUITE ... --results --markdown -->` and `<!-- end of generated table -->`
-    is that command's output (docs/cluster.md)."""
+    `<!-- esr sweep SUITE ... --results --markdown -->` (or `<!-- esr human calibrate SPEC...
+    --markdown -->`) and `<!-- end of generated table -->` is that command's output, read from
+    the store (docs/cluster.md)."""
     from esr_cli.report import doc_tables
 
     for path in files:

@@ -1,18 +1,20 @@
 """Result tables inside markdown files, generated from a store (`esr tables`).
 
-A table is written between two HTML comments, the first naming the `esr sweep ... --results
---markdown` command that makes it:
+A table is written between two HTML comments, the first naming the command that makes it:
 
     <!-- esr sweep experiments/suites/NAME.yaml --budget quick --results --markdown --any-code --metric return -->
     (the command's output)
     <!-- end of generated table -->
 
-`esr tables FILE...` replaces each table with what the command gives on the store now, and
-`--check` writes nothing and names every table that differs. The command is parsed here, never
-run by a shell: only `esr sweep SUITE` with the table's own options is accepted, and anything
-else in a block stops with the file and line that holds it. With `--any-code` a table keeps
-reading archived runs after the training code changes (their rows name the commit that made
-them).
+The commands a table can name (`COMMANDS`): `esr sweep SUITE --results --markdown ...`, a
+suite's runs and what the store holds of them, and `esr human calibrate SPEC... --markdown`,
+stored calibrations of Overcooked humans. Either is read from the store only: nothing is
+trained or played. `esr tables FILE...` replaces each table with what the command gives on the
+store now, and `--check` writes nothing and names every table that differs. The command is
+parsed here, never run by a shell: anything but those commands with a table's own options stops
+with the file and line that holds it. With `--any-code` a sweep table keeps reading archived
+runs after the training code changes (their rows name the commit that made them); a
+calibration table always does (recipes/calibration_runs.py).
 """
 
 from __future__ import annotations
@@ -40,12 +42,72 @@ class TableError(Exception):
 
 
 @dataclass(frozen=True)
-class Command:
+class SweepTable:
+    """`esr sweep SUITE --results --markdown ...`: a suite's runs and their checks."""
+
     suite: Path
     budget: str
     metrics: tuple[str, ...]
     checks: tuple[str, ...]  # check_columns names ("exact", "diagnosis", "eval")
     any_code: bool
+
+    def lines(self, store: Store, where: str) -> list[str]:
+        """The lines `esr sweep SUITE --results --markdown ...` prints for this store."""
+        from esr_cli.common import specs
+        from esr_cli.recipes import sweep as sw
+
+        try:
+            suite = sw.load_suite(self.suite, self.budget)
+            metrics = self.metrics or sw.DEFAULT_RESULT_METRICS
+            # A page is read from any checkout and store: its commands say `esr` and name spec files
+            # from the checkout's root, as the page's own command does.
+            rows = sw.results(suite, store, metrics, self.checks, self.any_code, esr="esr", paths_from=Path.cwd())
+        except (sw.SuiteError, specs.SpecError) as e:
+            raise TableError(f"{where}: {e}") from None
+        return sw.results_markdown(suite, rows, metrics, self.checks).split("\n")
+
+
+@dataclass(frozen=True)
+class CalibrationTable:
+    """`esr human calibrate SPEC... --markdown`: the stored calibrations of the specs' humans."""
+
+    specs: tuple[Path, ...]
+    budget: str
+    sets: tuple[str, ...]
+    human_seeds: int
+    episodes: int
+
+    def lines(self, store: Store, where: str) -> list[str]:
+        from esr_cli.common import specs
+        from esr_cli.recipes import calibration_runs, stored_humans
+        from esr_cli.report import human_calibration as hc
+
+        rows, other_code = [], []
+        for path in self.specs:
+            try:
+                spec = specs.load(path, self.budget, list(self.sets))
+            except specs.SpecError as e:
+                raise TableError(f"{where}: {e}") from None
+            if spec.env.kind != "overcooked" or not stored_humans.is_stored(spec.human):
+                raise TableError(f"{where}: {path}: a calibration needs an Overcooked spec whose human is stored (bc or ppo)")
+            found = calibration_runs.find(store, spec, self.human_seeds, self.episodes)
+            if found is None:
+                raise TableError(f"{where}: the store has no calibration of {spec.name}'s human ({hc.describe(spec.human)}, "
+                                 f"{self.human_seeds} human(s), {self.episodes} episodes): `esr human calibrate` makes it")
+            at, commit, same_code = found
+            row = calibration_runs.read_row(at, spec)
+            if row is None:
+                raise TableError(f"{where}: {at}: the stored calibration's summary is damaged")
+            rows.append(row)
+            if not same_code:
+                other_code.append(f"{spec.name} (commit {commit or 'unknown'})")
+        if len({r.layout for r in rows}) != len(rows):
+            raise TableError(f"{where}: two specs share a layout: give one spec per layout")
+        text = hc.markdown(rows, self.human_seeds, self.episodes).rstrip("\n")
+        if other_code:
+            text += ("\n\nCalibrated by code other than this checkout's (its humans or their player changed since): "
+                     + ", ".join(other_code) + ".")
+        return text.split("\n")
 
 
 @dataclass(frozen=True)
@@ -57,23 +119,16 @@ class Block:
     end: int  # index of the closing comment
 
 
-def parse_command(text: str, where: str) -> Command:
-    """The table's `esr sweep` command, from the opening comment's text."""
-    try:
-        argv = shlex.split(text)
-    except ValueError as e:
-        raise TableError(f"{where}: cannot split the command ({e})") from None
-    if argv[:2] != ["esr", "sweep"] or len(argv) < 3 or argv[2].startswith("-"):
+def _parse_sweep(argv: list[str], where: str) -> SweepTable:
+    if not argv or argv[0].startswith("-"):
         raise TableError(f"{where}: a table's command is `esr sweep SUITE --results --markdown ...`")
-    suite, options, flags = Path(argv[2]), {"budget": "paper", "metric": []}, set()
-    rest = iter(argv[3:])
+    suite, options, flags = Path(argv[0]), {"budget": "paper", "metric": []}, set()
+    rest = iter(argv[1:])
     for arg in rest:
         if arg in _FLAGS:
             flags.add(arg)
         elif arg in _VALUED:
-            value = next(rest, None)
-            if value is None or value.startswith("-"):
-                raise TableError(f"{where}: {arg} needs a value")
+            value = _value(arg, rest, where)
             if _VALUED[arg] == "metric":
                 options["metric"].append(value)
             else:
@@ -85,7 +140,66 @@ def parse_command(text: str, where: str) -> Command:
     if missing:
         raise TableError(f"{where}: a generated table needs {' and '.join(sorted(missing))}")
     checks = tuple(name for flag, name in _CHECK_FLAGS.items() if flag in flags)
-    return Command(suite, options["budget"], tuple(dict.fromkeys(options["metric"])), checks, "--any-code" in flags)
+    return SweepTable(suite, options["budget"], tuple(dict.fromkeys(options["metric"])), checks, "--any-code" in flags)
+
+
+# `esr human calibrate`'s options a table may give, with the CLI's bounds for the counts.
+_CALIBRATION_VALUED = {"--budget": "budget", "-b": "budget", "--set": "set", "-s": "set",
+                       "--human-seeds": "human_seeds", "--episodes": "episodes"}
+_CALIBRATION_COUNTS = {"human_seeds": (1, 64, 3), "episodes": (2, 100_000, 100)}  # (least, most, default)
+
+
+def _parse_calibration(argv: list[str], where: str) -> CalibrationTable:
+    spec_files, options, markdown = [], {"budget": "paper", "set": []}, False
+    rest = iter(argv)
+    for arg in rest:
+        if arg == "--markdown":
+            markdown = True
+        elif arg in _CALIBRATION_VALUED:
+            name, value = _CALIBRATION_VALUED[arg], _value(arg, rest, where)
+            if name == "set":
+                options["set"].append(value)
+            elif name in _CALIBRATION_COUNTS:
+                least, most, _ = _CALIBRATION_COUNTS[name]
+                if not (value.isdecimal() and least <= int(value) <= most):
+                    raise TableError(f"{where}: {arg} takes a whole number from {least} to {most:,}, not {value[:40]!r}")
+                options[name] = int(value)
+            else:
+                options[name] = value
+        elif arg.startswith("-"):
+            raise TableError(f"{where}: {arg!r} is not an option of a calibration table "
+                             f"(allowed: --markdown, {', '.join(sorted(_CALIBRATION_VALUED))})")
+        else:
+            spec_files.append(Path(arg))
+    if not spec_files or not markdown:
+        raise TableError(f"{where}: a calibration table's command is `esr human calibrate SPEC... --markdown ...`")
+    counts = {name: options.get(name, default) for name, (_, _, default) in _CALIBRATION_COUNTS.items()}
+    return CalibrationTable(tuple(spec_files), options["budget"], tuple(options["set"]), **counts)
+
+
+def _value(arg: str, rest, where: str) -> str:
+    value = next(rest, None)
+    if value is None or value.startswith("-"):
+        raise TableError(f"{where}: {arg} needs a value")
+    return value
+
+
+# The commands a table can name: the words that start each, and how the rest is read.
+COMMANDS = {("esr", "sweep"): _parse_sweep, ("esr", "human", "calibrate"): _parse_calibration}
+Command = SweepTable | CalibrationTable
+
+
+def parse_command(text: str, where: str) -> Command:
+    """The table's command, from the opening comment's text."""
+    try:
+        argv = shlex.split(text)
+    except ValueError as e:
+        raise TableError(f"{where}: cannot split the command ({e})") from None
+    for words, parse in COMMANDS.items():
+        if tuple(argv[:len(words)]) == words:
+            return parse(argv[len(words):], where)
+    raise TableError(f"{where}: a table's command is `esr sweep SUITE --results --markdown ...` "
+                     "or `esr human calibrate SPEC... --markdown`")
 
 
 def read_doc(path: Path) -> list[str]:
@@ -135,29 +249,13 @@ def blocks(path: Path, lines: list[str]) -> list[Block]:
     return found
 
 
-def generate(command: Command, store: Store, where: str) -> list[str]:
-    """The lines `esr sweep SUITE --results --markdown ...` prints for this store."""
-    from esr_cli.common import specs
-    from esr_cli.recipes import sweep as sw
-
-    try:
-        suite = sw.load_suite(command.suite, command.budget)
-        metrics = command.metrics or sw.DEFAULT_RESULT_METRICS
-        # A page is read from any checkout and store: its commands say `esr` and name spec files
-        # from the checkout's root, as the page's own command does.
-        rows = sw.results(suite, store, metrics, command.checks, command.any_code, esr="esr", paths_from=Path.cwd())
-    except (sw.SuiteError, specs.SpecError) as e:
-        raise TableError(f"{where}: {e}") from None
-    return sw.results_markdown(suite, rows, metrics, command.checks).split("\n")
-
-
 def refresh(path: Path, store: Store) -> tuple[list[str], list[str], int]:
     """(the file's lines, the same with every table generated anew, the number of tables)."""
     lines = read_doc(path)
     new = list(lines)
     found = blocks(path, lines)
     for b in reversed(found):  # from the end, so earlier indices stay valid
-        new[b.start:b.end] = generate(b.command, store, f"{path}:{b.line}")
+        new[b.start:b.end] = b.command.lines(store, f"{path}:{b.line}")
     return lines, new, len(found)
 
 

@@ -87,8 +87,12 @@ def calibrate_spec(spec, human_seeds: int, episodes: int, store: Store, console:
         # SE over the humans; with one human, over its episodes (human_eval's)
         se = float(np.std(means, ddof=1) / math.sqrt(len(means))) if len(means) > 1 else per_human[0][partner]["se"]
         returns[partner] = {"mean": float(np.mean(means)), "se": se, "per_human": means}
-    paper = PAPER_OVERCOOKED.get(layout, {}).get("random", (None,))[0]
-    return Row(spec.name, layout, describe(spec.human), keys, returns, paper)
+    return Row(spec.name, layout, describe(spec.human), keys, returns, paper_random(layout))
+
+
+def paper_random(layout: str) -> float | None:
+    """The paper's Random score on `layout`; None off the paper's layouts."""
+    return PAPER_OVERCOOKED.get(layout, {}).get("random", (None,))[0]
 
 
 def score(rows: list[Row]) -> float | None:

@@ -45,7 +45,8 @@ RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND = "runs", "e
 CHECKPOINT_FOLDER = "checkpoints"  # a run's checkpoints, one folder per epoch (checkpoint_files.py)
 PLAY_KIND = "play"  # an episode a person played with a robot (esr play)
 DIAGNOSIS_KIND = "diagnoses"  # why a finished run's robot helps or not, one seed (esr diagnose)
-KINDS = (RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND, PLAY_KIND, DIAGNOSIS_KIND)
+CALIBRATION_KIND = "calibrations"  # an Overcooked human with each partner, no robot trained (esr human calibrate)
+KINDS = (RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND, PLAY_KIND, DIAGNOSIS_KIND, CALIBRATION_KIND)
 
 
 class StoreError(Failure):

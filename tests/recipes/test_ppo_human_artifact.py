@@ -5,6 +5,7 @@ calibrated with returns a plain evaluation of the same human reproduces."""
 
 import json
 import math
+import shlex
 import signal
 import subprocess
 import sys
@@ -159,6 +160,22 @@ def test_calibration_rows_are_plain_evaluations_of_the_stored_humans(built):
         per = row["returns"][partner]["per_human"]
         assert row["returns"][partner]["mean"] == pytest.approx(np.mean(per))
         assert row["returns"][partner]["se"] == pytest.approx(np.std(per, ddof=1) / math.sqrt(2))
+
+
+@pytest.mark.slow
+def test_a_calibration_is_stored_answered_again_from_the_store_and_drawn_in_a_page(built, tmp_path):
+    store, _ = built
+    args = ("human", "calibrate", SPEC, "-b", "smoke", "--set", tiny(), "--human-seeds", "2", "--episodes", "3", "--markdown")
+    first = esr(*args, store=store)
+    again = esr(*args, store=store)
+    assert again.stdout == first.stdout and "cache hit: cramped_room's calibration" in again.stderr
+    assert len(list(Store(store).root.glob("calibrations/*/*/manifest.json"))) == 1
+    page = tmp_path / "page.md"
+    command = f"esr human calibrate {SPEC} -b smoke --set {shlex.quote(tiny())} --human-seeds 2 --episodes 3 --markdown"
+    page.write_text(f"# Humans\n<!-- {command} -->\n<!-- end of generated table -->\n")
+    esr("tables", str(page), store=store)
+    assert page.read_text() == f"# Humans\n<!-- {command} -->\n{first.stdout.strip()}\n<!-- end of generated table -->\n"
+    assert esr("tables", str(page), "--check", store=store).returncode == 0
 
 
 def test_the_selection_rule_scores_the_mean_absolute_log_ratio():

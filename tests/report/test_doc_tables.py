@@ -31,7 +31,7 @@ def test_a_tables_command_is_parsed_into_the_sweeps_own_options():
     cmd = doc_tables.parse_command("esr sweep experiments/suites/x.yaml --budget quick --results --markdown --any-code "
                                    "--metric return --metric mi_estimate --metric return --diagnose --exact", "page.md:4")
     # the checks in the table's own order, whatever the comment's
-    assert cmd == doc_tables.Command(Path("experiments/suites/x.yaml"), "quick", ("return", "mi_estimate"),
+    assert cmd == doc_tables.SweepTable(Path("experiments/suites/x.yaml"), "quick", ("return", "mi_estimate"),
                                      ("exact", "diagnosis"), True)
     assert doc_tables.parse_command("esr sweep s.yaml --results --markdown --diagnose", "w").checks == ("diagnosis",)
     assert doc_tables.parse_command("esr sweep s.yaml --results --markdown", "w").budget == "paper"  # the CLI's default
@@ -193,7 +193,84 @@ def test_a_missing_run_in_a_page_is_named_by_a_command_any_checkout_and_store_ca
     monkeypatch.delenv("ESR_STORE", raising=False)
     suite = one_run_suite(tmp_path)
     command = doc_tables.parse_command(f"esr sweep {suite} --budget smoke --results --markdown", "page.md:1")
-    lines = doc_tables.generate(command, Store(tmp_path / "somewhere" / "store"), "page.md:1")
+    lines = command.lines(Store(tmp_path / "somewhere" / "store"), "page.md:1")
     (row,) = [line for line in lines if line.startswith("| grid_2 |")]
     # Not `esr --store /tmp/...` nor the spec's absolute path: the page's reader has neither.
     assert "| missing: `esr train experiments/grid_2.yaml --budget smoke` |" in row
+
+
+CRAMPED = ROOT / "experiments" / "cramped_room.yaml"
+BC = "human={kind: bc}"
+
+
+def test_a_calibration_table_command_is_parsed_into_the_calibrate_options():
+    cmd = doc_tables.parse_command(f"esr human calibrate {CRAMPED} experiments/coord_ring.yaml --set '{BC}' "
+                                   "--human-seeds 2 --episodes 50 --markdown", "page.md:4")
+    assert cmd == doc_tables.CalibrationTable((CRAMPED, Path("experiments/coord_ring.yaml")), "paper", (BC,), 2, 50)
+    assert doc_tables.parse_command(f"esr human calibrate {CRAMPED} --markdown", "w").human_seeds == 3  # the CLI's defaults
+    for text, problem in (
+            (f"esr human calibrate {CRAMPED}", "`esr human calibrate SPEC... --markdown"),
+            ("esr human calibrate --markdown", "`esr human calibrate SPEC... --markdown"),
+            (f"esr human calibrate {CRAMPED} --markdown --json", "'--json' is not an option of a calibration table"),
+            (f"esr human calibrate {CRAMPED} --markdown --human-seeds 0", "--human-seeds takes a whole number from 1 to 64"),
+            (f"esr human calibrate {CRAMPED} --markdown --episodes 1e9", "--episodes takes a whole number from 2 to 100,000"),
+            (f"esr human calibrate {CRAMPED} --markdown --set", "--set needs a value"),
+            ("esr human build experiments/cramped_room.yaml", "or `esr human calibrate SPEC... --markdown`")):
+        with pytest.raises(doc_tables.TableError) as e:
+            doc_tables.parse_command(text, "docs/page.md:9")
+        assert str(e.value).startswith("docs/page.md:9: ") and problem in str(e.value), text
+
+
+def _stored_calibration(store: Store, summary: dict, **changes):
+    """A calibration artifact of cramped room's BC human (2 humans, 3 episodes) holding `summary`,
+    its key components changed by `changes` (another code's, say)."""
+    from esr_cli.common import specs
+    from esr_cli.recipes import calibration_runs
+    from esr_cli.storage.artifacts import Recipe, ensure
+    from esr_cli.storage.store import CALIBRATION_KIND
+
+    spec = specs.load(CRAMPED, "paper", [BC])
+    comps = {**calibration_runs.components(spec, 2, 3), **changes}
+    return ensure(Recipe(CALIBRATION_KIND, spec.name, comps, lambda _path, _store: summary), store)
+
+
+def _summary(random_mean=30.0):
+    per = {"random": [random_mean - 1, random_mean + 1], "stay": [10.0, 12.0], "self": [120.0, 130.0]}
+    return {"returns": {p: {"mean": sum(v) / 2, "se": 1.0, "per_human": v} for p, v in per.items()}}
+
+
+def test_a_calibration_table_reads_the_stored_calibration_and_plays_nothing(tmp_path):
+    store = Store(tmp_path / "store")
+    table = doc_tables.CalibrationTable((CRAMPED,), "paper", (BC,), 2, 3)
+    with pytest.raises(doc_tables.TableError) as e:
+        table.lines(store, "page.md:3")
+    assert "page.md:3: the store has no calibration of cramped_room's human (bc 64x64 stay_weight=0.1 epochs=60, " \
+           "2 human(s), 3 episodes)" in str(e.value)
+    mine = _stored_calibration(store, _summary(34.63))
+    lines = table.lines(store, "page.md:3")
+    assert lines[2] == ("| cramped_room | cramped_room | bc 64x64 stay_weight=0.1 epochs=60 | 34.63 ± 1.00 | 11.00 ± 1.00 "
+                        "| 125.00 ± 1.00 | 69.26 | 0.50 |")
+    assert lines[-1].startswith("2 human(s) per layout, 3 episodes each; score: needs the three paper layouts")
+    # another code's calibration of the same human: this code's is preferred; without it, the
+    # other is read and its commit named
+    _stored_calibration(store, _summary(50.0), code="0" * 32)
+    assert table.lines(store, "page.md:3")[2] == lines[2]
+    import shutil
+    shutil.rmtree(mine.path)
+    lines = table.lines(store, "page.md:3")
+    assert "| 50.00 ± 1.00 |" in lines[2]
+    assert lines[-1].startswith("Calibrated by code other than this checkout's") and "cramped_room (commit" in lines[-1]
+
+
+@pytest.mark.parametrize("damage", [
+    {"returns": "all good"},
+    {"returns": {"random": {"mean": "9" * 500, "se": 1.0, "per_human": [1.0]}}},
+    {"returns": {p: {"mean": 1.0, "se": 1.0, "per_human": ["\x1b[2J"]} for p in ("random", "stay", "self")}},
+    {"returns": {p: {"mean": float("nan"), "se": 1.0, "per_human": [1.0]} for p in ("random", "stay", "self")}},
+])
+def test_a_damaged_stored_calibration_is_named_in_one_line_never_shown(tmp_path, damage):
+    store = Store(tmp_path / "store")
+    built = _stored_calibration(store, damage)
+    with pytest.raises(doc_tables.TableError) as e:
+        doc_tables.CalibrationTable((CRAMPED,), "paper", (BC,), 2, 3).lines(store, "page.md:3")
+    assert str(e.value) == f"page.md:3: {built.path}: the stored calibration's summary is damaged"

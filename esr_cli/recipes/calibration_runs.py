@@ -1,0 +1,122 @@
+"""Calibrations of Overcooked humans (`esr human calibrate`), stored.
+
+The calibration of one spec's human on its layout (`human_seeds` humans of the spec's recipe,
+`episodes` episodes of each with each partner) is an artifact (kind `calibrations`), keyed by
+the humans it played (their keys name the code that made them), the episode count and the code
+that plays them. `esr human calibrate` answers again from the store, and a page's table reads
+the stored calibration back (`esr tables`), never playing an episode.
+
+A table asks for a calibration by what was calibrated (layout, human recipe, human seeds,
+episodes): the one this checkout's code makes where the store has it, else the newest made by
+other code (whose humans or player had other keys), which the table then names by commit, as
+`esr sweep --results --any-code` names the commit of a run.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Optional
+
+from rich.console import Console
+
+from esr_cli.common.numbers import as_number
+from esr_cli.storage import provenance
+from esr_cli.storage.artifacts import Recipe, summary_or_empty
+from esr_cli.storage.store import CALIBRATION_KIND, Store, content_key
+
+# The code that plays a stored human with each partner and sums the returns: the environment,
+# the humans' policies and the evaluation loop (their import closure), and the row it writes.
+CALIBRATION_CODE = (("model/envs/overcooked.py", "model/humans"), ("report/human_calibration.py", "recipes/calibration_runs.py"))
+# The parts of the key that name what was calibrated, as a table asks for it; the rest ("humans",
+# "code") names which code made it.
+ASKED = ("kind", "layout", "human", "human_seeds", "episodes")
+
+
+def base_human(spec):
+    """The spec's human recipe as calibrated: one human per seed human.seed, +1, ..., never per
+    training seed."""
+    return spec.human.model_copy(update={"per_seed": False})
+
+
+def human_keys(spec, human_seeds: int) -> list[str]:
+    """The keys of the `human_seeds` humans a calibration of `spec` plays (data only)."""
+    from esr_cli.recipes import stored_humans
+
+    base = base_human(spec)
+    return [stored_humans.stored_key(base.model_copy(update={"seed": base.seed + i}), spec.env.layout)[0]
+            for i in range(human_seeds)]
+
+
+def asked(spec, human_seeds: int, episodes: int) -> dict:
+    """What a calibration of `spec` is of, whichever code makes it."""
+    return {"kind": "calibration", "layout": spec.env.layout, "human": base_human(spec).model_dump(mode="json"),
+            "human_seeds": human_seeds, "episodes": episodes}
+
+
+def components(spec, human_seeds: int, episodes: int) -> dict:
+    return {**asked(spec, human_seeds, episodes), "humans": human_keys(spec, human_seeds),
+            "code": provenance.code_digest(*CALIBRATION_CODE)}
+
+
+def calibration_recipe(spec, human_seeds: int, episodes: int, console: Console) -> Recipe:
+    """The stored calibration of `spec`'s human: its humans are made first where the store lacks them."""
+    from esr_cli.recipes import stored_humans
+    from esr_cli.report import human_calibration as hc
+
+    base = base_human(spec)
+    humans = tuple(stored_humans.stored_recipe(base.model_copy(update={"seed": base.seed + i}), spec.env.layout, console)
+                   for i in range(human_seeds))
+
+    def build(_path: Path, store: Store) -> dict:
+        row = hc.calibrate_spec(spec, human_seeds, episodes, store, console)
+        # `esr ls` shows an artifact's summary "return": here the one the selection rule reads
+        return {**row.as_json(), "return": {"of": "with a uniform random partner", "mean": row.returns["random"]["mean"]}}
+
+    return Recipe(CALIBRATION_KIND, spec.name, components(spec, human_seeds, episodes), build, requires=humans)
+
+
+def find(store: Store, spec, human_seeds: int, episodes: int) -> Optional[tuple[Path, Optional[str], bool]]:
+    """The stored calibration this checkout's code would make, else the newest one of what
+    `asked` names: (its path, the commit that made it, whether it is this code's); None when
+    the store has neither."""
+    want, key, found = asked(spec, human_seeds, episodes), content_key(components(spec, human_seeds, episodes)), None
+    for entry in store.entries((CALIBRATION_KIND,)):
+        comps = entry.manifest.get("key_components") if isinstance(entry.manifest, dict) else None
+        if entry.status != "complete" or not isinstance(comps, dict) or any(comps.get(k) != want[k] for k in ASKED):
+            continue
+        rank = (entry.key == key, str(entry.manifest.get("created_at") or ""))
+        if found is None or rank >= found[0]:
+            found = (rank, entry)
+    if found is None:
+        return None
+    (same_code, _), entry = found
+    return entry.path, provenance.origin(entry.manifest).commit, same_code
+
+
+def _finite(value) -> Optional[float]:
+    """An episode return's mean or SE: a finite number (NaN or infinity only from damage)."""
+    number = as_number(value)
+    return number if number is not None and math.isfinite(number) else None
+
+
+def read_row(path: Path, spec, keys: list[str] = ()):
+    """The stored calibration at `path` as the row of `spec` (its name, layout and human are the
+    spec's, `keys` its humans' keys; only the returns are read from the store, as numbers); None
+    when its summary is missing, damaged or not a calibration's (from an archive, perhaps)."""
+    from esr_cli.report import human_calibration as hc
+
+    returns = summary_or_empty(path).get("returns")
+    if not isinstance(returns, dict):
+        return None
+    read = {}
+    for partner in hc.PARTNERS:
+        cell = returns.get(partner)
+        if not isinstance(cell, dict) or not isinstance(cell.get("per_human"), list):
+            return None
+        mean, se = _finite(cell.get("mean")), _finite(cell.get("se"))
+        per_human = [_finite(v) for v in cell["per_human"]]
+        if mean is None or se is None or None in per_human:
+            return None
+        read[partner] = {"mean": mean, "se": se, "per_human": per_human}
+    return hc.Row(spec.name, spec.env.layout, hc.describe(spec.human), list(keys), read, hc.paper_random(spec.env.layout))
