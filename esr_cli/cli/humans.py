@@ -71,15 +71,15 @@ def human_calibrate(
     layouts = [s.env.layout for s in loaded]
     if len(set(layouts)) != len(layouts):
         raise Exit(2, f"two specs share a layout ({', '.join(layouts)}): give one spec per layout")
-    from esr_cli.recipes import calibration_runs
+    from esr_cli.report import stored_calibrations
     from esr_cli.report import human_calibration as hc
 
     rows = []
     for s in loaded:
-        built = ensure(calibration_runs.calibration_recipe(s, human_seeds, episodes, err), ctx.obj.store)
+        built = ensure(stored_calibrations.calibration_recipe(s, human_seeds, episodes, err), ctx.obj.store)
         if built.cached:
             err.print(tagged("cache hit", "green", f": {own(s.name)}'s calibration, {built.path}"), highlight=False)
-        row = calibration_runs.read_row(built.path, s, calibration_runs.human_keys(s, human_seeds))
+        row = stored_calibrations.read_row(built.path, s, tuple(stored_calibrations.human_keys(s, human_seeds)))
         if row is None:
             raise Exit(1, f"{built.path}: the stored calibration's summary is damaged; remove it and calibrate again")
         rows.append(row)

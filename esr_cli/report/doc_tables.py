@@ -14,7 +14,7 @@ store now, and `--check` writes nothing and names every table that differs. The 
 parsed here, never run by a shell: anything but those commands with a table's own options stops
 with the file and line that holds it. With `--any-code` a sweep table keeps reading archived
 runs after the training code changes (their rows name the commit that made them); a
-calibration table always does (recipes/calibration_runs.py).
+calibration table always does (report/stored_calibrations.py).
 """
 
 from __future__ import annotations
@@ -79,8 +79,8 @@ class CalibrationTable:
 
     def lines(self, store: Store, where: str) -> list[str]:
         from esr_cli.common import specs
-        from esr_cli.recipes import calibration_runs, stored_humans
-        from esr_cli.report import human_calibration as hc
+        from esr_cli.recipes import stored_humans
+        from esr_cli.report import human_calibration as hc, stored_calibrations
 
         rows, other_code = [], []
         for path in self.specs:
@@ -90,12 +90,12 @@ class CalibrationTable:
                 raise TableError(f"{where}: {e}") from None
             if spec.env.kind != "overcooked" or not stored_humans.is_stored(spec.human):
                 raise TableError(f"{where}: {path}: a calibration needs an Overcooked spec whose human is stored (bc or ppo)")
-            found = calibration_runs.find(store, spec, self.human_seeds, self.episodes)
+            found = stored_calibrations.find(store, spec, self.human_seeds, self.episodes)
             if found is None:
                 raise TableError(f"{where}: the store has no calibration of {spec.name}'s human ({hc.describe(spec.human)}, "
                                  f"{self.human_seeds} human(s), {self.episodes} episodes): `esr human calibrate` makes it")
             at, commit, same_code = found
-            row = calibration_runs.read_row(at, spec)
+            row = stored_calibrations.read_row(at, spec)
             if row is None:
                 raise TableError(f"{where}: {at}: the stored calibration's summary is damaged")
             rows.append(row)

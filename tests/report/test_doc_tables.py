@@ -225,12 +225,12 @@ def _stored_calibration(store: Store, summary: dict, **changes):
     """A calibration artifact of cramped room's BC human (2 humans, 3 episodes) holding `summary`,
     its key components changed by `changes` (another code's, say)."""
     from esr_cli.common import specs
-    from esr_cli.recipes import calibration_runs
+    from esr_cli.report import stored_calibrations
     from esr_cli.storage.artifacts import Recipe, ensure
     from esr_cli.storage.store import CALIBRATION_KIND
 
     spec = specs.load(CRAMPED, "paper", [BC])
-    comps = {**calibration_runs.components(spec, 2, 3), **changes}
+    comps = {**stored_calibrations.components(spec, 2, 3), **changes}
     return ensure(Recipe(CALIBRATION_KIND, spec.name, comps, lambda _path, _store: summary), store)
 
 

@@ -21,36 +21,30 @@ from typing import Optional
 from rich.console import Console
 
 from esr_cli.common.numbers import as_number
+from esr_cli.report import human_calibration as hc
 from esr_cli.storage import provenance
 from esr_cli.storage.artifacts import Recipe, summary_or_empty
 from esr_cli.storage.store import CALIBRATION_KIND, Store, content_key
 
 # The code that plays a stored human with each partner and sums the returns: the environment,
 # the humans' policies and the evaluation loop (their import closure), and the row it writes.
-CALIBRATION_CODE = (("model/envs/overcooked.py", "model/humans"), ("report/human_calibration.py", "recipes/calibration_runs.py"))
+CALIBRATION_CODE = (("model/envs/overcooked.py", "model/humans"), ("report/human_calibration.py", "report/stored_calibrations.py"))
 # The parts of the key that name what was calibrated, as a table asks for it; the rest ("humans",
 # "code") names which code made it.
 ASKED = ("kind", "layout", "human", "human_seeds", "episodes")
-
-
-def base_human(spec):
-    """The spec's human recipe as calibrated: one human per seed human.seed, +1, ..., never per
-    training seed."""
-    return spec.human.model_copy(update={"per_seed": False})
 
 
 def human_keys(spec, human_seeds: int) -> list[str]:
     """The keys of the `human_seeds` humans a calibration of `spec` plays (data only)."""
     from esr_cli.recipes import stored_humans
 
-    base = base_human(spec)
-    return [stored_humans.stored_key(base.model_copy(update={"seed": base.seed + i}), spec.env.layout)[0]
-            for i in range(human_seeds)]
+    return [stored_humans.stored_key(human, spec.env.layout)[0] for human in hc.seed_humans(spec, human_seeds)]
 
 
 def asked(spec, human_seeds: int, episodes: int) -> dict:
-    """What a calibration of `spec` is of, whichever code makes it."""
-    return {"kind": "calibration", "layout": spec.env.layout, "human": base_human(spec).model_dump(mode="json"),
+    """What a calibration of `spec` is of, whichever code makes it: the first human's recipe
+    stands for all (the others differ in their seeds alone)."""
+    return {"kind": "calibration", "layout": spec.env.layout, "human": hc.seed_humans(spec, 1)[0].model_dump(mode="json"),
             "human_seeds": human_seeds, "episodes": episodes}
 
 
@@ -62,11 +56,8 @@ def components(spec, human_seeds: int, episodes: int) -> dict:
 def calibration_recipe(spec, human_seeds: int, episodes: int, console: Console) -> Recipe:
     """The stored calibration of `spec`'s human: its humans are made first where the store lacks them."""
     from esr_cli.recipes import stored_humans
-    from esr_cli.report import human_calibration as hc
 
-    base = base_human(spec)
-    humans = tuple(stored_humans.stored_recipe(base.model_copy(update={"seed": base.seed + i}), spec.env.layout, console)
-                   for i in range(human_seeds))
+    humans = tuple(stored_humans.stored_recipe(human, spec.env.layout, console) for human in hc.seed_humans(spec, human_seeds))
 
     def build(_path: Path, store: Store) -> dict:
         row = hc.calibrate_spec(spec, human_seeds, episodes, store, console)
@@ -100,12 +91,10 @@ def _finite(value) -> Optional[float]:
     return number if number is not None and math.isfinite(number) else None
 
 
-def read_row(path: Path, spec, keys: list[str] = ()):
+def read_row(path: Path, spec, keys: tuple[str, ...] = ()):
     """The stored calibration at `path` as the row of `spec` (its name, layout and human are the
     spec's, `keys` its humans' keys; only the returns are read from the store, as numbers); None
     when its summary is missing, damaged or not a calibration's (from an archive, perhaps)."""
-    from esr_cli.report import human_calibration as hc
-
     returns = summary_or_empty(path).get("returns")
     if not isinstance(returns, dict):
         return None
