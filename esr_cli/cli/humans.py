@@ -11,6 +11,7 @@ from rich.table import Table
 from esr_cli.cli.app import BudgetOpt, Exit, SetOpt, app, err, load_spec, out
 from esr_cli.common import jsonl
 from esr_cli.common.printing import own, printable, tagged
+from esr_cli.report.stored_calibrations import COUNTS
 from esr_cli.storage.artifacts import ensure
 from esr_cli.storage.store import Store
 
@@ -58,8 +59,10 @@ def human_calibrate(
                                             "candidate (kind bc or ppo)", show_default=False),
     budget: str = BudgetOpt,
     set_: Optional[List[str]] = SetOpt,
-    human_seeds: int = typer.Option(3, "--human-seeds", min=1, max=64, help="humans per layout: seeds human.seed, +1, ..."),
-    episodes: int = typer.Option(100, "--episodes", min=2, max=100_000, help="episodes of each human with each partner"),
+    human_seeds: int = typer.Option(COUNTS["human_seeds"][2], "--human-seeds", min=COUNTS["human_seeds"][0],
+                                    max=COUNTS["human_seeds"][1], help="humans per layout: seeds human.seed, +1, ..."),
+    episodes: int = typer.Option(COUNTS["episodes"][2], "--episodes", min=COUNTS["episodes"][0], max=COUNTS["episodes"][1],
+                                 help="episodes of each human with each partner"),
     as_json: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
     markdown: bool = typer.Option(False, "--markdown", help="print a markdown table"),
 ):
@@ -68,18 +71,17 @@ def human_calibrate(
     made first where the store lacks them, and each calibration is stored (kind calibrations): asked
     again, it is read back. The score is the selection rule's (docs/overcooked.md)."""
     loaded = [_stored_human_spec(f, budget, set_, ctx.obj.store) for f in spec_files]
-    layouts = [s.env.layout for s in loaded]
-    if len(set(layouts)) != len(layouts):
-        raise Exit(2, f"two specs share a layout ({', '.join(layouts)}): give one spec per layout")
-    from esr_cli.report import stored_calibrations
-    from esr_cli.report import human_calibration as hc
+    from esr_cli.report import human_calibration as hc, stored_calibrations
 
+    problem = stored_calibrations.check_specs(loaded)
+    if problem:
+        raise Exit(2, problem)
     rows = []
     for s in loaded:
         built = ensure(stored_calibrations.calibration_recipe(s, human_seeds, episodes, err), ctx.obj.store)
         if built.cached:
             err.print(tagged("cache hit", "green", f": {own(s.name)}'s calibration, {built.path}"), highlight=False)
-        row = stored_calibrations.read_row(built.path, s, tuple(stored_calibrations.human_keys(s, human_seeds)))
+        row = stored_calibrations.read_row(built.path, s, human_seeds, tuple(stored_calibrations.human_keys(s, human_seeds)))
         if row is None:
             raise Exit(1, f"{built.path}: the stored calibration's summary is damaged; remove it and calibrate again")
         rows.append(row)

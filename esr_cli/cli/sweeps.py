@@ -13,21 +13,21 @@ from esr_cli.common.printing import own, tagged
 from esr_cli.storage.artifacts import ensure
 
 
-def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, wait, job_opts,
+def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, markdown, plot, any_code, wait, job_opts,
                                   results_only: dict[str, bool], plot_only: dict[str, bool]):
     """An option that would change nothing is a mistake to name, not to ignore. `results_only`:
-    each --results option (flag -> given), `plot_only`: each --plot option."""
+    every other --results option (flag -> given), `plot_only`: each --plot option."""
     for flag, given in plot_only.items():
-        if given and not results_only["--plot"]:
+        if given and not plot:
             raise Exit(2, f"{flag} applies with --results --plot only")
     if show_status and show_results:
         raise Exit(2, "--status and --results: choose one")
-    if as_json and results_only["--markdown"]:
+    if as_json and markdown:
         raise Exit(2, "--json and --markdown: choose one")
-    for flag, given in results_only.items():
+    for flag, given in {"--markdown": markdown, **results_only, "--plot": plot, "--any-code": any_code}.items():
         if given and not show_results:
             raise Exit(2, f"{flag} applies with --results only")
-    if results_only["--any-code"] and results_only["--plot"]:
+    if any_code and plot:
         raise Exit(2, "--any-code applies to the table: --plot draws only the runs this code made")
     if as_json and not (show_status or show_results):
         raise Exit(2, "--json applies with --status or --results only")
@@ -88,9 +88,9 @@ def sweep(
     # The check columns' flags, by check_columns.REGISTRY's option names.
     check_flags = {"--exact": exact, "--diagnose": diagnose, "--play": play, "--eval": evals}
     _refuse_ignored_sweep_options(
-        executor, show_status, show_results, as_json, wait,
+        executor, show_status, show_results, as_json, markdown, plot, any_code, wait,
         {"--partition": partition, "--time-min": time_min, "--gpus": gpus, "--cpus": cpus, "--mem-gb": mem_gb},
-        results_only={"--markdown": markdown, "--metric": bool(metric), "--plot": plot, **check_flags, "--any-code": any_code},
+        results_only={"--metric": bool(metric), **check_flags},
         plot_only={"--unfinished": unfinished, "--out": out_dir is not None})
     overrides = {"partition": partition, "time_min": time_min, "gpus": gpus, "cpus": cpus, "mem_gb": mem_gb}
     try:

@@ -34,6 +34,13 @@ def stored_recipe(human_spec, layout: str, console: Console) -> Recipe:
     return STORED[human_spec.kind].recipe(human_spec, layout, console)
 
 
+def seeded(human_spec, count: int) -> list:
+    """`count` humans of `human_spec`'s recipe, seeds human.seed, +1, ..., one human each (never
+    one per training seed): the humans a calibration plays."""
+    base = human_spec.model_copy(update={"per_seed": False})
+    return [base.model_copy(update={"seed": base.seed + i}) for i in range(count)]
+
+
 def is_stored(human_spec) -> bool:
     return human_spec.kind in STORED
 

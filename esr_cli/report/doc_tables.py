@@ -79,44 +79,36 @@ class CalibrationTable:
 
     def lines(self, store: Store, where: str) -> list[str]:
         from esr_cli.common import specs
-        from esr_cli.recipes import stored_humans
+        from esr_cli.recipes import targets
         from esr_cli.report import human_calibration as hc, stored_calibrations
+        from esr_cli.storage.store import StoreError
 
+        try:  # as `esr human calibrate` reads them: a played episode's key prefix completed from the store
+            loaded = [targets.complete_play_keys(specs.load(path, self.budget, list(self.sets)), store) for path in self.specs]
+        except (specs.SpecError, StoreError) as e:
+            raise TableError(f"{where}: {e}") from None
+        problem = stored_calibrations.check_specs(loaded)
+        if problem:
+            raise TableError(f"{where}: {problem}")
         rows, other_code = [], []
-        for path in self.specs:
-            try:
-                spec = specs.load(path, self.budget, list(self.sets))
-            except specs.SpecError as e:
-                raise TableError(f"{where}: {e}") from None
-            if spec.env.kind != "overcooked" or not stored_humans.is_stored(spec.human):
-                raise TableError(f"{where}: {path}: a calibration needs an Overcooked spec whose human is stored (bc or ppo)")
+        for spec in loaded:
             found = stored_calibrations.find(store, spec, self.human_seeds, self.episodes)
             if found is None:
                 raise TableError(f"{where}: the store has no calibration of {spec.name}'s human ({hc.describe(spec.human)}, "
                                  f"{self.human_seeds} human(s), {self.episodes} episodes): `esr human calibrate` makes it")
             at, commit, same_code = found
-            row = stored_calibrations.read_row(at, spec)
+            row = stored_calibrations.read_row(at, spec, self.human_seeds)
             if row is None:
-                raise TableError(f"{where}: {at}: the stored calibration's summary is damaged")
+                raise TableError(f"{where}: {at}: the stored calibration's summary is damaged: remove it and run "
+                                 "`esr human calibrate` again")
             rows.append(row)
             if not same_code:
                 other_code.append(f"{spec.name} (commit {commit or 'unknown'})")
-        if len({r.layout for r in rows}) != len(rows):
-            raise TableError(f"{where}: two specs share a layout: give one spec per layout")
         text = hc.markdown(rows, self.human_seeds, self.episodes).rstrip("\n")
         if other_code:
             text += ("\n\nCalibrated by code other than this checkout's (its humans or their player changed since): "
                      + ", ".join(other_code) + ".")
         return text.split("\n")
-
-
-@dataclass(frozen=True)
-class Block:
-    path: Path
-    line: int  # 1-based line of the opening comment
-    command: Command
-    start: int  # index of the first line of the table (after the opening comment)
-    end: int  # index of the closing comment
 
 
 def _parse_sweep(argv: list[str], where: str) -> SweepTable:
@@ -143,13 +135,14 @@ def _parse_sweep(argv: list[str], where: str) -> SweepTable:
     return SweepTable(suite, options["budget"], tuple(dict.fromkeys(options["metric"])), checks, "--any-code" in flags)
 
 
-# `esr human calibrate`'s options a table may give, with the CLI's bounds for the counts.
+# `esr human calibrate`'s options a table may give (the counts' bounds are the command's).
 _CALIBRATION_VALUED = {"--budget": "budget", "-b": "budget", "--set": "set", "-s": "set",
                        "--human-seeds": "human_seeds", "--episodes": "episodes"}
-_CALIBRATION_COUNTS = {"human_seeds": (1, 64, 3), "episodes": (2, 100_000, 100)}  # (least, most, default)
 
 
 def _parse_calibration(argv: list[str], where: str) -> CalibrationTable:
+    from esr_cli.report.stored_calibrations import COUNTS  # `esr human calibrate`'s own bounds
+
     spec_files, options, markdown = [], {"budget": "paper", "set": []}, False
     rest = iter(argv)
     for arg in rest:
@@ -159,9 +152,9 @@ def _parse_calibration(argv: list[str], where: str) -> CalibrationTable:
             name, value = _CALIBRATION_VALUED[arg], _value(arg, rest, where)
             if name == "set":
                 options["set"].append(value)
-            elif name in _CALIBRATION_COUNTS:
-                least, most, _ = _CALIBRATION_COUNTS[name]
-                if not (value.isdecimal() and least <= int(value) <= most):
+            elif name in COUNTS:
+                least, most, _ = COUNTS[name]
+                if not (re.fullmatch(r"[0-9]{1,7}", value) and least <= int(value) <= most):
                     raise TableError(f"{where}: {arg} takes a whole number from {least} to {most:,}, not {value[:40]!r}")
                 options[name] = int(value)
             else:
@@ -173,7 +166,7 @@ def _parse_calibration(argv: list[str], where: str) -> CalibrationTable:
             spec_files.append(Path(arg))
     if not spec_files or not markdown:
         raise TableError(f"{where}: a calibration table's command is `esr human calibrate SPEC... --markdown ...`")
-    counts = {name: options.get(name, default) for name, (_, _, default) in _CALIBRATION_COUNTS.items()}
+    counts = {name: options.get(name, default) for name, (_, _, default) in COUNTS.items()}
     return CalibrationTable(tuple(spec_files), options["budget"], tuple(options["set"]), **counts)
 
 
@@ -200,6 +193,15 @@ def parse_command(text: str, where: str) -> Command:
             return parse(argv[len(words):], where)
     raise TableError(f"{where}: a table's command is `esr sweep SUITE --results --markdown ...` "
                      "or `esr human calibrate SPEC... --markdown`")
+
+
+@dataclass(frozen=True)
+class Block:
+    path: Path
+    line: int  # 1-based line of the opening comment
+    command: Command
+    start: int  # index of the first line of the table (after the opening comment)
+    end: int  # index of the closing comment
 
 
 def read_doc(path: Path) -> list[str]:

@@ -67,20 +67,13 @@ def describe(human_spec) -> str:
     return human_spec.kind
 
 
-def seed_humans(spec, human_seeds: int) -> list:
-    """The human specs a calibration of `spec` plays: seeds human.seed, +1, ..., one human each
-    (never one per training seed)."""
-    base = spec.human.model_copy(update={"per_seed": False})
-    return [base.model_copy(update={"seed": base.seed + i}) for i in range(human_seeds)]
-
-
 def calibrate_spec(spec, human_seeds: int, episodes: int, store: Store, console: Console) -> Row:
     """One row: `human_seeds` humans of `spec`'s kind on its layout, each with every partner."""
     layout = spec.env.layout
     env = Overcooked(layout, EPISODE_STEPS)
     logits = policy_logits(spec.human)
     per_human, keys = [], []
-    for i, human in enumerate(seed_humans(spec, human_seeds)):
+    for i, human in enumerate(stored_humans.seeded(spec.human, human_seeds)):
         recipe = stored_humans.stored_recipe(human, layout, console)
         ensure(recipe, store)
         keys.append(recipe.key)

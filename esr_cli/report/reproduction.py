@@ -162,8 +162,8 @@ def _join_rows(runs: list[Evidence]) -> list[dict]:
 
 def pooled(index: dict[str, list[Evidence]], spec: spec_model.Spec) -> Optional[Evidence]:
     """The evidence for `spec`: its longest run, or, where several finished runs share that
-    length and differ only in their seeds (same commit, device and every other training
-    field; no seed twice), all of them as one run of their joined seeds: the group with the
+    length and differ only in their seeds (same commit, edits or none, device and every other
+    training field; no seed twice), all of them as one run of their joined seeds: the group with the
     most seeds, whichever commit's run happens to be listed first. Which of two single-seed
     runs of one length to believe is otherwise an arbitrary choice."""
     top = best(index, spec)
@@ -172,7 +172,7 @@ def pooled(index: dict[str, list[Evidence]], spec: spec_model.Spec) -> Optional[
     groups: dict[tuple, list[Evidence]] = {}
     for e in index[_without_train(spec)]:
         if e.status == "complete" and e.epochs_done == top.epochs_done and e.commit:
-            groups.setdefault((e.commit, e.device, _train_but_seeds(e)), []).append(e)
+            groups.setdefault((e.commit, e.modified, e.device, _train_but_seeds(e)), []).append(e)
     pools = [_pool(mates) for mates in groups.values() if _poolable(mates)]
     return max([top, *pools], key=lambda e: e.seeds)  # a tie keeps the longest stored run
 

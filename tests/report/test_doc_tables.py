@@ -266,11 +266,32 @@ def test_a_calibration_table_reads_the_stored_calibration_and_plays_nothing(tmp_
     {"returns": "all good"},
     {"returns": {"random": {"mean": "9" * 500, "se": 1.0, "per_human": [1.0]}}},
     {"returns": {p: {"mean": 1.0, "se": 1.0, "per_human": ["\x1b[2J"]} for p in ("random", "stay", "self")}},
-    {"returns": {p: {"mean": float("nan"), "se": 1.0, "per_human": [1.0]} for p in ("random", "stay", "self")}},
+    {"returns": {p: {"mean": float("nan"), "se": 1.0, "per_human": [1.0, 1.0]} for p in ("random", "stay", "self")}},
+    {"returns": {p: {"mean": 1e300, "se": 1.0, "per_human": [1.0, 1.0]} for p in ("random", "stay", "self")}},
+    {"returns": {p: {"mean": 1.0, "se": -1.0, "per_human": [1.0, 1.0]} for p in ("random", "stay", "self")}},
+    {"returns": {p: {"mean": 1.0, "se": 1.0, "per_human": [1.0]} for p in ("random", "stay", "self")}},  # 1 of 2 humans
 ])
 def test_a_damaged_stored_calibration_is_named_in_one_line_never_shown(tmp_path, damage):
     store = Store(tmp_path / "store")
     built = _stored_calibration(store, damage)
     with pytest.raises(doc_tables.TableError) as e:
         doc_tables.CalibrationTable((CRAMPED,), "paper", (BC,), 2, 3).lines(store, "page.md:3")
-    assert str(e.value) == f"page.md:3: {built.path}: the stored calibration's summary is damaged"
+    assert str(e.value) == (f"page.md:3: {built.path}: the stored calibration's summary is damaged: remove it and run "
+                            "`esr human calibrate` again")
+
+
+def test_a_calibration_is_asked_for_by_the_humans_recipe_not_by_how_the_spec_names_it():
+    """A preset and its values written out are one calibration; the seeds and the episode count
+    are part of what is asked, the code that made it is not."""
+    from esr_cli.common import specs
+    from esr_cli.recipes.ppo_humans import EPISODE_STEPS
+    from esr_cli.report import stored_calibrations as sc
+
+    preset = specs.load(CRAMPED, "paper", [BC, "human.preset=paper_random"])
+    written = specs.load(CRAMPED, "paper", [BC, "human.stay_weight=0.05"])
+    default = specs.load(CRAMPED, "paper", [BC])
+    assert sc.asked(preset, 3, 100) == sc.asked(written, 3, 100) != sc.asked(default, 3, 100)
+    assert sc.asked(preset, 3, 100) != sc.asked(preset, 2, 100) != sc.asked(preset, 2, 50)
+    assert sc.asked(preset, 3, 100)["steps"] == EPISODE_STEPS
+    assert sc.components(preset, 3, 100)["humans"] == sc.human_keys(written, 3)  # three humans, seeds 0 to 2
+    assert len(set(sc.human_keys(written, 3))) == 3
