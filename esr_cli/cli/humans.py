@@ -78,12 +78,13 @@ def human_calibrate(
         raise Exit(2, problem)
     rows = []
     for s in loaded:
-        built = ensure(stored_calibrations.calibration_recipe(s, human_seeds, episodes, err), ctx.obj.store)
+        recipe = stored_calibrations.calibration_recipe(s, human_seeds, episodes, err)
+        built = ensure(recipe, ctx.obj.store)
         if built.cached:
             err.print(tagged("cache hit", "green", f": {own(s.name)}'s calibration, {built.path}"), highlight=False)
-        row = stored_calibrations.read_row(built.path, s, human_seeds, tuple(stored_calibrations.human_keys(s, human_seeds)))
+        row = stored_calibrations.read_row(built.path, s, human_seeds, tuple(recipe.components["humans"]))
         if row is None:
-            raise Exit(1, f"{built.path}: the stored calibration's summary is damaged; remove it and calibrate again")
+            raise Exit(1, stored_calibrations.damaged(built.path))
         rows.append(row)
     if as_json:
         out.print_json(jsonl.dumps({"rows": [r.as_json() for r in rows], "score": hc.score(rows),

@@ -99,8 +99,7 @@ class CalibrationTable:
             at, commit, same_code = found
             row = stored_calibrations.read_row(at, spec, self.human_seeds)
             if row is None:
-                raise TableError(f"{where}: {at}: the stored calibration's summary is damaged: remove it and run "
-                                 "`esr human calibrate` again")
+                raise TableError(f"{where}: {stored_calibrations.damaged(at)}")
             rows.append(row)
             if not same_code:
                 other_code.append(f"{spec.name} (commit {commit or 'unknown'})")

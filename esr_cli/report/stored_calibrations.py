@@ -116,6 +116,11 @@ def find(store: Store, spec, human_seeds: int, episodes: int) -> Optional[tuple[
     return entry.path, commit, same_code
 
 
+def damaged(path: Path) -> str:
+    """The one line naming a stored calibration whose summary `read_row` cannot read."""
+    return f"{path}: the stored calibration's summary is damaged: remove it and run `esr human calibrate` again"
+
+
 def _finite(value) -> Optional[float]:
     """An episode return's mean or SE: a number of a return's size (NaN, infinity or 1e300 only
     from damage)."""
