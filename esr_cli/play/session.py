@@ -21,6 +21,7 @@ from pathlib import Path
 from rich.console import Console
 
 from esr_cli.common import specs
+from esr_cli.common.numbers import as_count, as_number
 from esr_cli.model.envs import make_env
 from esr_cli.play.boards import board_for
 from esr_cli.play.game import RANDOM_ROBOT, Game, Robot, play_episode
@@ -195,8 +196,19 @@ def played_episodes(store: Store, participant: str | None = None, session: str |
         header = read_header(entry.path)
         if (participant and header.get("participant") != participant) or (session and header.get("session") != session):
             continue
-        found.append((entry.key, header, (entry.manifest or {}).get("summary", {})))
-    return sorted(found, key=lambda f: (f[1].get("started_at", 0), f[1].get("episode", 0)))
+        found.append((entry.key, header, _played_summary(entry)))
+    return sorted(found, key=lambda f: (f[1]["started_at"], f[1]["episode"]))  # read_header checked their types
+
+
+def _played_summary(entry) -> dict:
+    """A played episode's summary from its manifest; StoreError naming the episode where it lacks
+    what the listings read (completed, steps, score) in the types esr writes."""
+    summary = (entry.manifest or {}).get("summary")
+    fine = isinstance(summary, dict) and isinstance(summary.get("completed"), bool) and \
+        as_count(summary.get("steps")) is not None and as_number(summary.get("score")) is not None
+    if not fine:
+        raise StoreError(f"damaged played episode: the manifest of {entry.path} has no summary esr wrote")
+    return summary
 
 
 # ---------------------------------------------------------------- the session

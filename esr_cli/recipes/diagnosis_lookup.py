@@ -16,6 +16,7 @@ from typing import Optional
 from esr_cli.common.numbers import as_count, as_number
 from esr_cli.recipes.diagnosis_runs import Options
 from esr_cli.storage.artifacts import summary_or_empty
+from esr_cli.storage.provenance import created_order
 from esr_cli.storage.store import DIAGNOSIS_KIND, Store
 
 SHOWN_SITUATIONS = ("free", "trapped", "dead")  # of esr_cli.analysis.diagnose.SITUATIONS, in the table's order
@@ -87,8 +88,8 @@ def read_diagnoses(store: Store) -> dict[tuple[str, int], object]:
         run, seed = comps.get("run"), count(comps, "seed_index")
         if not isinstance(run, str) or seed is None:
             continue
-        created = str(entry.manifest.get("created_at") or "")
-        if created >= newest.get((run, seed), ""):
+        created = created_order(entry.manifest)
+        if created >= newest.get((run, seed), float("-inf")):
             newest[(run, seed)], found[(run, seed)] = created, entry.path
     return found
 

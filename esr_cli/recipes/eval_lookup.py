@@ -14,6 +14,7 @@ from typing import Optional
 from esr_cli.common.numbers import as_number
 from esr_cli.common.stats import describe, format_summary
 from esr_cli.storage.artifacts import summary_or_empty
+from esr_cli.storage.provenance import created_order
 from esr_cli.storage.store import EVAL_KIND, Store
 
 # The partners a table shows, in its order, with their headings.
@@ -51,8 +52,8 @@ def read_evals(store: Store) -> dict[tuple[str, str, int], object]:
         partner = "training" if "human" not in comps else summary_or_empty(entry.path).get("human")
         if not isinstance(partner, str) or partner not in COLUMNS:
             continue
-        created = str(entry.manifest.get("created_at") or "")
-        if created >= newest.get((run, partner, episodes), ""):
+        created = created_order(entry.manifest)
+        if created >= newest.get((run, partner, episodes), float("-inf")):
             newest[(run, partner, episodes)], found[(run, partner, episodes)] = created, entry.path
     return found
 

@@ -14,6 +14,7 @@ from typing import Optional
 
 from esr_cli.common.numbers import as_count, as_number
 from esr_cli.storage.artifacts import summary_or_empty as _summary
+from esr_cli.storage.provenance import created_order
 from esr_cli.storage.store import EXACT_KIND, FIGURE_KIND, Store
 
 
@@ -59,7 +60,7 @@ class Target:
 class StoreChecks:
     """The store's committed exact artifacts and estimator checks, read once for a whole table."""
 
-    exacts: list[tuple[dict, bool, str, str, object]]  # (key components, sampled, created, key, path)
+    exacts: list[tuple[dict, bool, float, str, object]]  # (key components, sampled, created, key, path)
     estimators: dict[str, object]  # exact key -> the newest estimator check's path
 
 
@@ -67,19 +68,19 @@ def read_checks(store: Store) -> StoreChecks:
     """Every committed exact artifact and estimator check of `store`; entries whose manifests or
     key components are damaged are passed over, never trusted."""
     exacts, estimators = [], {}
-    newest: dict[str, str] = {}
+    newest: dict[str, float] = {}
     for entry in store.entries():
         if entry.status != "complete" or entry.manifest is None or entry.kind not in (EXACT_KIND, FIGURE_KIND):
             continue
         comps = entry.manifest.get("key_components")
         if not isinstance(comps, dict):
             continue
-        created = str(entry.manifest.get("created_at") or "")
+        created = created_order(entry.manifest)
         if entry.kind == EXACT_KIND:
             exacts.append((comps, "sample_pairs" in comps, created, entry.key, entry.path))
             continue
         made_from = comps.get("exact")
-        if comps.get("figure") == "estimator" and isinstance(made_from, str) and created >= newest.get(made_from, ""):
+        if comps.get("figure") == "estimator" and isinstance(made_from, str) and created >= newest.get(made_from, float("-inf")):
             newest[made_from], estimators[made_from] = created, entry.path
     return StoreChecks(exacts, estimators)
 
@@ -88,7 +89,7 @@ def run_checks(checks: StoreChecks, target: Target, seeds: int) -> list[SeedChec
     """Per seed index of the target's run: its exact check among `checks`, preferring one with a
     uniform sample of pairs, then the newest; and the estimator check made from it. Damaged
     summaries leave their fields empty."""
-    exacts: dict[int, list[tuple[bool, str, str, object]]] = {}  # seed -> (sampled, created, key, path)
+    exacts: dict[int, list[tuple[bool, float, str, object]]] = {}  # seed -> (sampled, created, key, path)
     for comps, *found in checks.exacts:
         seed = target.matches(comps)
         if seed is not None:

@@ -397,7 +397,7 @@ def finished_runs_by_training(store: Store) -> dict[str, tuple[str, Path, proven
     of the newest of each. Runs made by other training code (another commit, device or jax) have
     other keys; this is how `--any-code` finds them. A run whose key components this code no
     longer reads as a spec is passed over."""
-    found: dict[str, tuple[str, str, Path, provenance.Origin]] = {}
+    found: dict[str, tuple[float, str, Path, provenance.Origin]] = {}
     for entry in store.entries():
         info = entry.manifest
         if entry.kind != RUN_KIND or entry.status != "complete" or not isinstance(info, dict):
@@ -406,7 +406,7 @@ def finished_runs_by_training(store: Store) -> dict[str, tuple[str, Path, proven
         what = _trained_as_read(comps) if isinstance(comps, dict) else None
         if what is None:
             continue
-        created = str(info.get("created_at") or "")
+        created = provenance.created_order(info)
         if what not in found or created > found[what][0]:
             found[what] = (created, entry.key, entry.path, provenance.origin(info))
     return {what: hit[1:] for what, hit in found.items()}

@@ -105,7 +105,7 @@ def find(store: Store, spec, human_seeds: int, episodes: int) -> Optional[tuple[
         comps = entry.manifest.get("key_components") if isinstance(entry.manifest, dict) else None
         if entry.status != "complete" or not isinstance(comps, dict) or any(comps.get(k) != want[k] for k in ASKED):
             continue
-        rank = (entry.key == key, str(entry.manifest.get("created_at") or ""))
+        rank = (entry.key == key, provenance.created_order(entry.manifest))
         if found is None or rank >= found[0]:
             found = (rank, entry)
     if found is None:

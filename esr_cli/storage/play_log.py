@@ -16,6 +16,7 @@ import jax
 import numpy as np
 
 from esr_cli.common.jsonl import read_json, read_jsonl
+from esr_cli.storage.store import StoreError
 
 STEPS_FILE, EPISODE_FILE, FINAL_STATE_FILE = "steps.jsonl", "episode.json", "final_state.json"
 
@@ -39,8 +40,24 @@ def state_from_record(env, record: dict):
 MAX_RECORD_BYTES = 1 << 20
 
 
+# The header fields every reader of a played episode relies on, with the type esr writes each as.
+HEADER_FIELDS = {"participant": str, "session": str, "episode": int, "robot": str, "env": dict, "started_at": (int, float)}
+
+
 def read_header(path: Path) -> dict:
-    return read_json(Path(path) / EPISODE_FILE, MAX_RECORD_BYTES)
+    """A played episode's header; StoreError naming the file where it is not the JSON object esr
+    writes (a field of HEADER_FIELDS missing or of another type, the environment without its kind)."""
+    file = Path(path) / EPISODE_FILE
+    header = read_json(file, MAX_RECORD_BYTES)
+    if not isinstance(header, dict):
+        raise StoreError(f"damaged played episode: {file} is not a JSON object")
+    for field, kind in HEADER_FIELDS.items():
+        value = header.get(field)
+        if isinstance(value, bool) or not isinstance(value, kind):
+            raise StoreError(f"damaged played episode: {file} has no {field} of the kind esr writes")
+    if not isinstance(header["env"].get("kind"), str):
+        raise StoreError(f"damaged played episode: {file} names no environment kind")
+    return header
 
 
 def read_steps(path: Path) -> list[dict]:

@@ -57,6 +57,20 @@ def now_iso() -> str:
     return time.strftime(ISO_FORMAT)
 
 
+def created_order(manifest: object) -> float:
+    """When a record was made, in seconds since the epoch, for choosing the newest of several:
+    its `created_at` read with its UTC offset (text comparison would misorder records written in
+    different time zones); -inf for a record that lacks one or whose timestamp is damaged, so it
+    ranks below every dated record."""
+    created = manifest.get("created_at") if isinstance(manifest, dict) else None
+    if not isinstance(created, str) or len(created) > 64:
+        return float("-inf")
+    try:
+        return datetime.strptime(created, ISO_FORMAT).timestamp()
+    except ValueError:
+        return float("-inf")
+
+
 def _module_file(dotted: str) -> Path | None:
     """The file of an `esr_cli...` module (a package's __init__.py), or None."""
     parts = dotted.split(".")

@@ -991,3 +991,30 @@ def test_a_stored_run_keeps_the_human_it_trained_with_when_its_preset_changes(tm
     monkeypatch.setitem(spec_model.HUMAN_PRESETS, "paper", later)
     assert specs.load("experiments/cramped_room.yaml", "quick").human.total_steps == 2_000_000  # a new run: today's table
     assert run_spec(run).human.total_steps == 1_000_000  # the stored run: the human it trained with
+
+
+@pytest.mark.parametrize("header, summary, named", [
+    ([1, 2], {"completed": True, "steps": 3, "score": 1.0}, "is not a JSON object"),
+    ({"started_at": "x"}, {"completed": True, "steps": 3, "score": 1.0}, "has no started_at"),
+    ({}, {"completed": "yes", "steps": 3, "score": 1.0}, "has no summary esr wrote"),
+    ({}, {"completed": True, "steps": 3, "score": "1"}, "has no summary esr wrote"),
+])
+def test_a_played_episode_esr_did_not_write_is_one_line_in_plays(tmp_path, capsys, header, summary, named):
+    """`esr plays` over a store holding a played episode whose header or summary is not what esr
+    writes (another type, a field missing) ends with exit 2 and one line naming it, before any
+    table is printed; the listing never trips over it with a KeyError or a format error."""
+    from esr_cli.storage.play_log import EPISODE_FILE
+    from esr_cli.storage.store import Store, content_key
+
+    store = Store(tmp_path / "s")
+    components = {"kind": "play", "spec": {"name": "e"}}
+    key = content_key(components)
+    written = {"participant": "p", "session": "s", "episode": 0, "robot": "random", "env": {"kind": "gridworld"}, "started_at": 1.0}
+    d = store.begin("play", key, {"name": "e", "key": key, "key_components": components})
+    (d / EPISODE_FILE).write_text(json.dumps(header if isinstance(header, list) else {**written, **header}))
+    store.commit("play", key, {"kind": "play", "name": "e", "key": key, "key_components": components, "summary": summary})
+    assert main(["--store", str(tmp_path / "s"), "plays"]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and "damaged played episode" in lines[0] and named in lines[0], captured.err
+    assert key not in captured.out

@@ -457,5 +457,32 @@ def test_a_played_episodes_header_is_read_bounded(tmp_path):
     os.mkfifo(fifo / EPISODE_FILE)
     with pytest.raises(JsonInputError):
         read_header(fifo)
-    (tmp_path / EPISODE_FILE).write_text('{"participant": "p1"}')
-    assert read_header(tmp_path) == {"participant": "p1"}
+    header = {"participant": "p1", "session": "s", "episode": 0, "robot": "random", "env": {"kind": "gridworld"}, "started_at": 1.5}
+    (tmp_path / EPISODE_FILE).write_text(json.dumps(header))
+    assert read_header(tmp_path) == header
+
+
+@pytest.mark.parametrize("damage", [[1, 2], {"session": 3}, {"episode": True}, {"episode": "0"}, {"env": {}},
+                                    {"env": "gridworld"}, {"started_at": "yesterday"}, {"robot": None}])
+def test_a_played_episodes_header_that_esr_did_not_write_is_one_line(tmp_path, damage):
+    """A header that is no object, or whose fields the listings read are missing or of another
+    type, is refused naming its file, before any reader trips over it."""
+    from esr_cli.storage.play_log import EPISODE_FILE, read_header
+
+    header = {"participant": "p1", "session": "s", "episode": 0, "robot": "random", "env": {"kind": "gridworld"}, "started_at": 1.5}
+    bad = damage if isinstance(damage, list) else {**header, **damage}
+    (tmp_path / EPISODE_FILE).write_text(json.dumps(bad))
+    with pytest.raises(StoreError, match="damaged played episode: .*episode.json"):
+        read_header(tmp_path)
+
+
+def test_the_newest_record_is_chosen_by_its_instant_not_its_text():
+    """created_at is local time with its UTC offset: 09:00+02:00 is earlier than 08:00+00:00 though
+    its text sorts later; a record without a timestamp, or with a damaged one, ranks below all."""
+    from esr_cli.storage.provenance import created_order
+
+    east, utc = {"created_at": "2026-12-01T09:00:00+0200"}, {"created_at": "2026-12-01T08:00:00+0000"}
+    assert created_order(east) < created_order(utc) and east["created_at"] > utc["created_at"]
+    assert created_order(utc) - created_order(east) == 3600
+    for damaged in ({}, {"created_at": 5}, {"created_at": "yesterday"}, {"created_at": "x" * 10_000}, None, [1]):
+        assert created_order(damaged) == float("-inf") < created_order(east)
