@@ -31,14 +31,17 @@ class SeedCheck:
     sample_pairs: Optional[int] = None
     spearman_visited: Optional[float] = None  # over the pairs holding 99% of the robot's occupancy
     visited_pairs: Optional[int] = None
+    pairs: Optional[int] = None  # the pairs spearman_all is over
+    estimator: Optional[str] = None  # the estimator check's key (its scatter, `esr plot estimator`)
 
 
 @dataclass(frozen=True)
 class Target:
     """What an exact check of a run is of: the run's environment and human (its spec's training
-    part), and the goal and discount `esr exact` takes by default for its spec."""
+    part), and the goal and discount `esr exact` takes by default for its spec. `run_key` None:
+    the check of a uniform robot on that environment (seed index 0)."""
 
-    run_key: str
+    run_key: Optional[str]
     env: dict
     human: dict
     goal: tuple[int, int]
@@ -47,13 +50,19 @@ class Target:
     def matches(self, comps: dict) -> Optional[int]:
         """The seed index of an exact artifact's key components when they are of this target."""
         robot, goal, gamma = comps.get("robot"), comps.get("goal"), as_number(comps.get("gamma"))
-        if not isinstance(robot, dict) or robot.get("run") != self.run_key or as_count(robot.get("seed_index")) is None:
+        if self.run_key is None:
+            seed = 0 if robot == "uniform" else None
+        elif isinstance(robot, dict) and robot.get("run") == self.run_key:
+            seed = as_count(robot.get("seed_index"))
+        else:
+            seed = None
+        if seed is None:
             return None
         if not isinstance(goal, list) or tuple(goal) != self.goal or gamma is None or not math.isclose(gamma, self.gamma):
             return None
         if comps.get("env") != self.env or comps.get("human") != self.human:
             return None
-        return robot["seed_index"]
+        return seed
 
 
 @dataclass(frozen=True)
@@ -107,9 +116,9 @@ def run_checks(checks: StoreChecks, target: Target, seeds: int) -> list[SeedChec
         result = _summary(checks.estimators[key]) if key in checks.estimators else {}
         if as_number(result.get("spearman_visited")) is not None:  # NaN too: a constant estimate has no rank correlation
             fields.update(spearman_visited=as_number(result.get("spearman_visited")),
-                          visited_pairs=as_count(result.get("visited_pairs")))
+                          visited_pairs=as_count(result.get("visited_pairs")), estimator=checks.estimators[key].name)
             if result.get("complete", fields["complete"]) is True:
-                fields["spearman_all"] = as_number(result.get("spearman"))
+                fields.update(spearman_all=as_number(result.get("spearman")), pairs=as_count(result.get("pairs")))
             ci = result.get("spearman_sample_ci")
             bounds = [as_number(c) for c in ci] if isinstance(ci, list) and len(ci) == 2 else [None]
             rho = as_number(result.get("spearman_sample"))
@@ -119,7 +128,7 @@ def run_checks(checks: StoreChecks, target: Target, seeds: int) -> list[SeedChec
     return out
 
 
-def _num(v: Optional[float], digits: int = 3) -> str:
+def number_cell(v: Optional[float], digits: int = 3) -> str:
     return "—" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
 
 
@@ -128,21 +137,21 @@ def cells(checks: list[SeedCheck]) -> dict[str, str]:
     effective empowerment ('≥' where a lower bound), the rank correlation over all pairs (exact,
     or a uniform sample's estimate with its interval), and over the visited pairs."""
     def ee(c: SeedCheck) -> str:
-        return _num(c.effective_empowerment) if c.complete or c.effective_empowerment is None else f"≥ {_num(c.effective_empowerment)}"
+        return number_cell(c.effective_empowerment) if c.complete or c.effective_empowerment is None else f"≥ {number_cell(c.effective_empowerment)}"
 
     def pairs(n: Optional[int]) -> str:
         return "?" if n is None else f"{n:,}"
 
     def every(c: SeedCheck) -> str:
         if c.spearman_all is not None:
-            return _num(c.spearman_all)
+            return number_cell(c.spearman_all)
         if c.spearman_sample is not None:
             rho, low, high = c.spearman_sample
-            return f"{_num(rho)} [{_num(low)}, {_num(high)}] (sample of {pairs(c.sample_pairs)})"
+            return f"{number_cell(rho)} [{number_cell(low)}, {number_cell(high)}] (sample of {pairs(c.sample_pairs)})"
         return "—"
 
     def visited(c: SeedCheck) -> str:
-        return "—" if c.spearman_visited is None else f"{_num(c.spearman_visited)} ({pairs(c.visited_pairs)})"
+        return "—" if c.spearman_visited is None else f"{number_cell(c.spearman_visited)} ({pairs(c.visited_pairs)})"
 
     return {"exact_ee": " / ".join(map(ee, checks)), "spearman_all": " / ".join(map(every, checks)),
             "spearman_visited": " / ".join(map(visited, checks))}

@@ -23,12 +23,13 @@ from esr_cli.common import specs, yamlio
 from esr_cli.common.printing import train_line
 from esr_cli.common.stats import describe, format_summary, mean_difference_ci, probability_of_improvement, scored_seeds
 from esr_cli.model import spec as spec_model
-from esr_cli.recipes.targets import run_spec
+from esr_cli.recipes.exact_lookup import SeedCheck, Target, number_cell, read_checks, run_checks
+from esr_cli.recipes.targets import exact_defaults, run_spec
 from esr_cli.storage import provenance
 from esr_cli.storage.artifacts import ensure
 from esr_cli.storage.checkpoint_files import verified_steps
 from esr_cli.storage.finals import FINAL_FRACTION, final_per_seed, read_rows, series
-from esr_cli.storage.store import RUN_KIND, Store, StoreError, atomic_write_bytes, atomic_write_text
+from esr_cli.storage.store import FIGURE_KIND, RUN_KIND, Store, StoreError, atomic_write_bytes, atomic_write_text
 
 EXPERIMENTS = provenance.experiments_dir()
 PAPER_EPOCHS = 10_000
@@ -641,8 +642,9 @@ def estimator_run(index: dict[str, list[Evidence]]) -> Optional[Evidence]:
 
 def estimator_section(index: dict[str, list[Evidence]], store: Store, console, compute: bool,
                       img_dir: Path) -> list[str]:
-    """The estimator check (exact empowerment against ESR's reward) on `estimator_run`, its
-    scatter copied into `img_dir` beside the report."""
+    """The estimator check (exact empowerment against ESR's reward) on `estimator_run`, read from
+    the store's exact and estimator checks (`compute`: made first where the store lacks them),
+    its scatter copied into `img_dir` beside the report."""
     lines = ["## The estimator against exact empowerment", ""]
     ev = estimator_run(index)
     if ev is None:
@@ -650,30 +652,53 @@ def estimator_section(index: dict[str, list[Evidence]], store: Store, console, c
                         "learned yet (above Random at its N); this section fills in once one has.", ""]
     head = (f"On ESR run `{ev.key[:8]}` (N = {ev.spec.env.blocks}, {ev.describe_length()}), goal at the centre, "
             "seed 0's robot:")
-    if not compute:
+    if compute:
+        _make_estimator_check(ev, store, console)
+    trained, uniform = _stored_estimator_check(ev, store)
+    if trained.spearman_visited is None or trained.effective_empowerment is None or uniform.effective_empowerment is None:
         return lines + [head, "", "not computed (run `esr paper --report` without `--no-exact`).", ""]
     from esr_cli.common.plots import SCATTER_POINTS
+
+    rows = []
+    if trained.spearman_all is not None and trained.pairs:
+        rows.append(f"| Spearman (ESR's reward, exact MI), all {trained.pairs:,} (state, robot action) pairs | "
+                    f"{number_cell(trained.spearman_all)} |")
+    rows += [f"| the same over the {trained.visited_pairs or 0:,} pairs holding 99% of the trained robot's discounted "
+             f"occupancy | {number_cell(trained.spearman_visited)} |",
+             f"| the human's exact effective empowerment under the trained robot | {number_cell(trained.effective_empowerment)} nats |",
+             f"| the same under a uniform robot | {number_cell(uniform.effective_empowerment)} nats |"]
+    figure = []
+    scatter = store.lookup(FIGURE_KIND, trained.estimator) if trained.estimator else None
+    if scatter is not None and (scatter / "estimator.png").is_file():
+        img_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(img_dir / "reproduction_estimator.png", (scatter / "estimator.png").read_bytes())
+        shown = f", {min(trained.pairs, SCATTER_POINTS):,} of the {trained.pairs:,} drawn at random" if trained.pairs else ""
+        figure = ["![ESR's reward against the exact MI](img/reproduction_estimator.png)", "",
+                  f"The scatter (`esr plot estimator {trained.exact[:8]}`): one point per (state, robot action) pair{shown}.", ""]
+    return lines + [head, "", "| quantity | value |", "|---|---|", *rows, "",
+                    f"Artifacts: exact `{trained.exact[:8]}` (trained), `{uniform.exact[:8]}` (uniform), "
+                    f"estimator check `{trained.estimator[:8]}`.", ""] + figure
+
+
+def _stored_estimator_check(ev: Evidence, store: Store) -> tuple[SeedCheck, SeedCheck]:
+    """Seed 0's exact and estimator checks of `ev`'s run and the exact check of a uniform robot on
+    its environment, at `esr exact`'s default goal and discount, as the store holds them."""
+    goal, gamma = exact_defaults(ev.spec)
+    part = ev.spec.training_part()
+    checks = read_checks(store)
+    trained, uniform = (run_checks(checks, Target(run, part["env"], part["human"], goal, gamma), 1)[0]
+                        for run in (ev.key, None))
+    return trained, uniform
+
+
+def _make_estimator_check(ev: Evidence, store: Store, console) -> None:
+    """The exact checks of seed 0's robot and of a uniform one, and the estimator check, made
+    where the store lacks them (minutes each)."""
     from esr_cli.recipes import exact_runs  # jax: only when the report computes exact empowerment
 
     trained = ensure(exact_runs.exact_recipe(ev.spec, store, None, None, ev.key, 0, console), store)
-    uniform = ensure(exact_runs.exact_recipe(ev.spec, store, None, None, None, 0, console), store)
-    uniform_summary = uniform.summary()
-    scatter = ensure(exact_runs.estimator_recipe(trained.path.name, store, console), store)
-    check, trained_summary = scatter.summary(), trained.summary()
-    figure = []
-    if (scatter.path / "estimator.png").is_file():
-        img_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(img_dir / "reproduction_estimator.png", (scatter.path / "estimator.png").read_bytes())
-        figure = ["![ESR's reward against the exact MI](img/reproduction_estimator.png)", ""]
-    return lines + [head, "",
-                    "| quantity | value |", "|---|---|",
-                    f"| Spearman (ESR's reward, exact MI), all {check['pairs']:,} (state, robot action) pairs | {check['spearman']:.3f} |",
-                    f"| the same over the {check['visited_pairs']:,} pairs holding 99% of the trained robot's discounted occupancy | {check['spearman_visited']:.3f} |",
-                    f"| the human's exact effective empowerment under the trained robot | {trained_summary['effective_empowerment']:.3f} nats |",
-                    f"| the same under a uniform robot | {uniform_summary['effective_empowerment']:.3f} nats |",
-                    "", f"Artifacts: exact `{trained.path.name[:8]}` (trained), `{uniform.path.name[:8]}` (uniform), "
-                    f"scatter `{scatter.path.name[:8]}` (`esr plot estimator`): one point per (state, robot action) pair, "
-                    f"{min(check['pairs'], SCATTER_POINTS):,} of the {check['pairs']:,} drawn at random.", ""] + figure
+    ensure(exact_runs.exact_recipe(ev.spec, store, None, None, None, 0, console), store)
+    ensure(exact_runs.estimator_recipe(trained.path.name, store, console), store)
 
 
 def verdict_counts(findings: list[Finding]) -> dict[str, int]:

@@ -570,3 +570,18 @@ def test_a_check_kept_without_its_arrays_still_fills_the_table_in_another_store(
     assert refused.returncode != 0 and "kept without its arrays" in refused.stderr
     whole = esr("export", figure.name, "--without-checkpoint", "--out", str(tmp_path / "f.tar.gz"), store=store, check=False)
     assert whole.returncode != 0 and "kept whole" in whole.stderr
+
+
+def test_a_target_without_a_run_matches_the_uniform_robots_check_only():
+    """Target(None, ...) is the check of a uniform robot on the environment (seed index 0), as the
+    report's estimator section reads it beside the trained robot's; a run's target never matches it."""
+    from esr_cli.recipes.exact_lookup import Target
+
+    env, human = {"kind": "gridworld", "size": 5}, {"kind": "noisy_greedy"}
+    comps = {"env": env, "human": human, "goal": [2, 2], "gamma": 0.9}
+    uniform, trained = Target(None, env, human, (2, 2), 0.9), Target("ab" * 16, env, human, (2, 2), 0.9)
+    assert uniform.matches({**comps, "robot": "uniform"}) == 0
+    assert uniform.matches({**comps, "robot": {"run": "ab" * 16, "seed_index": 0}}) is None
+    assert trained.matches({**comps, "robot": "uniform"}) is None
+    assert trained.matches({**comps, "robot": {"run": "ab" * 16, "seed_index": 2}}) == 2
+    assert uniform.matches({**comps, "robot": "uniform", "goal": [0, 0]}) is None
