@@ -14,7 +14,7 @@
 #   BENCH_SEEDS  seed counts for benchmarks/bench.py (empty: no benchmark)
 #   BENCH_CONFIG the benchmark's configuration (default: the gridworld paper configuration)
 #   BENCH_S      seconds the benchmark may take (default 240)
-#   OUT          where results go (the device tool sets it; default ./out)
+#   OUT          where results go (the job's output folder; default ./out)
 # Inputs it uses when present: .whl/*.whl (Python packages the machine lacks, installed into
 # /tmp/site), .dev/*.part-* (an archive written by a previous lease, joined and imported, so
 # the run continues from its checkpoint). Needs jax with an accelerator plugin already there.
