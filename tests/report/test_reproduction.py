@@ -182,6 +182,44 @@ def test_the_estimator_check_takes_the_longest_finished_n2_esr_run_that_learned(
     assert rep.estimator_run(_index(paper)) is None  # no Random run to have learned against
 
 
+class _NoFigures:
+    """A store that holds no estimator scatter."""
+
+    def lookup(self, kind, key):
+        return None
+
+
+def test_the_estimator_section_shows_the_stored_checks_of_the_chosen_run(monkeypatch, tmp_path):
+    random = _evidence("grid_2_random", finals=(13.0,))
+    paper = _evidence("grid_2", finals=(17.0,), epochs=1000)
+    section = lambda index: rep.estimator_section(index, _NoFigures(), None, False, tmp_path)
+
+    # no run that learned: the section says when it fills in
+    assert "this section fills in once one has" in "\n".join(section(_index(paper)))
+
+    asked = []
+    checks = {"trained": rep.SeedCheck(), "uniform": rep.SeedCheck()}
+    monkeypatch.setattr(rep, "_stored_estimator_check", lambda ev, store: asked.append(ev) or (checks["trained"], checks["uniform"]))
+    text = "\n".join(section(_index(random, paper)))
+    assert asked == [paper] and "not computed (run `esr paper --report` without `--no-exact`)" in text
+
+    checks["trained"] = rep.SeedCheck(exact="a" * 32, effective_empowerment=0.177, spearman_all=0.342, pairs=934500,
+                                      spearman_visited=0.821, visited_pairs=28, estimator="b" * 32)
+    checks["uniform"] = rep.SeedCheck(exact="c" * 32, effective_empowerment=0.051)
+    lines = section(_index(random, paper))
+    assert f"On ESR run `{paper.key[:8]}` (N = 2," in "\n".join(lines)
+    assert "| Spearman (ESR's reward, exact MI), all 934,500 (state, robot action) pairs | 0.342 |" in lines
+    assert "| the same over the 28 pairs holding 99% of the trained robot's discounted occupancy | 0.821 |" in lines
+    assert "| the human's exact effective empowerment under the trained robot | 0.177 nats |" in lines
+    assert "| the same under a uniform robot | 0.051 nats |" in lines
+    assert "Artifacts: exact `aaaaaaaa` (trained), `cccccccc` (uniform), estimator check `bbbbbbbb`." in lines
+    assert not any("img/reproduction_estimator.png" in line for line in lines)  # no scatter stored, none shown
+
+    # a check that was not made over every pair has no all-pairs row
+    checks["trained"] = replace(checks["trained"], spearman_all=None, pairs=None)
+    assert not any(line.startswith("| Spearman (ESR's reward, exact MI), all") for line in section(_index(random, paper)))
+
+
 def test_an_mi_estimate_stuck_near_zero_is_not_positive():
     claim = _claim("N = 5: the MI estimate turns positive and stays positive")
     stuck = _index(_evidence("grid_5", mi=lambda e: 0.002))
