@@ -436,6 +436,10 @@ def test_the_report_figure_colours_by_method_and_dashes_esrs_variants():
     assert style("grid_5_ave", rep.PUBLISHED_AVE) == (METHOD_COLORS["ave"], "-")
     assert style("grid_5_ave") == (METHOD_COLORS["ave"], "--")
     assert style("grid_5", rep.NO_ROBOT_ACTION)[0] not in METHOD_COLORS.values()
+    # Overcooked: the paper's human solid, esr's MLP clone dotted, in the method's colour
+    assert style("cramped_room_random") == (METHOD_COLORS["random"], "-")
+    assert style("cramped_room_random", ('human={"kind": "bc"}',)) == (METHOD_COLORS["random"], ":")
+    assert style("cramped_room", ('human={"kind": "bc"}',)) == (METHOD_COLORS["esr"], ":")
     # the IQM of 4 seeds is the mean of the middle two; the band lies within the seeds' range
     centre, low, high = iqm_band(np.array([[1.0, 2.0, 3.0, 10.0], [5.0, 5.0, 5.0, 5.0]]))
     assert centre.tolist() == [2.5, 5.0] and low[1] == high[1] == 5.0
