@@ -795,7 +795,8 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
         lines.append("")
     img = out.parent / "img" / "reproduction_curves.png"
     drawn = learning_curves(findings, img, f"Runs of at least {MIN_CURVE_EPOCHS:,} epochs behind the report: the interquartile "
-                                           "mean over seeds with its 95% bootstrap band (seeds per run: the tables above); dashed: esr's variants")
+                                           "mean over seeds with its 95% bootstrap band (seeds per run: the tables above)\n"
+                                           "dashed: esr's variants; dotted: esr's MLP clone as the human")
     if drawn:
         lines += ["## Learning curves", "", f"![learning curves](img/{img.name})", "", devices_line(drawn), ""]
     lines += estimator_section(index, store, console, exact, out.parent / "img")

@@ -22,11 +22,14 @@ ESR_VARIANT_COLORS = {"without aR": "C5", "critic gamma 0": "C6", "human future"
 
 def line_style(spec) -> tuple[str, str]:
     """(colour, line style) of a run: the colour names the method (figures.METHOD_COLORS, as in
-    fig1-fig5), solid for the paper's setting and dashed for esr's variants of it; a run whose
-    human is not the paper's (esr's MLP clone on Overcooked) is dotted, so that it is never
-    read as the same method's line with the paper's human in the same panel."""
-    if not specs.plays_with_paper_human(spec):
-        return figs.METHOD_COLORS.get(spec.method.kind, "C7"), ":"
+    fig1-fig5) or ESR's variant, the style solid for the paper's setting and dashed for esr's
+    variants of it; a run whose human is not the paper's (esr's MLP clone on Overcooked) is
+    dotted in its own colour, so that it is never read as the paper's-human line beside it."""
+    colour, style = _method_style(spec)
+    return colour, style if specs.plays_with_paper_human(spec) else ":"
+
+
+def _method_style(spec) -> tuple[str, str]:
     method = spec.method
     if method.kind == "esr":
         if not method.condition_on_robot_action:

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# One short lease of a GPU machine, prepared in advance: record the machine, optionally
-# measure the benchmark, then train (or continue) one run until shortly before the lease's
+# One short GPU job, prepared in advance: record the machine, optionally
+# measure the benchmark, then train (or continue) one run until shortly before the job's
 # time is up, and write what must come back into $OUT: the run's archive in parts small enough
 # to travel (to continue it next time), and a record of its logged epochs (for the report even
 # when the parts cannot be kept). Run from the repository root.
@@ -10,13 +10,13 @@
 #
 # Environment:
 #   RUN          `esr train` arguments (spec file, --budget, --set ...); empty: no run
-#   BUDGET_S     seconds the whole script may take (default 540, inside a 600 s call)
+#   BUDGET_S     seconds the whole script may take (default 540, inside a 600 s job)
 #   BENCH_SEEDS  seed counts for benchmarks/bench.py (empty: no benchmark)
 #   BENCH_CONFIG the benchmark's configuration (default: the gridworld paper configuration)
 #   BENCH_S      seconds the benchmark may take (default 240)
 #   OUT          where results go (the job's output folder; default ./out)
 # Inputs it uses when present: .whl/*.whl (Python packages the machine lacks, installed into
-# /tmp/site), .dev/*.part-* (an archive written by a previous lease, joined and imported, so
+# /tmp/site), .dev/*.part-* (an archive written by a previous job, joined and imported, so
 # the run continues from its checkpoint). Needs jax with an accelerator plugin already there.
 set -uo pipefail
 OUT=${OUT:-out}
@@ -80,7 +80,7 @@ fi
 for first in .dev/*.part-aa; do
     [ -e "$first" ] || continue
     key8=$(basename "${first%.tar.gz.part-aa}")
-    if compgen -G "$STORE/runs/*/$key8*" >/dev/null; then  # a warm machine kept it: that copy is newer
+    if compgen -G "$STORE/runs/*/$key8*" >/dev/null; then  # the machine kept it from an earlier job: that copy is newer
         log "import of $key8 skipped: the store already has it"
         continue
     fi
@@ -114,5 +114,5 @@ fi
 if esr --store "$STORE" export "$key" --out "/tmp/${key:0:8}.tar.gz" >>"$OUT/lease.log" 2>&1; then
     split -b "$PART_BYTES" "/tmp/${key:0:8}.tar.gz" "$OUT/${key:0:8}.tar.gz.part-"
 fi
-log "sent back: $(cd "$OUT" && ls | tr '\n' ' ')"
+log "returned: $(cd "$OUT" && ls | tr '\n' ' ')"
 exit $((rc == 75 ? 0 : rc))

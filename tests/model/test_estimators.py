@@ -5,18 +5,18 @@ mutual information is known."""
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import ROOT
 
-from esr_cli.analysis import synthetic_mi
 from esr_cli.common import specs
 from esr_cli.model import replay
 from esr_cli.model.envs.gridworld import GridState, Gridworld
-from esr_cli.model.methods.esr import ESR, infonce_loss, mutual_information_estimate
+from esr_cli.model.methods.esr import ESR
+from esr_cli.report import synthetic_mi
 
 
 def np_stacked_infonce(phi_s, phi_sa, psi):
@@ -174,14 +174,14 @@ def _table_rows(text: str) -> dict[str, list[float]]:
 
 @pytest.mark.slow
 def test_the_pages_synthetic_table_is_what_the_computation_gives():
-    """docs/estimators.md's table is `python -m esr_cli.analysis.synthetic_mi`'s output, run as a
+    """docs/estimators.md's table is `python -m esr_cli.report.synthetic_mi`'s output, run as a
     user runs it (XLA's default optimisation, not the suite's level 0, which rounds otherwise):
     every variant and seed within 0.01 nats."""
     env = {**os.environ, "XLA_FLAGS": os.environ.get("XLA_FLAGS", "").replace("--xla_backend_optimization_level=0", "")}
-    out = subprocess.run([sys.executable, "-m", "esr_cli.analysis.synthetic_mi"], env=env, capture_output=True,
-                         text=True, timeout=600, check=True).stdout
+    out = subprocess.run([sys.executable, "-m", "esr_cli.report.synthetic_mi"], env=env, cwd=ROOT,
+                         capture_output=True, text=True, timeout=600, check=True).stdout
     computed = _table_rows(out)
-    page = _table_rows(Path("docs/estimators.md").read_text(encoding="utf-8"))
+    page = _table_rows((ROOT / "docs" / "estimators.md").read_text(encoding="utf-8"))
     assert list(page) == [v.label for v in synthetic_mi.VARIANTS] == list(computed)
     for label, values in computed.items():
         assert page[label] == pytest.approx(values, abs=0.01), label

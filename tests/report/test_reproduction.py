@@ -182,17 +182,20 @@ def test_the_estimator_check_takes_the_longest_finished_n2_esr_run_that_learned(
     assert rep.estimator_run(_index(paper)) is None  # no Random run to have learned against
 
 
-class _NoFigures:
-    """A store that holds no estimator scatter."""
+class _Figures:
+    """A store holding the estimator scatters in `folders` (key -> folder), and nothing else."""
+
+    def __init__(self, folders=None):
+        self.folders = folders or {}
 
     def lookup(self, kind, key):
-        return None
+        return self.folders.get(key) if kind == rep.FIGURE_KIND else None
 
 
 def test_the_estimator_section_shows_the_stored_checks_of_the_chosen_run(monkeypatch, tmp_path):
     random = _evidence("grid_2_random", finals=(13.0,))
     paper = _evidence("grid_2", finals=(17.0,), epochs=1000)
-    section = lambda index: rep.estimator_section(index, _NoFigures(), None, False, tmp_path)
+    section = lambda index, store=_Figures(): rep.estimator_section(index, store, None, False, tmp_path / "img")
 
     # no run that learned: the section says when it fills in
     assert "this section fills in once one has" in "\n".join(section(_index(paper)))
@@ -215,9 +218,20 @@ def test_the_estimator_section_shows_the_stored_checks_of_the_chosen_run(monkeyp
     assert "Artifacts: exact `aaaaaaaa` (trained), `cccccccc` (uniform), estimator check `bbbbbbbb`." in lines
     assert not any("img/reproduction_estimator.png" in line for line in lines)  # no scatter stored, none shown
 
-    # a check that was not made over every pair has no all-pairs row
+    # a stored scatter is copied beside the report and shown, with how many of the pairs it draws
+    scatter = tmp_path / "scatter"
+    scatter.mkdir()
+    (scatter / "estimator.png").write_bytes(b"\x89PNG not really")
+    shown = section(_index(random, paper), _Figures({"b" * 32: scatter}))
+    assert "![ESR's reward against the exact MI](img/reproduction_estimator.png)" in shown
+    assert (tmp_path / "img" / "reproduction_estimator.png").read_bytes() == b"\x89PNG not really"
+    assert any("of the 934,500 drawn at random" in line for line in shown)
+
+    # a check that was not made over every pair has no all-pairs row, and keeps the others
     checks["trained"] = replace(checks["trained"], spearman_all=None, pairs=None)
-    assert not any(line.startswith("| Spearman (ESR's reward, exact MI), all") for line in section(_index(random, paper)))
+    partial = section(_index(random, paper))
+    assert not any(line.startswith("| Spearman (ESR's reward, exact MI), all") for line in partial)
+    assert "| the same under a uniform robot | 0.051 nats |" in partial
 
 
 def test_an_mi_estimate_stuck_near_zero_is_not_positive():
@@ -440,6 +454,7 @@ def test_the_report_figure_colours_by_method_and_dashes_esrs_variants():
     assert style("cramped_room_random") == (METHOD_COLORS["random"], "-")
     assert style("cramped_room_random", ('human={"kind": "bc"}',)) == (METHOD_COLORS["random"], ":")
     assert style("cramped_room", ('human={"kind": "bc"}',)) == (METHOD_COLORS["esr"], ":")
+    assert style("cramped_room", ('human={"kind": "bc"}', "method.future=human")) == (style("grid_5", ("method.future=human",))[0], ":")
     # the IQM of 4 seeds is the mean of the middle two; the band lies within the seeds' range
     centre, low, high = iqm_band(np.array([[1.0, 2.0, 3.0, 10.0], [5.0, 5.0, 5.0, 5.0]]))
     assert centre.tolist() == [2.5, 5.0] and low[1] == high[1] == 5.0

@@ -7,7 +7,10 @@ one of `ACTIONS` uniformly and the next state is (context, action). The future i
 state (future_gamma = 0), so I(aH; g | s) = log ACTIONS exactly. Tiny MLPs for phi and psi are
 trained with esr's own sampler and loss; the result is the final MI estimate in nats.
 
-    python -m esr_cli.analysis.synthetic_mi      # the page's table: every variant, 3 seeds
+    python -m esr_cli.report.synthetic_mi      # the page's table: every variant, 3 seeds
+
+It lives outside analysis/, whose files are digested into the keys of exact checks and
+diagnoses: nothing stored depends on it.
 """
 
 from __future__ import annotations
@@ -79,13 +82,13 @@ def estimate(infonce: str, episode_group: int, future: str, updates: int = UPDAT
     """The MI estimate (nats, the mean of the last 100 updates) after `updates` updates."""
     key = jax.random.PRNGKey(seed)
     buf = _buffer(key)
-    human_only = 0.0 if future == "human" else 1.0  # the action is the human's part of g
+    keep_context = 0.0 if future == "human" else 1.0  # `future: human`: psi sees only the action, the human's part of g
 
     def represent(params, b):
         ctx = b.obs[:, 0]
         phi_s = _mlp(params["phi"], _encode(ctx, b.human_action, keep_action=0.0))
         phi_sa = _mlp(params["phi"], _encode(ctx, b.human_action))
-        psi = _mlp(params["psi"], _encode(b.future_obs[:, 0], b.future_obs[:, 1], keep_context=human_only))
+        psi = _mlp(params["psi"], _encode(b.future_obs[:, 0], b.future_obs[:, 1], keep_context=keep_context))
         return phi_s, phi_sa, psi
 
     params = {"phi": _mlp_init(jax.random.fold_in(key, 2), CONTEXTS + ACTIONS),
