@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 from pathlib import Path
 from typing import Optional
 
@@ -94,6 +96,15 @@ def plot(
     out.print(str(png), highlight=False)
 
 
+_FILE_STEM = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]{0,127}")  # a spec's name as specs allow it, not '.' first
+
+
+def _file_stem(text: str) -> str:
+    """`text` (read from a store) as part of a file name in the current directory: as it is where
+    a spec could have named it so, else 'run': a manifest's name never puts a file elsewhere."""
+    return text if _FILE_STEM.fullmatch(text) else "run"
+
+
 def _plot_curve(ref: str, out_file: Optional[Path], store: Store) -> None:
     """A run's learning curves from its metrics so far; an unfinished run says so in the title."""
     path, record, finished = targets.run_record(store, ref)
@@ -107,8 +118,8 @@ def _plot_curve(ref: str, out_file: Optional[Path], store: Store) -> None:
     total = field(record, "key_components", "spec", "train", "epochs")
     done = rows[-1]["epoch"]
     state = "" if finished else f" (unfinished: epoch {done:,}" + (f" of {total:,})" if total else ")")
-    name, key = str(record.get("name", "run")), str(record.get("key", parse_dirname(path.name)[0]))
-    out_png = out_file or Path(f"{name}-{key[:8]}-curve.png")
+    name, key = str(record.get("name", "run")), parse_dirname(path.name)[0]
+    out_png = out_file or Path(f"{_file_stem(name)}-{_file_stem(key[:8])}-curve.png")
     refuse_inside_store(out_png, "--out", store)
     check_output_file(out_png, "--out")
     warmup = field(record, "key_components", "spec", "learner", "warmup_epochs") or 0

@@ -18,7 +18,11 @@ from typing import Any, BinaryIO
 
 MAX_DEPTH = 64  # a manifest nests about 6 levels (key components, spec, section, list)
 MAX_LINE_BYTES = 1 << 20  # a metrics line of 1,024 seeds is about 250 KiB
-MAX_JSONL_BYTES = 1 << 30  # a whole JSON-lines file: a paper run's metrics are a few MiB
+# A whole JSON-lines file: a 20-seed 10,000-epoch run's metrics are about 30 MiB. Reading one
+# costs about 9 times its size in memory (a dict a row, a float object a value), so this bounds
+# a command at a few GiB; training refuses a run whose metrics would pass it
+# (runner/resources.py::check_metrics_readable).
+MAX_JSONL_BYTES = 256 << 20
 
 
 class JsonInputError(ValueError):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import matplotlib
@@ -19,9 +20,16 @@ CURVE_PANELS = (
 )
 
 
+# A logged value beyond this is drawn as a gap: a plot's axis arithmetic (squares, spans)
+# overflows on values near the float limit, and no metric esr logs is anywhere near it.
+DRAWABLE = 1e100
+
+
 def _series(rows: list[dict], name: str) -> tuple[np.ndarray, np.ndarray]:
     epochs = np.array([r["epoch"] for r in rows])
     vals = np.array([[np.nan if v is None else v for v in r[name]] for r in rows], dtype=float)
+    with np.errstate(invalid="ignore"):
+        vals[~(np.abs(vals) <= DRAWABLE)] = np.nan
     return epochs, vals
 
 
@@ -50,14 +58,17 @@ def learning_curve(rows: list[dict], out_png: Path, title: str, provenance: dict
             ax.text(0.5, 0.5, "not logged for this method", ha="center", va="center", transform=ax.transAxes)
         else:
             n = np.isfinite(vals).sum(axis=1)
-            with np.errstate(all="ignore"):
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # an epoch with no finite seed: a gap, said by NaN
                 mean = np.nanmean(vals, axis=1)
                 se = np.where(n > 1, np.nanstd(vals, axis=1, ddof=min(1, vals.shape[1] - 1)) / np.sqrt(np.maximum(n, 1)), 0.0)
             ax.plot(epochs, mean, color="C0")
             ax.fill_between(epochs, mean - se, mean + se, color="C0", alpha=0.25, linewidth=0)
             if name == "contrastive_accuracy" and "contrastive_chance" in rows[0]:
                 _, chance = _series(rows, "contrastive_chance")
-                ax.plot(epochs, np.nanmean(smooth(chance, window), axis=1), "k--", lw=1, label="chance")
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    ax.plot(epochs, np.nanmean(smooth(chance, window), axis=1), "k--", lw=1, label="chance")
                 ax.legend(fontsize=8, loc="lower right")
         if warmup_epochs:
             ax.axvspan(0.5, warmup_epochs + 0.5, color="0.5", alpha=0.15, lw=0, label="uniform robot (warm-up)")

@@ -136,7 +136,7 @@ _VALIDATOR_TAG = re.compile(r"[a-z][a-z0-9_-]*\[.*\]", re.S)
 
 def _format_loc(loc: tuple, user_key_last: bool = False) -> str:
     """A pydantic error location as the key path the user wrote; `user_key_last`: its last part
-    is a key of the input (an unknown key), kept whatever it looks like."""
+    is a key of the input (an unknown key), kept as written where it reads as a name."""
     out = []
     for i, part in enumerate(loc):
         last_key = user_key_last and i == len(loc) - 1
@@ -145,7 +145,7 @@ def _format_loc(loc: tuple, user_key_last: bool = False) -> str:
         elif not last_key and ((i == 1 and loc[0] in KIND_MODELS and part in KIND_MODELS[loc[0]]) or _VALIDATOR_TAG.fullmatch(str(part))):
             continue  # pydantic's discriminated-union and validator tags (`method.esr.x`) are not user key paths
         else:
-            out.append(("." if out else "") + str(part))
+            out.append(("." if out else "") + yamlio.shown_name(part))
     return "".join(out)
 
 
@@ -238,7 +238,7 @@ def validate(raw: dict, source: str = "") -> Spec:
         loc = tuple(err["loc"])
         if err["type"] == "extra_forbidden":
             head, _, rest = str(loc[-1]).partition(".")
-            if rest and head:  # `train.epochs: 5` written in a file, as --set and budgets write it
+            if rest and head and yamlio.shown_name(loc[-1]) == loc[-1]:  # `train.epochs: 5` written in a file, as --set writes it
                 msg += (f": a dotted key path is for --set and budgets; in a file, nest it: "
                         f"`{head}: {{{rest}: ...}}`")
             else:

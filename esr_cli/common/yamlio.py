@@ -1,7 +1,8 @@
 """Reading the YAML files esr is given (specs, suites, `extends:` targets, `--set` values) with
 bounded work, before anything walks the tree (docs/reliability.md):
 
-- files over MAX_FILE_BYTES are refused unread;
+- files over MAX_FILE_BYTES (or a caller's own bound) are refused unread; a store's files are
+  read without following a symbolic link;
 - anchors and aliases are refused where the parser meets them, so a nested-alias "billion
   laughs" file is never expanded;
 - a key given twice in one mapping is refused, naming the key and both lines (PyYAML would
@@ -28,22 +29,35 @@ from typing import Any
 
 import yaml
 
-MAX_FILE_BYTES = 1 << 20  # 1 MiB: the largest spec or suite shipped is under 4 KiB
+# The largest spec or suite shipped is under 4 KiB; pure-Python parsing of a worst-case file
+# (a flow list of 0s) costs about 4 s a 256 KiB.
+MAX_FILE_BYTES = 256 << 10
 
 
 class YamlInputError(Exception):
     """A file or value esr refuses to read; `str()` is one line."""
 
 
+_NAME = re.compile(r"[\w.\-\[\]]{1,64}")  # a field, section or anchor name as a spec writes one
+
+
+def shown_name(text: object) -> str:
+    """`text` as a message may quote it: a key or anchor that reads as a name is shown as
+    written; anything else (a line of a file that is not a spec, a value, something long) only
+    by its length, so that a page or suite naming another file never prints that file's text."""
+    text = str(text)
+    return text if _NAME.fullmatch(text) else f"(a key of {len(text):,} characters that is not a name)"
+
+
 class _BoundedLoader(yaml.SafeLoader):
     def compose_node(self, parent, index):
         event = self.peek_event()
         if isinstance(event, yaml.AliasEvent):
-            raise YamlInputError(f"line {event.start_mark.line + 1}: aliases (*{event.anchor}) are not allowed; "
+            raise YamlInputError(f"line {event.start_mark.line + 1}: aliases (*name) are not allowed; "
                                  "write the value out")
         anchor = getattr(event, "anchor", None)
         if anchor is not None:
-            raise YamlInputError(f"line {event.start_mark.line + 1}: anchors (&{anchor}) are not allowed; "
+            raise YamlInputError(f"line {event.start_mark.line + 1}: anchors (&name) are not allowed; "
                                  "write each value out")
         return super().compose_node(parent, index)
 
@@ -58,10 +72,10 @@ class _BoundedLoader(yaml.SafeLoader):
                 first = None
             if first is not None:
                 where = f"line {line}" if first == line else f"lines {first} and {line}"
-                raise YamlInputError(f"key {key!r} appears twice in one mapping ({where}); keep one")
+                raise YamlInputError(f"key {shown_name(key)!r} appears twice in one mapping ({where}); keep one")
             if not isinstance(key, str):  # `1:`, `true:` or `null:` would read as a list index or None
-                shown = (key_node.value or "(empty)") if isinstance(key_node, yaml.ScalarNode) else "a list or mapping"
-                raise YamlInputError(f"line {line}: the key {shown:.40} is not a name: keys are text "
+                shown = shown_name(key_node.value or "(empty)") if isinstance(key_node, yaml.ScalarNode) else "a list or mapping"
+                raise YamlInputError(f"line {line}: the key {shown} is not a name: keys are text "
                                      "(write it in quotes if it must be a number)")
             seen[key] = line
         return super().construct_mapping(node, deep=deep)
@@ -136,27 +150,32 @@ def parse(text: str) -> Any:
         raise YamlInputError(f"unreadable YAML: {e}") from None
 
 
-def read(path: str | Path) -> Any:
-    """Parse a file after checking its size. Raises YamlInputError (missing, too large, bad)."""
+def read(path: str | Path, max_bytes: int = MAX_FILE_BYTES, follow_links: bool = True,
+         what: str = "a spec or suite file") -> Any:
+    """Parse a file after checking its size. Raises YamlInputError (missing, too large, bad).
+    `follow_links` False (a file in a store): a symbolic link is refused, not read."""
     p = Path(path)
+    if not follow_links and p.is_symlink():
+        raise YamlInputError("a symbolic link, not a file")
     if not p.exists():
         raise YamlInputError("file not found")
     if not p.is_file():
         raise YamlInputError("not a file")
-    too_large = f"larger than the {MAX_FILE_BYTES:,} bytes esr reads from a spec or suite file"
+    too_large = f"larger than the {max_bytes:,} bytes esr reads from {what}"
     size = p.stat().st_size
-    if size > MAX_FILE_BYTES:
+    if size > max_bytes:
         raise YamlInputError(f"{size:,} bytes: {too_large}")
+    flags = os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC | (0 if follow_links else os.O_NOFOLLOW)
     try:
         # Opened without waiting for a writer (a FIFO put in the file's place since the check
         # above is refused, not waited on), and read to at most one byte past the limit: a file
         # whose size the system does not report (/proc) cannot make esr read more than that.
-        with open(os.open(p, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC), "rb") as f:
+        with open(os.open(p, flags), "rb") as f:
             if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
                 raise YamlInputError("not a file")
-            data = f.read(MAX_FILE_BYTES + 1)
-        if len(data) > MAX_FILE_BYTES:
-            raise YamlInputError(f"more than {MAX_FILE_BYTES:,} bytes: {too_large}")
+            data = f.read(max_bytes + 1)
+        if len(data) > max_bytes:
+            raise YamlInputError(f"more than {max_bytes:,} bytes: {too_large}")
         text = data.decode()
     except (OSError, UnicodeDecodeError) as e:
         raise YamlInputError(f"cannot read file: {e}") from None

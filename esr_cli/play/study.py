@@ -265,7 +265,7 @@ def format_loc(loc: tuple) -> str:
         if isinstance(part, int):
             out += f"[{part}]"
         elif not (i == 2 and loc[0] == "questionnaire" and part in ITEM_MODELS):
-            out += ("." if out else "") + str(part)
+            out += ("." if out else "") + yamlio.shown_name(part)
     return out
 
 

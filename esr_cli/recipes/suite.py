@@ -176,7 +176,7 @@ def _set_text(dotted: str, value: Any) -> str:
 def _format_loc(loc: tuple) -> str:
     out = ""
     for part in loc:
-        out += f"[{part}]" if isinstance(part, int) else (("." if out else "") + str(part))
+        out += f"[{part}]" if isinstance(part, int) else (("." if out else "") + yamlio.shown_name(part))
     return out
 
 

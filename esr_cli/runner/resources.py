@@ -210,9 +210,34 @@ def available_device_bytes() -> int | None:
     return stats.get("bytes_limit")
 
 
+# A metrics row holds about 16 metrics: per seed some 12 bytes a value, per row some 300 bytes of
+# names and counters. On the safe side, so that a run esr writes can always be read back.
+METRICS_ROW_BYTES, METRICS_SEED_BYTES = 400, 240
+
+
+def metrics_bytes(spec) -> int:
+    """About the most bytes the run's metrics.jsonl reaches (every epoch logged)."""
+    return spec.train.epochs * (METRICS_ROW_BYTES + METRICS_SEED_BYTES * len(spec.train.seeds))
+
+
+def check_metrics_readable(spec) -> None:
+    """Raise ResourceError when the run's metrics would pass what esr reads back of a
+    metrics.jsonl (`jsonl.MAX_JSONL_BYTES`): such a run could be trained but never reported."""
+    from esr_cli.common.jsonl import MAX_JSONL_BYTES
+
+    if metrics_bytes(spec) > MAX_JSONL_BYTES:
+        raise ResourceError(
+            f"{spec.name}: {spec.train.epochs:,} epochs of {len(spec.train.seeds):,} seeds would log about "
+            f"{metrics_bytes(spec) / (1 << 20):,.0f} MiB of metrics, more than the {MAX_JSONL_BYTES >> 20:,} MiB esr "
+            "reads back of a run: split the seeds over runs or train fewer epochs")
+
+
 def check_run_fits(spec) -> Estimate:
-    """Raise ResourceError when the run's estimate exceeds the memory that will hold it."""
+    """Raise ResourceError when the run's estimate exceeds the memory that will hold it, or its
+    metrics would exceed what esr reads back."""
     import jax
+
+    check_metrics_readable(spec)
 
     from esr_cli.model.train import default_seed_batch
 

@@ -385,10 +385,13 @@ def spec_problem(run_dir: Path, record: dict) -> str | None:
     return problem or spec_mismatch(spec, record)
 
 
+MAX_SPEC_YAML_BYTES = 64 << 10  # a run's spec.yaml, written by esr, is about 3 KiB
+
+
 def read_spec_yaml(run_dir: Path) -> tuple[object, str | None]:
     """(a run's spec.yaml as read, None), or (None, why it cannot be read)."""
     try:
-        return yamlio.read(run_dir / "spec.yaml"), None
+        return yamlio.read(run_dir / "spec.yaml", MAX_SPEC_YAML_BYTES, follow_links=False, what="a run's spec.yaml"), None
     except yamlio.YamlInputError as e:
         return None, f"its spec.yaml cannot be read ({e})"
 

@@ -60,7 +60,7 @@ def test_alias_bomb_is_refused_at_once_in_little_memory(tmp_path):
     p = write(tmp_path, alias_bomb())
     tracemalloc.start()
     t0 = cpu_seconds()
-    with pytest.raises(specs.SpecError, match=r"line 5: anchors \(&a0\) are not allowed"):
+    with pytest.raises(specs.SpecError, match=r"line 5: anchors \(&name\) are not allowed"):
         specs.load(p)
     elapsed = cpu_seconds() - t0
     _, peak = tracemalloc.get_traced_memory()
@@ -76,7 +76,7 @@ def test_alias_bomb_through_the_cli_writes_nothing(tmp_path):
 
 
 def test_plain_alias_and_duplicate_keys_name_their_lines(tmp_path):
-    with pytest.raises(yamlio.YamlInputError, match=r"line 2: aliases \(\*x\)"):
+    with pytest.raises(yamlio.YamlInputError, match=r"line 2: aliases \(\*name\)"):
         yamlio.parse("a: 1\nb: *x\n")
     dup = VALID + "train: {epochs: 5}\ntrain: {epochs: 7}\n"
     with pytest.raises(specs.SpecError, match=r"key 'train' appears twice in one mapping \(lines 5 and 6\)"):
@@ -87,7 +87,7 @@ def test_plain_alias_and_duplicate_keys_name_their_lines(tmp_path):
 
 def test_oversized_file_is_refused_unread(tmp_path):
     p = write(tmp_path, VALID + "# " + "x" * (yamlio.MAX_FILE_BYTES + 10) + "\n")
-    with pytest.raises(specs.SpecError, match="larger than the 1,048,576 bytes"):
+    with pytest.raises(specs.SpecError, match="larger than the 262,144 bytes"):
         specs.load(p)
 
 
@@ -103,7 +103,7 @@ def test_a_file_whose_size_is_not_reported_is_read_only_to_the_limit(tmp_path, m
 
     monkeypatch.setattr(Path, "stat", unsized)
     assert p.stat().st_size == 0
-    with pytest.raises(specs.SpecError, match="more than 1,048,576 bytes: larger than the 1,048,576 bytes"):
+    with pytest.raises(specs.SpecError, match="more than 262,144 bytes: larger than the 262,144 bytes"):
         specs.load(p)
 
 
@@ -1018,3 +1018,87 @@ def test_a_played_episode_esr_did_not_write_is_one_line_in_plays(tmp_path, capsy
     lines = captured.err.strip().splitlines()
     assert len(lines) == 1 and "damaged played episode" in lines[0] and named in lines[0], captured.err
     assert key not in captured.out
+
+
+# ---------------------------------------------------------------- what a store's or another file's text can do
+def _copied_run(smoke_run, tmp_path):
+    """A copy of the smoke run in a store of its own: (store, run folder, key)."""
+    import shutil
+
+    _, path, _ = smoke_run
+    store = tmp_path / "store"
+    copy_to = store / path.relative_to(path.parents[2])
+    shutil.copytree(path, copy_to)
+    return store, copy_to, copy_to.name
+
+
+@pytest.mark.slow
+def test_a_stored_name_never_puts_a_curve_outside_the_current_directory(smoke_run, tmp_path):
+    """`esr plot curve` names its file after the run; a manifest's name ('../x', '/x') is not a
+    path: the file is written in the current directory under a plain name."""
+    import subprocess
+    import sys
+
+    from conftest import esr_env
+
+    store, run, key = _copied_run(smoke_run, tmp_path)
+    (tmp_path / "cwd").mkdir()
+    for name in ("../escape/owned", str(tmp_path / "abs" / "owned")):
+        manifest = json.loads((run / "manifest.json").read_text())
+        manifest["name"] = name
+        (run / "manifest.json").write_text(json.dumps(manifest))
+        proc = subprocess.run([sys.executable, "-m", "esr_cli.cli.main", "plot", "curve", key[:8]], cwd=tmp_path / "cwd",
+                              env=esr_env(store), capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        assert (tmp_path / "cwd" / f"run-{key[:8]}-curve.png").is_file()
+        assert not (tmp_path / "escape").exists() and not (tmp_path / "abs").exists()
+
+
+@pytest.mark.slow
+def test_a_curve_of_values_near_the_float_limit_is_drawn_without_warnings(smoke_run, tmp_path):
+    store, run, key = _copied_run(smoke_run, tmp_path)
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    rows[-1]["return"] = [1.7e308] * len(rows[-1]["return"])
+    rows[0]["success"] = [None] * len(rows[0]["success"])
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    proc = esr("plot", "curve", key[:8], "--out", str(tmp_path / "c.png"), store=store, check=False)
+    assert proc.returncode == 0 and (tmp_path / "c.png").is_file(), proc.stderr
+    assert "Warning" not in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_a_file_that_is_not_a_spec_is_never_quoted(tmp_path):
+    """A page, suite or extends: can name any file; esr names its mistakes without printing it."""
+    for text in ("root:$6$saltsalt$hashhashhash:20228:0:99999:7:::\n", "127.0.0.1 host.secret.example: 1\n",
+                 "x: &tok-3f9a1b2c3d4e5f 1\n", "a: {b: 1}\nc: *tok-3f9a1b2c3d4e5f\n",
+                 "'pw=hunter2': 1\n'pw=hunter2': 2\n", "? [sk-live-abc]\n: 1\n"):
+        with pytest.raises(specs.SpecError) as e:
+            specs.load(write(tmp_path, text))
+        line = str(e.value)
+        assert "\n" not in line
+        for secret in ("hashhash", "secret.example", "tok-3f9a", "hunter2", "sk-live"):
+            assert secret not in line, line
+    with pytest.raises(specs.SpecError, match="password: unknown key"):  # a name is still named
+        specs.load(write(tmp_path, VALID + "password: 1\n"))
+
+
+def test_a_store_s_spec_yaml_is_never_read_through_a_link(tmp_path):
+    from esr_cli.storage import transfer
+
+    (tmp_path / "secret.yaml").write_text("x: 1\n")
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "spec.yaml").symlink_to(tmp_path / "secret.yaml")
+    spec, problem = transfer.read_spec_yaml(run)
+    assert spec is None and "a symbolic link, not a file" in problem
+    (run / "spec.yaml").unlink()
+    (run / "spec.yaml").write_text("name: x\n" + "# " + "x" * transfer.MAX_SPEC_YAML_BYTES + "\n")
+    spec, problem = transfer.read_spec_yaml(run)
+    assert spec is None and "larger than the 65,536 bytes esr reads from a run's spec.yaml" in problem
+
+
+def test_a_run_whose_metrics_esr_could_not_read_back_is_refused_before_any_work():
+    paper = specs.load(ROOT / "experiments/grid_5.yaml", "paper", ["train.seeds=20"])
+    resources.check_metrics_readable(paper)  # the paper's 20 seeds x 10,000 epochs: about 50 MiB at most
+    many = specs.load(ROOT / "experiments/grid_5.yaml", "paper", ["train.seeds=200"])
+    with pytest.raises(resources.ResourceError, match=r"200 seeds would log about .* MiB of metrics, more than the 256 MiB"):
+        resources.check_run_fits(many)

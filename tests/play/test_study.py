@@ -129,8 +129,8 @@ def test_hostile_study_files_are_refused_in_one_line(tmp_path):
     folder = tmp_path / "s"
     path = write_study(folder, study_dict())
     for text, expected in [
-        ("name: x\n" + "# padding\n" * 200_000, "larger than the 1,048,576 bytes"),  # refused unread
-        ('a: &a ["x", "x"]\nb: [*a, *a]\n', "anchors (&a) are not allowed"),  # nested aliases, never expanded
+        ("name: x\n" + "# padding\n" * 200_000, "larger than the 262,144 bytes"),  # refused unread
+        ('a: &a ["x", "x"]\nb: [*a, *a]\n', "anchors (&name) are not allowed"),  # nested aliases, never expanded
         ("- a list\n- not a study\n", "the top level must be a mapping"),
         ("name: x\nname: y\n", "key 'name' appears twice"),
     ]:
