@@ -238,7 +238,7 @@ def validate(raw: dict, source: str = "") -> Spec:
         loc = tuple(err["loc"])
         if err["type"] == "extra_forbidden":
             head, _, rest = str(loc[-1]).partition(".")
-            if rest and head and yamlio.shown_name(loc[-1]) == loc[-1]:  # `train.epochs: 5` written in a file, as --set writes it
+            if rest and head and yamlio.reads_as_name(loc[-1]):  # `train.epochs: 5` written in a file, as --set writes it
                 msg += (f": a dotted key path is for --set and budgets; in a file, nest it: "
                         f"`{head}: {{{rest}: ...}}`")
             else:

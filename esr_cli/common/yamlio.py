@@ -41,12 +41,17 @@ class YamlInputError(Exception):
 _NAME = re.compile(r"[\w.\-\[\]]{1,64}")  # a field, section or anchor name as a spec writes one
 
 
+def reads_as_name(text: object) -> bool:
+    """Whether `text` is a field, section or anchor name as a spec writes one."""
+    return _NAME.fullmatch(str(text)) is not None
+
+
 def shown_name(text: object) -> str:
     """`text` as a message may quote it: a key or anchor that reads as a name is shown as
     written; anything else (a line of a file that is not a spec, a value, something long) only
     by its length, so that a page or suite naming another file never prints that file's text."""
     text = str(text)
-    return text if _NAME.fullmatch(text) else f"(a key of {len(text):,} characters that is not a name)"
+    return text if reads_as_name(text) else f"(a key of {len(text):,} characters that is not a name)"
 
 
 class _BoundedLoader(yaml.SafeLoader):
