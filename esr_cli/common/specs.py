@@ -57,6 +57,16 @@ DEFAULT_BUDGETS: dict[str, dict[str, Any]] = {
 
 
 
+# A validator or a --set may quote the number it refuses (`9,999,... seeds`); one of hundreds of
+# digits is named by its length instead, so that the message stays one readable line.
+_LONG_NUMBER = re.compile(r"\d(?:,?\d){24,}")
+
+
+def numbers_by_length(text: str) -> str:
+    """`text` with each number of more than 24 digits replaced by its length."""
+    return _LONG_NUMBER.sub(lambda m: f"(a number of {sum(c.isdigit() for c in m.group()):,} digits)", text)
+
+
 class SpecError(Failure):
     """A spec that cannot be used. `str()` is one line naming file, key path and problem."""
 
@@ -66,6 +76,7 @@ class SpecError(Failure):
         return f"bad spec: {self}"
 
     def __init__(self, source: str, path: str, problem: str):
+        source, problem = numbers_by_length(source), numbers_by_length(problem)
         self.source, self.path, self.problem = source, path, problem
         where = f"{source}: " if source else ""
         key = f"{path}: " if path else ""
@@ -134,19 +145,9 @@ MAX_OVERRIDE_CHARS = 10_000
 _VALIDATOR_TAG = re.compile(r"[a-z][a-z0-9_-]*\[.*\]", re.S)
 
 
-def _format_loc(loc: tuple, user_key_last: bool = False) -> str:
-    """A pydantic error location as the key path the user wrote; `user_key_last`: its last part
-    is a key of the input (an unknown key), kept as written where it reads as a name."""
-    out = []
-    for i, part in enumerate(loc):
-        last_key = user_key_last and i == len(loc) - 1
-        if isinstance(part, int) and not last_key:
-            out.append(f"[{part}]")
-        elif not last_key and ((i == 1 and loc[0] in KIND_MODELS and part in KIND_MODELS[loc[0]]) or _VALIDATOR_TAG.fullmatch(str(part))):
-            continue  # pydantic's discriminated-union and validator tags (`method.esr.x`) are not user key paths
-        else:
-            out.append(("." if out else "") + yamlio.shown_name(part))
-    return "".join(out)
+def _is_tag(i: int, part: object, loc: tuple) -> bool:
+    """pydantic's discriminated-union and validator tags (`method.esr.x`), which are not key paths."""
+    return (i == 1 and loc[0] in KIND_MODELS and part in KIND_MODELS[loc[0]]) or _VALIDATOR_TAG.fullmatch(str(part)) is not None
 
 
 SECTIONS_WITHOUT_KINDS = ("network", "learner", "train", "eval")
@@ -198,7 +199,7 @@ def first_problem(e: ValidationError) -> tuple[dict, str]:
     elif err["type"] == "int_parsing_size" or (err["type"] in ("float_type", "float_parsing")
                                                and isinstance(err.get("input"), int) and not isinstance(err["input"], bool)):
         msg = "the number is far too large for this setting"
-    return err, msg
+    return err, numbers_by_length(msg)
 
 
 def _described(value: Any) -> str:
@@ -255,7 +256,7 @@ def validate(raw: dict, source: str = "") -> Spec:
                 loc, msg = loc + (typo[0],), f"unknown key; did you mean `kind`? (the section {msg})"
         elif err["type"] == "union_tag_invalid":
             msg = f"kind {err.get('ctx', {}).get('tag')!r} is not one of {', '.join(section)}"
-        raise SpecError(source, _format_loc(loc, err["type"] == "extra_forbidden"), msg + other_problems(e)) from None
+        raise SpecError(source, yamlio.key_path(loc, lambda i, part: _is_tag(i, part, loc), err["type"] == "extra_forbidden"), msg + other_problems(e)) from None
 
 
 def _merge(base: dict, child: dict) -> dict:

@@ -11,7 +11,7 @@ bounded work, before anything walks the tree (docs/reliability.md):
   booleans (`yes`, `on`, `off` stay text, which a boolean field then refuses), integers are
   decimal (`010` is 10, not octal 8; `1:30` is text, not 90), `1e-4` without a dot and `+.5`
   are numbers, and `2020-01-01` is text, not a date; an explicit `!!float` or `!!bool` on
-  something else is refused;
+  something else is refused, and so is `!!null` on anything but YAML's spellings of null;
 - every key is text: `1:`, `true:` or `null:` as a key is refused (it would read as a list
   index or nothing);
 - integers longer than MAX_INT_DIGITS digits are refused (Python refuses to read them);
@@ -25,7 +25,7 @@ import os
 import re
 import stat
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import yaml
 
@@ -52,6 +52,21 @@ def shown_name(text: object) -> str:
     by its length, so that a page or suite naming another file never prints that file's text."""
     text = str(text)
     return text if reads_as_name(text) else f"(a key of {len(text):,} characters that is not a name)"
+
+
+def key_path(loc: tuple, tag: Callable[[int, object], bool] = lambda i, part: False, last_is_key: bool = False) -> str:
+    """A validator's error location as the key path the user wrote (`questionnaire[1].scale`):
+    list indices in brackets, keys as `shown_name` shows them, and the parts for which
+    `tag(i, part)` holds (a discriminated union's or a validator's tags) left out.
+    `last_is_key`: the last part is a key of the input (an unknown key), shown whatever it is."""
+    out = ""
+    for i, part in enumerate(loc):
+        key = last_is_key and i == len(loc) - 1
+        if isinstance(part, int) and not key:
+            out += f"[{part}]"
+        elif key or not tag(i, part):
+            out += ("." if out else "") + shown_name(part)
+    return out
 
 
 class _BoundedLoader(yaml.SafeLoader):
@@ -102,6 +117,7 @@ _BoundedLoader.add_implicit_resolver("tag:yaml.org,2002:bool", _BOOL, list("tTfF
 _BoundedLoader.add_implicit_resolver("tag:yaml.org,2002:int", _INT, list("-+0123456789"))
 _BoundedLoader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT, list("-+0123456789."))
 
+_NULL = frozenset({"", "~", "null", "Null", "NULL"})
 MAX_INT_DIGITS = 4000  # below Python's own limit on reading an integer from text (4300)
 
 
@@ -129,6 +145,13 @@ def _construct_bool(loader, node):
     return text.lower() == "true"
 
 
+def _construct_null(loader, node):
+    text = loader.construct_scalar(node)
+    if text not in _NULL:  # `!!null x`: only YAML 1.2's spellings of null are null
+        raise YamlInputError(f"line {node.start_mark.line + 1}: {str(text)[:40]!r} is not null")
+    return None
+
+
 def _refuse_tag(loader, node):
     raise YamlInputError(f"line {node.start_mark.line + 1}: the tag {node.tag.replace('tag:yaml.org,2002:', '!!')} "
                          "is not allowed: write a number, text, boolean, list or mapping")
@@ -137,6 +160,7 @@ def _refuse_tag(loader, node):
 _BoundedLoader.add_constructor("tag:yaml.org,2002:int", _construct_int)
 _BoundedLoader.add_constructor("tag:yaml.org,2002:float", _construct_float)
 _BoundedLoader.add_constructor("tag:yaml.org,2002:bool", _construct_bool)
+_BoundedLoader.add_constructor("tag:yaml.org,2002:null", _construct_null)
 for _tag in ("binary", "timestamp", "set", "omap", "pairs"):
     _BoundedLoader.add_constructor(f"tag:yaml.org,2002:{_tag}", _refuse_tag)
 

@@ -239,7 +239,7 @@ def validate(raw: dict, source: str) -> StudyModel:
         elif err["type"] == "string_pattern_mismatch":
             rule = PATTERN_RULES.get(loc[-1], f"a name here is {PARTICIPANT_RULE}")
             msg = f"{str(err['input'])[:40]!r}: {rule}"
-        raise StudyError(source, format_loc(loc), msg + specs.other_problems(e)) from None
+        raise StudyError(source, yamlio.key_path(loc, lambda i, part: i == 2 and loc[0] == "questionnaire" and part in ITEM_MODELS), msg + specs.other_problems(e)) from None
 
 
 ITEM_MODELS = {"likert": LikertItem, "text": TextItem}
@@ -256,17 +256,6 @@ def _names_at(loc: tuple) -> list[str]:
     if parent[0] == "questionnaire" and len(loc) >= 3:
         return list(ITEM_MODELS.get(str(loc[2]), LikertItem).model_fields)
     return list(models[parent[0]].model_fields) if parent[0] in models else []
-
-
-def format_loc(loc: tuple) -> str:
-    """pydantic's location as a key path (questionnaire[1].scale), without its union tags."""
-    out = ""
-    for i, part in enumerate(loc):
-        if isinstance(part, int):
-            out += f"[{part}]"
-        elif not (i == 2 and loc[0] == "questionnaire" and part in ITEM_MODELS):
-            out += ("." if out else "") + yamlio.shown_name(part)
-    return out
 
 
 def read_text(folder: Path, name: str, key: str, source: str) -> str:

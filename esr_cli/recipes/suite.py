@@ -173,13 +173,6 @@ def _set_text(dotted: str, value: Any) -> str:
     return f"{dotted}={json.dumps(value, separators=(',', ':'))}"
 
 
-def _format_loc(loc: tuple) -> str:
-    out = ""
-    for part in loc:
-        out += f"[{part}]" if isinstance(part, int) else (("." if out else "") + yamlio.shown_name(part))
-    return out
-
-
 def _validate(raw: Any, source: str) -> SuiteModel:
     if isinstance(raw, list):
         raw = {"specs": raw}
@@ -199,7 +192,7 @@ def _validate(raw: Any, source: str) -> SuiteModel:
         loc = tuple(err["loc"])
         if err["type"] == "extra_forbidden":
             msg += specs.did_you_mean(loc[-1], _suite_names(loc))
-        raise SuiteError(source, _format_loc(loc), msg + specs.other_problems(e)) from None
+        raise SuiteError(source, yamlio.key_path(loc), msg + specs.other_problems(e)) from None
 
 
 def _suite_names(loc: tuple) -> list[str]:

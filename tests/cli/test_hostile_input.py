@@ -85,6 +85,16 @@ def test_plain_alias_and_duplicate_keys_name_their_lines(tmp_path):
         specs.load(write(tmp_path, VALID.replace("{kind: esr}", "{kind: esr, kind: ave}")))
 
 
+def test_an_error_location_reads_as_the_key_path_written():
+    """Indices in brackets, tags left out, an unknown last key shown even when it is a number,
+    and a key that is not a name only by its length."""
+    assert yamlio.key_path(("questionnaire", 1, "likert", "scale")) == "questionnaire[1].likert.scale"
+    assert yamlio.key_path(("questionnaire", 1, "likert", "scale"), lambda i, part: part == "likert") == "questionnaire[1].scale"
+    assert yamlio.key_path(("a", 3), last_is_key=True) == "a.3"
+    assert yamlio.key_path(("a", "x y\x1b[2J")) == "a.(a key of 7 characters that is not a name)"
+    assert yamlio.key_path(()) == ""
+
+
 def test_oversized_file_is_refused_unread(tmp_path):
     p = write(tmp_path, VALID + "# " + "x" * (yamlio.MAX_FILE_BYTES + 10) + "\n")
     with pytest.raises(specs.SpecError, match="larger than the 262,144 bytes"):
@@ -129,6 +139,8 @@ def test_huge_seed_count_is_refused_before_it_is_built(tmp_path):
     with pytest.raises(specs.SpecError, match="train.seeds: 1,000,000,000 seeds: at most 1,024"):
         specs.load(write(tmp_path, VALID), "paper", ["train.seeds=1000000000"])
     assert cpu_seconds() - t0 < 5.0
+    with pytest.raises(specs.SpecError, match=r"^[^\n]{0,200}train.seeds: \(a number of 400 digits\) seeds: at most 1,024"):
+        specs.load(write(tmp_path, VALID), "paper", ["train.seeds=" + "9" * 400])
     with pytest.raises(specs.SpecError, match="environment steps"):
         specs.load(write(tmp_path, VALID), "paper", ["train.epochs=10000000", "train.num_envs=100000"])
 
@@ -495,7 +507,7 @@ def test_durations_by_hand():
     ("010", 10), ("1_000", 1000), ("-3", -3), ("1e-4", 1e-4), ("true", True), ("FALSE", False),
     ("yes", "yes"), ("on", "on"), ("off", "off"), ("1:30", "1:30"), ("0b101", "0b101"), ("0x1f", "0x1f"),
     ("2020-01-01", "2020-01-01"), ("~", None), ("+.5", 0.5), ("-.5", -0.5), (".5e3", 500.0), ("._", "._"),
-    ("!!float 3", 3.0), ("!!bool true", True),
+    ("!!float 3", 3.0), ("!!bool true", True), ("!!int \"3\"", 3), ("!!null", None), ("!!null NULL", None),
 ])
 def test_scalars_read_as_yaml_1_2_not_1_1(text, value):
     assert yamlio.parse(f"a: {text}") == {"a": value}
@@ -506,6 +518,7 @@ def test_scalars_read_as_yaml_1_2_not_1_1(text, value):
     ("!!timestamp 2020-01-01", "the tag !!timestamp is not allowed"),
     ("9" * 5000, "an integer of 5,000 digits; at most 4,000"),
     ("!!float abc", "'abc' is not a number"), ("!!bool yes", "'yes' is not true or false"),
+    ("!!null x", "'x' is not null"),
     ("{1: 2}", "the key 1 is not a name"), ("{null: 2}", "the key null is not a name"),
 ])
 def test_values_that_are_not_spec_values_are_refused_by_line(text, problem):
