@@ -9,7 +9,8 @@ in the same directory restores the newest complete checkpoint and continues exac
 stopped; metrics lines past that checkpoint are dropped first.
 
 The first chunk is one epoch (the warm-up, which times an epoch); later ones are shorter than
-`chunk_epochs` where that many would run past CHECKPOINT_EVERY_S. Chunking changes no number:
+`chunk_epochs` where that many would run past CHECKPOINT_EVERY_S (a power of two then, so that
+few lengths are compiled). Chunking changes no number:
 an epoch is a pure function of the state, its RNG key included. Compiling, running and saving
 run in a worker thread, so Ctrl-C and SIGTERM are answered at once (runner/stop_requests.py).
 """
@@ -58,8 +59,14 @@ CHECKPOINT_EVERY_S = 600.0
 
 def chunk_length(chunk_epochs: int, epoch_seconds: float | None, left: int) -> int:
     """Epochs in the next chunk: one until an epoch is timed (epoch_seconds None), then
-    `chunk_epochs`, fewer where those would take longer than CHECKPOINT_EVERY_S; at most `left`."""
-    n = 1 if epoch_seconds is None else max(1, min(chunk_epochs, int(CHECKPOINT_EVERY_S / max(epoch_seconds, 1e-9))))
+    `chunk_epochs`, fewer where those would take longer than CHECKPOINT_EVERY_S; at most `left`.
+    Fewer is the largest power of two that fits: a chunk of a new length is a new program to
+    compile (most of a minute at the paper's settings), and an epoch's time drifts with the
+    machine's load, so lengths taken from a short ladder are compiled once, not every chunk."""
+    if epoch_seconds is None:
+        return min(1, left)
+    fits = int(CHECKPOINT_EVERY_S / max(epoch_seconds, 1e-9))
+    n = chunk_epochs if fits >= chunk_epochs else 1 << (max(fits, 1).bit_length() - 1)
     return min(n, left)
 
 

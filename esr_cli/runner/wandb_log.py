@@ -45,4 +45,10 @@ class WandbLog:
             self.run.log(values, step=int(row["epoch"]))
 
     def close(self) -> None:
+        import wandb
+
         self.run.finish()
+        # finish() can return before wandb's service process has written the run's file (seen:
+        # a 7-byte file read right after it); teardown waits for the service, so the record is
+        # whole when close returns (the next init starts a service again).
+        wandb.teardown()

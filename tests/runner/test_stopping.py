@@ -127,7 +127,11 @@ def test_chunks_are_timed_by_a_one_epoch_warm_up_then_bounded_by_the_checkpoint_
 
     assert chunk_length(50, None, 10_000) == 1  # not timed yet: the warm-up
     assert chunk_length(50, 1.0, 10_000) == 50
-    assert chunk_length(50, CHECKPOINT_EVERY_S / 13, 10_000) == 13  # 50 would run past the interval
+    assert chunk_length(50, CHECKPOINT_EVERY_S / 13, 10_000) == 8  # 50 would run past the interval: a power of two
+    assert chunk_length(50, CHECKPOINT_EVERY_S / 16, 10_000) == 16
+    assert chunk_length(50, CHECKPOINT_EVERY_S / 49, 10_000) == 32
+    # an epoch's time drifting under load (12 to 15 s at a 600 s interval) gives one length, not four
+    assert {chunk_length(50, CHECKPOINT_EVERY_S / fits, 10_000) for fits in (40, 42, 45, 48)} == {32}
     assert chunk_length(50, 2 * CHECKPOINT_EVERY_S, 10_000) == 1  # never fewer than one epoch
     assert chunk_length(50, 1.0, 7) == 7  # never past the end
 
