@@ -89,10 +89,17 @@ class StudyServer:
                 self.console.print(f"  {link}", highlight=False, markup=False)
             return
         path.parent.mkdir(parents=True, exist_ok=True)
-        # The links are the study's keys: readable by their owner only.
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        with os.fdopen(fd, "w") as f:
-            f.write("".join(f"{link}\n" for link in links))
+        # The links are the study's keys: readable by their owner only. Written beside and
+        # renamed, so whoever waits for the file (a script handing links out) reads all of them.
+        tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+            with os.fdopen(fd, "w") as f:
+                f.write("".join(f"{link}\n" for link in links))
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
         self.console.print(f"{len(links)} link(s), one per participant, each usable once: {path}", highlight=False)
 
     def serve(self, links_file: Path | None) -> tuple[list[Served], bool]:
