@@ -57,14 +57,24 @@ DEFAULT_BUDGETS: dict[str, dict[str, Any]] = {
 
 
 
-# A validator or a --set may quote the number it refuses (`9,999,... seeds`); one of hundreds of
-# digits is named by its length instead, so that the message stays one readable line.
-_LONG_NUMBER = re.compile(r"\d(?:,?\d){24,}")
+# A validator may quote the number it refuses (`9,999,... seeds`); one of hundreds of digits is
+# named by its length instead, so that the message stays one readable line. Only a number written
+# with thousands separators (as validators write them) or a bare run of digits standing alone
+# counts: a compact list (`[100,101,...]`) or a path's digits are left as they are.
+_LONG_NUMBER = re.compile(r"(?<![\w,./\[])(?:\d{1,3}(?:,\d{3}){8,}|\d{25,})(?![\w,./\]])")
 
 
 def numbers_by_length(text: str) -> str:
-    """`text` with each number of more than 24 digits replaced by its length."""
+    """A validator's message with each number of more than 24 digits replaced by its length."""
     return _LONG_NUMBER.sub(lambda m: f"(a number of {sum(c.isdigit() for c in m.group()):,} digits)", text)
+
+
+MAX_SHOWN_OVERRIDE = 80
+
+
+def shown_override(text: str) -> str:
+    """A --set as an error names it: as typed, or its start and length when it is long."""
+    return text if len(text) <= MAX_SHOWN_OVERRIDE else f"{text[:48]}... ({len(text):,} characters)"
 
 
 class SpecError(Failure):
@@ -76,7 +86,6 @@ class SpecError(Failure):
         return f"bad spec: {self}"
 
     def __init__(self, source: str, path: str, problem: str):
-        source, problem = numbers_by_length(source), numbers_by_length(problem)
         self.source, self.path, self.problem = source, path, problem
         where = f"{source}: " if source else ""
         key = f"{path}: " if path else ""
@@ -376,13 +385,13 @@ def resolve(raw: dict, budget: str = "paper", overrides: list[str] | tuple[str, 
         if _switch_kind(tree, dotted, value):  # before the budget, whose fields depend on the kind
             section = dotted.split(".")[0]
             switched.add(section)
-            given[section] = f"--set {text}"  # the new kind's missing or bad fields are this --set's
+            given[section] = f"--set {shown_override(text)}"  # the new kind's missing or bad fields are this --set's
     own = budget in budgets
     given.update(_apply_budget(tree, budget, budgets[budget] if own else DEFAULT_BUDGETS[budget], own, switched, source))
     for text, dotted, value in parsed:
         _set_path(tree, dotted, value, "--set")
         given.pop(dotted, None)
-        given[dotted] = f"--set {text}"
+        given[dotted] = f"--set {shown_override(text)}"
     return _validated(tree, budget, given, source)
 
 

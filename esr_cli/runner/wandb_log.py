@@ -50,5 +50,10 @@ class WandbLog:
         self.run.finish()
         # finish() can return before wandb's service process has written the run's file (seen:
         # a 7-byte file read right after it); teardown waits for the service, so the record is
-        # whole when close returns (the next init starts a service again).
-        wandb.teardown()
+        # whole when close returns (the next init starts a service again). A service that died
+        # makes teardown call sys.exit: that must not replace the run's own ending (a time limit,
+        # a stop, an error) nor skip what follows close; metrics.jsonl is the record either way.
+        try:
+            wandb.teardown()
+        except (Exception, SystemExit):
+            pass
