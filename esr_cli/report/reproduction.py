@@ -12,6 +12,7 @@ Nothing here trains; the estimator check computes exact artifacts for a stored r
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass, field, replace
 from functools import cache
 from pathlib import Path
@@ -49,6 +50,7 @@ MI_POSITIVE = 0.01
 REPRODUCED, NOT_REPRODUCED, INCONCLUSIVE, NOT_YET = (
     "reproduced", "not reproduced", "inconclusive", "not yet run at a comparable budget")
 INDICATIVE = "indicative"
+HEX_DIGEST = re.compile(r"[0-9a-f]{32}")  # a code digest as a key's components name it
 # What an indicative row's numbers say, before enough seeds: holds, does not hold, open.
 LEANINGS = {True: "holds", False: "does not hold", None: "open"}
 
@@ -72,6 +74,9 @@ class Evidence:
     # True when the checkout it was started from had edits under esr_cli/ (its code digest,
     # part of the key, still says exactly which training code it ran).
     modified: bool = False
+    # The training program that made it, as its key names it (the training code's digest and the
+    # toolchain); None where its manifest does not say. Runs of one program pool their seeds.
+    program: Optional[str] = None
     # A pooled run (`pooled`): the finished runs whose seeds it joins; () for a stored run.
     parts: tuple = ()
     _finals: dict = field(default_factory=dict, repr=False, compare=False)
@@ -134,11 +139,21 @@ def index_store(store: Store) -> dict[str, list[Evidence]]:
         # The page is markdown: what the manifest says of the device keeps to its cell.
         device = made.device.replace("|", "\\|") if made.device else None
         budget = info.get("budget") if info.get("budget") in spec_model.BUDGETS else spec.budget
-        ev = Evidence(entry.key, entry.path, entry.status, budget, spec,
-                      read_rows(entry.path), made.commit, device, resumable, modified=made.modified)
+        ev = Evidence(entry.key, entry.path, entry.status, budget, spec, read_rows(entry.path), made.commit,
+                      device, resumable, modified=made.modified, program=_program(info))
         if ev.rows:
             out.setdefault(_without_train(spec), []).append(ev)
     return out
+
+
+def _program(info: dict) -> Optional[str]:
+    """The training code digest and toolchain a run's key was computed from, as one comparable text."""
+    components = info.get("key_components")
+    components = components if isinstance(components, dict) else {}
+    code, toolchain = components.get("code"), components.get("toolchain")
+    if not (isinstance(code, str) and HEX_DIGEST.fullmatch(code) and isinstance(toolchain, dict)):
+        return None
+    return json.dumps({"code": code, "toolchain": toolchain}, sort_keys=True)
 
 
 def _rank(e: Evidence) -> tuple:
@@ -163,17 +178,18 @@ def _join_rows(runs: list[Evidence]) -> list[dict]:
 
 def pooled(index: dict[str, list[Evidence]], spec: spec_model.Spec) -> Optional[Evidence]:
     """The evidence for `spec`: its longest run, or, where several finished runs share that
-    length and differ only in their seeds (same commit, edits or none, device and every other
-    training field; no seed twice), all of them as one run of their joined seeds: the group with the
-    most seeds, whichever commit's run happens to be listed first. Which of two single-seed
-    runs of one length to believe is otherwise an arbitrary choice."""
+    length and differ only in their seeds (same training program: code digest and toolchain, as
+    their keys name them, whichever commit they were started from; same device and every other
+    training field; no seed twice), all of them as one run of their joined seeds: the group with
+    the most seeds, whichever run happens to be listed first. Which of two single-seed runs of one
+    length to believe is otherwise an arbitrary choice."""
     top = best(index, spec)
     if top is None or top.status != "complete":
         return top
     groups: dict[tuple, list[Evidence]] = {}
     for e in index[_without_train(spec)]:
-        if e.status == "complete" and e.epochs_done == top.epochs_done and e.commit:
-            groups.setdefault((e.commit, e.modified, e.device, _train_but_seeds(e)), []).append(e)
+        if e.status == "complete" and e.epochs_done == top.epochs_done and e.program:
+            groups.setdefault((e.program, e.device, _train_but_seeds(e)), []).append(e)
     pools = [_pool(mates) for mates in groups.values() if _poolable(mates)]
     return max([top, *pools], key=lambda e: e.seeds)  # a tie keeps the longest stored run
 
@@ -731,7 +747,7 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
         "- Each row is one statement of the paper, checked on the stored run with the most epochs whose spec matches "
         "(in every field outside `train`, so runs of any length, seed count or checkout count). A run made on an "
         "accelerator says so ('on gpu:...'); the others ran on a CPU. Finished runs of that length that differ only in "
-        "their seeds (same commit and device) are pooled into one run of all their seeds; every other run of the spec "
+        "their seeds (same training code and toolchain, as their keys name them, and same device) are pooled into one run of all their seeds; every other run of the spec "
         "is listed beside the verdict.",
         f"- Final return: each seed's mean over its last {FINAL_FRACTION:.0%} of epochs. Several seeds: mean ± SE, "
         "the interquartile mean (IQM) with its 95% stratified bootstrap interval, and the probability that the first run "

@@ -272,38 +272,53 @@ def test_a_train_line_survives_the_shell_whatever_the_values():
     assert "--set env.blocks=5" in line  # a plain value stays unquoted, as a person would type it
 
 
+PROGRAM = json.dumps({"code": "5" * 32, "toolchain": {"backend": "cpu", "jax": "0.10.2", "jaxlib": "0.10.2"}})
+
+
 def test_finished_runs_that_differ_only_in_their_seeds_are_pooled():
-    """Two one-seed runs of one length, one commit and one device, seeds 0 and 1: one run of two
-    seeds, never an arbitrary pick of one; another commit or a repeated seed is not pooled."""
+    """Two one-seed runs of one length, one training program and one device, seeds 0 and 1: one
+    run of two seeds, never an arbitrary pick of one, whichever commits they were started from;
+    another program (code or toolchain), another device, a repeated seed or an unknown program is
+    not pooled."""
     above = _claim("coord_ring: ESR ends above Random")
     seed0 = _evidence("coord_ring", ("train.seeds=[0]",), finals=(0.06,), epochs=10000)
     seed1 = _evidence("coord_ring", ("train.seeds=[1]",), finals=(19.5,), epochs=10000)
     random = _evidence("coord_ring_random", ("train.seeds=1",), finals=(16.39,), epochs=10000)
     seed0.key, seed1.key = "a" * 32, "b" * 32
     for ev in (seed0, seed1, random):
-        ev.commit = "2b82b53"
+        ev.commit, ev.program, ev.device = "2b82b53", PROGRAM, "cpu:cpu"
+    seed1.commit = "af75888"  # another checkout of the same training code
     finding = rep.judge(above, _index(seed1, seed0, random))
     assert finding.a.seeds == 2 and [p.key for p in finding.a.parts] == [seed0.key, seed1.key]
     assert finding.a.finals()["per_seed"] == pytest.approx([0.06, 19.5]) and finding.others == []
     assert finding.verdict == "indicative: open (2 seeds against 1 seed)"  # P(improvement) 0.5 [0, 1] against one Random seed
     assert rep._run_cell(finding.a).startswith("seeds pooled from `aaaaaaaa` (paper; 10,000 epochs, 1 seed")
-    seed1.commit = "af75888"
-    finding = rep.judge(above, _index(seed1, seed0, random))
-    assert finding.a.parts == () and len(finding.others) == 1
-    seed1.commit, seed1.spec = "2b82b53", seed0.spec  # the same seed twice
-    assert rep.judge(above, _index(seed1, seed0, random)).a.parts == ()
+    apart = [{"program": PROGRAM.replace("5" * 32, "6" * 32)}, {"program": PROGRAM.replace("0.10.2", "0.10.3", 1)},
+             {"device": "gpu:NVIDIA H200"}, {"program": None}, {"spec": seed0.spec}]  # the last: the same seed twice
+    for change in apart:
+        finding = rep.judge(above, _index(replace(seed1, **change), seed0, random))
+        assert finding.a.parts == () and len(finding.others) == 1, change
+
+
+def test_a_runs_program_is_read_from_its_key_components():
+    toolchain = {"backend": "cpu", "jax": "0.10.2", "jaxlib": "0.10.2"}
+    assert rep._program({"key_components": {"code": "5" * 32, "toolchain": toolchain}}) == PROGRAM
+    for damaged in ({}, {"key_components": []}, {"key_components": {"code": "5" * 31, "toolchain": toolchain}},
+                    {"key_components": {"code": "X" * 32, "toolchain": toolchain}}, {"key_components": {"code": "5" * 32}},
+                    {"key_components": {"code": 5, "toolchain": toolchain}}):
+        assert rep._program(damaged) is None, damaged
 
 
 def test_the_pool_with_most_seeds_is_chosen_whichever_run_is_listed_first():
-    """An older commit's one-seed run beside three one-seed runs of a newer commit (seeds 0, 1
+    """An older program's one-seed run beside three one-seed runs of a newer one (seeds 0, 1
     and 2): the three are the evidence, the older run is listed beside them."""
     above = _claim("coord_ring: ESR ends above Random")
     old = _evidence("coord_ring", ("train.seeds=1",), finals=(3.0,), epochs=10000)
-    old.key, old.commit = "c" * 32, "2b82b53"
+    old.key, old.commit, old.program = "c" * 32, "2b82b53", PROGRAM.replace("5" * 32, "4" * 32)
     new = []
     for seed, final in enumerate((10.0, 12.0, 14.0)):
         ev = _evidence("coord_ring", (f"train.seeds=[{seed}]",), finals=(final,), epochs=10000)
-        ev.key, ev.commit = str(seed) * 32, "3a61962"
+        ev.key, ev.commit, ev.program = str(seed) * 32, "3a61962", PROGRAM
         new.append(ev)
     random = _evidence("coord_ring_random", ("train.seeds=1",), finals=(16.39,), epochs=10000)
     finding = rep.judge(above, _index(old, *new, random))
