@@ -18,6 +18,7 @@ from pathlib import Path
 
 from esr_cli.common.jsonl import JsonInputError, read_json
 from esr_cli.storage.finals import read_rows
+from esr_cli.storage.labels import labels_problem
 from esr_cli.storage.store import CHECKPOINT_FOLDER, MANIFEST, MAX_MANIFEST_BYTES, RUN_KIND, Store, atomic_write_text, digest_file, load_manifest, without_checkpoint
 
 CHECKPOINT_DIR = CHECKPOINT_FOLDER
@@ -169,11 +170,12 @@ def run_epochs_problem(run_dir: Path, manifest: dict) -> str | None:
 
 
 def verify_artifact(store: Store, path: Path) -> list[str]:
-    """`Store.verify` and, for a run whose files are as committed, whether its epochs agree
-    (`run_epochs_problem`): what `esr verify` and `esr import` check."""
+    """`Store.verify`, whether the manifest's labels are its key's (`labels_problem`) and, for a
+    run whose files are as committed, whether its epochs agree (`run_epochs_problem`): what
+    `esr verify` and `esr import` check."""
     problems = store.verify(path)
     if problems:
         return problems
     manifest = load_manifest(Path(path))
     epochs = run_epochs_problem(Path(path), manifest) if manifest["kind"] == RUN_KIND else None
-    return [epochs] if epochs else []
+    return [p for p in (labels_problem(manifest, MANIFEST), epochs) if p]

@@ -31,6 +31,7 @@ from esr_cli.common import faults, tar_reader, yamlio
 from esr_cli.common.jsonl import read_jsonl
 from esr_cli.storage.checkpoint_files import CHECKPOINT_DIR, epochs_problem, run_length, state_epochs_problem, verified_steps, verify_artifact
 from esr_cli.storage.finals import epoch_rows
+from esr_cli.storage.labels import labels_problem
 from esr_cli.storage.store import KINDS, LEFT_OUT, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, load_manifest, parse_dirname, read_pending
 
 KEY_RE = re.compile(r"[0-9a-f]{32}")
@@ -342,7 +343,7 @@ def _check_contents(store: Store, stage: Path, kind: str, key: str, status: str,
     if pending.get("key") != key:
         raise StoreError(f"{archive}: unfinished run {key[:12]}: its pending.json names key "
                          f"{str(pending.get('key'))[:40]!r}, not the directory's; nothing imported")
-    problem = components_problem(pending, "pending.json") or spec_problem(stage, pending)
+    problem = components_problem(pending, "pending.json") or labels_problem(pending, "pending.json") or spec_problem(stage, pending)
     if problem:
         raise StoreError(f"{archive}: unfinished run {key[:12]}: {problem}; nothing imported")
     steps = verified_steps(stage)  # newest first
@@ -408,4 +409,6 @@ def spec_mismatch(spec, record: dict) -> str | None:
         return "its record holds no key components to check its spec.yaml against"
     if trained != components.get("spec") or spec.get("budget") != components.get("budget"):
         return "its spec.yaml is not the spec its key was computed from (the key components' spec and budget)"
+    if "name" in record and record["name"] != spec.get("name"):  # the name is not keyed: both files say it
+        return "its spec.yaml names another spec than its record does"
     return None

@@ -486,3 +486,23 @@ def test_the_newest_record_is_chosen_by_its_instant_not_its_text():
     assert created_order(utc) - created_order(east) == 3600
     for damaged in ({}, {"created_at": 5}, {"created_at": "yesterday"}, {"created_at": "x" * 10_000}, None, [1]):
         assert created_order(damaged) == float("-inf") < created_order(east)
+
+
+def test_verify_names_a_manifest_relabelled_in_place(tmp_path):
+    """The labels listings show and filter on (budget, seeds, method, environment) are the ones
+    the key was computed from: edited in the store after the key was made, `esr verify` says so."""
+    from esr_cli.storage.checkpoint_files import verify_artifact
+
+    components = {"kind": "runs", "budget": "smoke",
+                  "spec": {"name": "r", "env": {"kind": "gridworld"}, "method": {"kind": "esr"}, "train": {"seeds": [0]}}}
+    store = Store(tmp_path)
+    path = make_artifact(store, components=components)
+    manifest = store.read_manifest(path)
+    agreeing = {"budget": "smoke", "seeds": [0], "method": "esr", "env": "gridworld"}
+    (path / "manifest.json").write_text(json.dumps({**manifest, **agreeing}))
+    assert verify_artifact(store, path) == []
+    for change, named in (({"budget": "paper"}, "budget"), ({"seeds": [0, 1]}, "seeds"),
+                          ({"method": "ave", "env": "overcooked"}, "method and env")):
+        (path / "manifest.json").write_text(json.dumps({**manifest, **agreeing, **change}))
+        assert verify_artifact(store, path) == [f"manifest.json names its {named} otherwise than its key components do: "
+                                                "the artifact was relabelled after its key was made"]

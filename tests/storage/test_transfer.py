@@ -207,7 +207,7 @@ def _manifest(**fields) -> bytes:
 
 def _pending(**fields) -> bytes:
     """An unfinished run's pending.json as JSON, with `fields` replaced."""
-    return json.dumps({"kind": "runs", "key": KEY, "key_components": COMPONENTS, "name": "x", **fields}).encode()
+    return json.dumps({"kind": "runs", "key": KEY, "key_components": COMPONENTS, "name": SPEC.name, **fields}).encode()
 
 
 @pytest.mark.parametrize(
@@ -243,6 +243,14 @@ def _pending(**fields) -> bytes:
         # relabelled or edited, finished or not
         ([(f"{RUN_DIR}/manifest.json", _manifest(key_components={"kind": "runs", "spec": {"name": "y"}}))], "key_components digest to"),
         ([(f"{RUN_DIR}/manifest.json", _manifest(key_components="x"))], "lists no key_components"),
+        # labels shown and filtered on are the key's: a smoke run relabelled as another is found out
+        ([(f"{RUN_DIR}/manifest.json", _manifest(budget="paper"))], "names its budget otherwise than its key components"),
+        ([(f"{RUN_DIR}/manifest.json", _manifest(method="ave", env="overcooked"))], "names its method and env otherwise"),
+        ([(f"{RUN_DIR}/manifest.json", _manifest(seeds=[7]))], "names its seeds otherwise"),
+        ([(f"{RUN_DIR}/manifest.json", _manifest(seeds=10**400))], "names its seeds otherwise"),
+        ([(f"{RUN_DIR}.partial/pending.json", _pending(budget="paper"))], "pending.json names its budget otherwise"),
+        ([(f"{RUN_DIR}.partial/pending.json", _pending(name="grid_7")), (f"{RUN_DIR}.partial/spec.yaml", SPEC_YAML)],
+         "spec.yaml names another spec than its record does"),
         ([(f"{RUN_DIR}.partial/pending.json", _pending(key_components={"kind": "runs"}))], "key_components digest to"),
         ([(f"{RUN_DIR}.partial/pending.json", _pending(key="ab" * 16))], "pending.json names key 'abab"),
         ([(f"{RUN_DIR}.partial/pending.json", b"[]")], "pending.json is not a JSON object"),
@@ -265,7 +273,7 @@ def test_a_run_without_its_checkpoint_is_imported_only_when_asked_as_a_record(tm
     """What came back from a machine that could not send a checkpoint: pending.json and the
     logged epochs. Refused by default (it cannot continue), kept with --without-checkpoint for
     reports; never without a logged epoch."""
-    pending = _pending(name="grid_10", seeds=[0, 1])
+    pending = _pending(seeds=SPEC.train.seeds)
     rows = b"".join(json.dumps({"epoch": e, "return": [1.0, 2.0]}).encode() + b"\n" for e in (1, 2))
     record = [(f"{RUN_DIR}.partial/pending.json", pending), (f"{RUN_DIR}.partial/spec.yaml", SPEC_YAML),
               (f"{RUN_DIR}.partial/metrics.jsonl", rows)]
