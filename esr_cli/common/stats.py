@@ -138,6 +138,9 @@ def scored_seeds(d: dict) -> int:
     return d.get("seeds", 0) - d.get("missing", 0)
 
 
+LONG_NUMBER = 1e9  # from here on a summary's numbers are written with an exponent
+
+
 def format_summary(d: dict, digits: int = 2, unit: str = "seed") -> str:
     """"m ± se; IQM i [lo, hi]" for several seeds, "m (1 seed)" for one: a single seed has no
     spread to show, and an SE of 0 would claim one. Seeds without a score are counted after
@@ -146,12 +149,16 @@ def format_summary(d: dict, digits: int = 2, unit: str = "seed") -> str:
     total, n = d.get("seeds", 0), scored_seeds(d)
     if n == 0:
         return "no value" + (f" ({total} {unit}{'s' if total > 1 else ''} without a final score)" if total else "")
+
+    def number(x: float) -> str:  # a diverged seed's 3e38 in exponent form, not 39 digits in a cell
+        return f"{x:.{digits}e}" if abs(x) >= LONG_NUMBER else f"{x:.{digits}f}"
+
     if n == 1:
-        text = f"{d['mean']:.{digits}f} (1 {unit})"
+        text = f"{number(d['mean'])} (1 {unit})"
     else:
-        text = f"{d['mean']:.{digits}f} ± {d['se']:.{digits}f}"
+        text = f"{number(d['mean'])} ± {number(d['se'])}"
         if "iqm" in d:
-            text += f"; IQM {d['iqm']:.{digits}f} [{d['iqm_low']:.{digits}f}, {d['iqm_high']:.{digits}f}]"
+            text += f"; IQM {number(d['iqm'])} [{number(d['iqm_low'])}, {number(d['iqm_high'])}]"
     if n < total:
         text += f" ({total - n} of {total} {unit}s without a final score)"
     return text

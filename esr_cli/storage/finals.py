@@ -7,6 +7,7 @@ paper's learning curves end. Reading only; nothing here trains.
 
 from __future__ import annotations
 
+import math
 import warnings
 from pathlib import Path
 
@@ -30,7 +31,8 @@ def read_rows(run_path: Path) -> list[dict]:
 def epoch_rows(rows: list[dict]) -> list[dict]:
     """`rows` up to the first that is not an epoch's metrics as training writes them: an integer
     epoch above the row before's, a number of environment steps, and every metric (the return
-    always) a list of numbers over the seeds (None where undefined), as long in every row. What follows such a row is not
+    always) a list of numbers over the seeds (None where undefined; a finite one within float32's
+    range, as training writes them), as long in every row. What follows such a row is not
     trusted (a file from an archive or an older esr), so tables and figures read the run as far
     as it is sound instead of failing on it, and never turn a value too large for a float into
     an error."""
@@ -49,12 +51,22 @@ def epoch_rows(rows: list[dict]) -> list[dict]:
 SCALARS = ("env_steps",)  # a row's values for the whole epoch; every other metric is a list over seeds
 
 
+# Training logs float32 values: a finite number beyond float32's range was not written by it, and
+# (squared in a standard error, summed in a mean) would overflow the statistics of a table.
+MAX_LOGGED = float(np.finfo(np.float32).max)
+
+
+def _loggable(x) -> bool:
+    number = as_number(x)
+    return number is not None and (abs(number) <= MAX_LOGGED or not math.isfinite(number))  # NaN, inf: as logged
+
+
 def _sound(name: str, value, widths: dict) -> bool:
     if name in SCALARS:
-        return as_number(value) is not None
+        return _loggable(value)
     if not isinstance(value, list) or widths.setdefault(name, len(value)) != len(value):
         return False
-    return all(x is None or as_number(x) is not None for x in value)
+    return all(x is None or _loggable(x) for x in value)
 
 
 def series(rows: list[dict], name: str) -> tuple[np.ndarray, np.ndarray]:

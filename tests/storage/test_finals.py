@@ -32,6 +32,8 @@ def test_sound_rows_are_read_whole_and_their_finals_computed_by_hand(tmp_path):
 
 @pytest.mark.parametrize("bad", [
     {"epoch": 3, "env_steps": 300, "return": [10 ** 400, 1.0]},  # too large for a float
+    {"epoch": 3, "env_steps": 300, "return": [1.7e308, 1.0]},  # beyond float32: training never logs it
+    {"epoch": 3, "env_steps": 300, "return": [1.0, 2.0], "mi_estimate": [-1e39, 0.5]},
     {"epoch": 3, "env_steps": 300},  # no return
     {"epoch": 3, "env_steps": 300, "return": 5.0},  # a number where a list over seeds goes
     {"epoch": 3, "env_steps": 300, "return": [1.0]},  # another seed count
@@ -68,3 +70,23 @@ def test_json_esr_prints_is_strict_whatever_a_manifest_held():
     text = dumps({"summary": {"return": {"mean": float("nan"), "per_seed": [1.5, float("inf"), float("-inf")]}}, "k": (1, "a")})
     assert text == '{"summary": {"return": {"mean": null, "per_seed": [1.5, null, null]}}, "k": [1, "a"]}'
     json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} is not JSON"))
+
+
+def test_values_as_training_logs_them_are_read_and_summarised_without_a_warning(tmp_path):
+    """float32's largest value, NaN and infinities (a diverged seed) are what training can log:
+    read as logged, and a table's statistics over them neither overflow nor warn."""
+    import warnings
+
+    from esr_cli.common.stats import describe, format_summary
+
+    big = float(np.finfo(np.float32).max)
+    rows = [_row(e, (big, -big), success=[float("nan"), 0.5], mi_estimate=[float("inf"), 0.5]) for e in (1, 2)]
+    run = _write(tmp_path, rows)
+    read = finals.read_rows(run)
+    assert len(read) == 2 and read[1]["return"] == [big, -big] and np.isnan(read[1]["success"][0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        summary = describe(finals.final_per_seed(read))
+        assert np.isfinite(summary["mean"]) and np.isfinite(summary["se"]) and summary["se"] == pytest.approx(big)
+        assert describe(finals.final_per_seed(read, "mi_estimate"))["missing"] == 1
+        assert format_summary(summary) == "0.00 ± 3.40e+38; IQM 0.00 [-3.40e+38, 3.40e+38]"  # never 39 digits in a cell
