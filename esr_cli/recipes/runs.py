@@ -29,7 +29,7 @@ from esr_cli.runner.run_progress import TrainingReport, progress_bar
 from esr_cli.runner.wandb_log import WandbLog, wandb_folder
 from esr_cli.storage import provenance
 from esr_cli.storage.artifacts import Recipe
-from esr_cli.storage.checkpoint_files import run_length
+from esr_cli.storage.finals import run_length
 from esr_cli.storage.finals import read_rows
 from esr_cli.storage.store import EVAL_KIND, EVAL_ROLLOUT, HUMAN_KIND, RUN_KIND, LockBusy, Store, StoreError, atomic_write_text, content_key, nearest_existing, probe_writable
 

@@ -16,8 +16,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from esr_cli.common.jsonl import JsonInputError, read_json
-from esr_cli.storage.finals import read_rows
+from esr_cli.common.jsonl import JsonInputError, read_json, read_jsonl
+from esr_cli.storage.finals import epoch_rows, run_length
 from esr_cli.storage.labels import labels_problem
 from esr_cli.storage.store import CHECKPOINT_FOLDER, MANIFEST, MAX_MANIFEST_BYTES, RUN_KIND, Store, atomic_write_text, digest_file, load_manifest, without_checkpoint
 
@@ -68,18 +68,10 @@ def verified_steps(run_dir: Path) -> list[int]:
     return [s for s in steps if step_intact(run_dir, s, digests)]
 
 
-def run_length(record: dict) -> int | None:
-    """The epochs a run's manifest or pending.json asks for (its key components' train.epochs);
-    None where they name none."""
-    value = record.get("key_components")
-    for name in ("spec", "train", "epochs"):
-        value = value.get(name) if isinstance(value, dict) else None
-    return value if type(value) is int else None
-
-
 def logged_epochs(run_dir: Path) -> list[int]:
-    """The epochs of a run's metrics lines, in order."""
-    return [r["epoch"] for r in read_rows(run_dir) if type(r.get("epoch")) is int]
+    """The epochs of a run's sound metrics lines, in order, beyond its length too (what a check
+    compares with its length; tables read `read_rows`)."""
+    return [r["epoch"] for r in epoch_rows(read_jsonl(Path(run_dir) / "metrics.jsonl"))]
 
 
 def _epochs(values: list[int]) -> str:

@@ -15,6 +15,7 @@ import numpy as np
 
 from esr_cli.common.jsonl import JsonInputError, read_jsonl
 from esr_cli.common.numbers import as_number
+from esr_cli.storage.store import MANIFEST, StoreError, load_manifest, read_pending
 
 FINAL_FRACTION = 0.1
 
@@ -24,8 +25,31 @@ MAX_EPOCH = 10**9
 
 def read_rows(run_path: Path) -> list[dict]:
     """A run's metrics.jsonl, one dict per epoch, as training writes them: a line cut short by a
-    kill ends it, as does the first row that is not an epoch's (see `epoch_rows`)."""
-    return epoch_rows(read_jsonl(Path(run_path) / "metrics.jsonl"))
+    kill ends it, as does the first row that is not an epoch's (see `epoch_rows`), and so do rows
+    beyond the run's length (its manifest's or pending.json's): no table reads epochs a run was
+    never asked for (`checkpoint_files.logged_epochs` reads them all, for `esr verify` to name)."""
+    rows = epoch_rows(read_jsonl(Path(run_path) / "metrics.jsonl"))
+    length = run_length(_record(Path(run_path)))
+    return rows if length is None else [r for r in rows if r["epoch"] <= length]
+
+
+def _record(run_path: Path) -> dict:
+    """A run directory's manifest or else its pending.json; {} where neither can be read."""
+    if (run_path / MANIFEST).exists():
+        try:
+            return load_manifest(run_path)
+        except StoreError:
+            return {}
+    return read_pending(run_path) or {}
+
+
+def run_length(record: dict) -> int | None:
+    """The epochs a run's manifest or pending.json asks for (its key components' train.epochs);
+    None where they name none."""
+    value = record.get("key_components")
+    for name in ("spec", "train", "epochs"):
+        value = value.get(name) if isinstance(value, dict) else None
+    return value if type(value) is int else None
 
 
 def epoch_rows(rows: list[dict]) -> list[dict]:

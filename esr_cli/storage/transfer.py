@@ -29,8 +29,8 @@ from typing import BinaryIO, Iterator
 
 from esr_cli.common import faults, tar_reader, yamlio
 from esr_cli.common.jsonl import read_jsonl
-from esr_cli.storage.checkpoint_files import CHECKPOINT_DIR, epochs_problem, run_length, state_epochs_problem, verified_steps, verify_artifact
-from esr_cli.storage.finals import epoch_rows
+from esr_cli.storage.checkpoint_files import CHECKPOINT_DIR, epochs_problem, state_epochs_problem, verified_steps, verify_artifact
+from esr_cli.storage.finals import epoch_rows, run_length
 from esr_cli.storage.labels import labels_problem
 from esr_cli.storage.store import KINDS, LEFT_OUT, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, load_manifest, parse_dirname, read_pending
 

@@ -90,3 +90,20 @@ def test_values_as_training_logs_them_are_read_and_summarised_without_a_warning(
         assert np.isfinite(summary["mean"]) and np.isfinite(summary["se"]) and summary["se"] == pytest.approx(big)
         assert describe(finals.final_per_seed(read, "mi_estimate"))["missing"] == 1
         assert format_summary(summary) == "0.00 ± 3.40e+38; IQM 0.00 [-3.40e+38, 3.40e+38]"  # never 39 digits in a cell
+
+
+def test_rows_beyond_a_runs_length_are_not_read_as_its_epochs(tmp_path):
+    """A finished 2-epoch run whose metrics.jsonl goes on: tables read its 2 epochs; the check
+    that names the file's disagreement (`esr verify`) still sees every row."""
+    from esr_cli.storage.checkpoint_files import logged_epochs
+
+    run = _write(tmp_path, [_row(e) for e in range(1, 6)])
+    (run / "manifest.json").write_text(json.dumps({"kind": "runs", "key": "0" * 32, "files": {},
+                                                   "key_components": {"spec": {"train": {"epochs": 2}}}}))
+    assert [r["epoch"] for r in finals.read_rows(run)] == [1, 2] and finals.run_progress(run)[0] == 2
+    assert logged_epochs(run) == [1, 2, 3, 4, 5]
+    (run / "manifest.json").unlink()
+    (run / "pending.json").write_text(json.dumps({"key_components": {"spec": {"train": {"epochs": 3}}}}))
+    assert [r["epoch"] for r in finals.read_rows(run)] == [1, 2, 3]
+    (run / "pending.json").write_text("[]")  # no record of its length: every sound row
+    assert len(finals.read_rows(run)) == 5
