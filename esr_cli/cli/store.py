@@ -14,7 +14,7 @@ from rich.text import Text
 from esr_cli.cli.app import Exit, app, check_budget, check_output_file, err, out, refuse_inside_store
 from esr_cli.common import jsonl
 from esr_cli.common.printing import print_table, printable, tagged
-from esr_cli.storage.provenance import wall_time
+from esr_cli.storage.provenance import origin, wall_time
 from esr_cli.storage.store import KINDS, RUN_KIND, Store
 
 
@@ -113,9 +113,10 @@ def _show_lines(r: dict, manifest: dict) -> list[tuple[str, object]]:
     from esr_cli.report.listing import field
 
     lines = [("path", r["path"]), ("kind", r["kind"]), ("name", r["name"]), ("key", r["key"])]
+    made = origin(manifest)  # a commit only when it is a git object name, every device it ran on
     for label, value in (("budget", r["budget"]), ("seeds", r["seeds"]), ("status", r["status"]),
                          ("method", r["method"]), ("env", r["env"]), ("created", r["created"]),
-                         ("commit", manifest.get("commit")), ("device", manifest.get("device")),
+                         ("commit", made.commit), ("device", made.device),
                          ("wall time", _wall_time(manifest))):
         if value is not None:
             lines.append((label, value))

@@ -506,3 +506,16 @@ def test_verify_names_a_manifest_relabelled_in_place(tmp_path):
         (path / "manifest.json").write_text(json.dumps({**manifest, **agreeing, **change}))
         assert verify_artifact(store, path) == [f"manifest.json names its {named} otherwise than its key components do: "
                                                 "the artifact was relabelled after its key was made"]
+
+
+def test_show_names_a_commit_only_when_it_is_a_git_object_name(tmp_path):
+    """A manifest's commit text is shown only as a commit (hexadecimal, 7 to 40); anything else
+    (an escape sequence, a sentence) is left out, as in the report."""
+    store = Store(tmp_path)
+    for key, commit in (("ab" * 16, "c\x1b[31mRED"), ("cd" * 16, "3a619620b454f78a08c1a6f3eb993e46c92295db")):
+        store.begin("runs", key, {"name": "r", "key": key})
+        store.commit("runs", key, {"kind": "runs", "name": "r", "key": key, "commit": commit,
+                                   "provenance": {"git": {"commit": commit}}})
+    bad, good = esr("show", "abab", store=tmp_path), esr("show", "cdcd", store=tmp_path)
+    assert "\ncommit:" not in bad.stdout and "RED" not in bad.stdout and "\x1b" not in bad.stdout
+    assert "3a619620b454f78a08c1a6f3eb993e46c92295db" in good.stdout
