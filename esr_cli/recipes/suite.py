@@ -234,11 +234,14 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
     out: list[Run] = []
     seen: set[str] = set()
     duplicates = 0
+    # Each spec file (and its chain of `extends`) is read once, however many entries name it:
+    # resolving copies the tree, never changes it.
+    read: dict[Path, dict] = {}
     for i, entry in enumerate(model.specs):
         where = f"specs[{i}]"
         spec_path = (base / entry.spec).resolve()
         try:
-            raw_spec = specs.load_raw(spec_path)
+            raw_spec = read[spec_path] if spec_path in read else read.setdefault(spec_path, specs.load_raw(spec_path))
         except specs.SpecError as e:
             raise SuiteError(source, f"{where}.spec", f"{entry.spec}: {e.problem}") from None
         if "specs" in raw_spec and "env" not in raw_spec:

@@ -60,6 +60,21 @@ grid: {{train.seeds: [[0], [1]]}}
     assert [r.spec.name for r in short.runs] == ["grid_2"] and short.runs[0].sets == ()
 
 
+def test_a_spec_file_named_by_many_entries_is_read_once(tmp_path, monkeypatch):
+    """Expanding a suite reads each spec file (and its chain of `extends`) once, however many
+    entries name it: 40 entries of one file that extends another cost one read of each."""
+    (tmp_path / "base.yaml").write_text(GRID_2.read_text())
+    (tmp_path / "child.yaml").write_text("extends: base.yaml\nname: child\n")
+    read = []
+    for name in ("_read_yaml", "_read_extended"):
+        real = getattr(specs, name)
+        monkeypatch.setattr(specs, name, lambda path, real=real: read.append(Path(path).name) or real(path))
+    entries = "".join(f"  - {{spec: child.yaml, set: {{train.seeds: [{i}]}}}}\n" for i in range(40))
+    suite = sweep.load_suite(write_suite(tmp_path, f"specs:\n{entries}"), "smoke")
+    assert len(suite.runs) == 40 and {r.spec.name for r in suite.runs} == {"child"}
+    assert sorted(read) == ["base.yaml", "child.yaml"]
+
+
 def test_paper_gridworld_suite_lists_every_method_on_the_four_settings():
     suite = sweep.load_suite(ROOT / "experiments" / "suites" / "gridworld.yaml", "paper")
     pairs = {(r.spec.method.kind, r.spec.env.blocks) for r in suite.runs}
