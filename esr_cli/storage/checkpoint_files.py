@@ -45,9 +45,22 @@ def read_digests(run_dir: Path) -> dict:
     return digests if isinstance(digests, dict) else {}
 
 
+# orbax reads a checkpoint's metadata files (all but the array data under its `d/` folders) whole,
+# as JSON. esr's are tens of KiB; a larger one (an archive's, with digests to match) is not
+# esr's, and is never handed to orbax to parse into memory.
+MAX_METADATA_BYTES = 16 << 20
+
+
+def _metadata_too_large(step_dir: Path) -> bool:
+    return any(f.stat().st_size > MAX_METADATA_BYTES for f in step_dir.rglob("*")
+               if f.is_file() and "d" not in f.relative_to(step_dir).parts[:-1])
+
+
 def step_intact(run_dir: Path, step: int, digests: dict) -> bool:
-    """Whether checkpoint `step`'s files match the digests recorded for it."""
-    return bool(digests.get(str(step))) and step_digests(run_dir, step) == digests[str(step)]
+    """Whether checkpoint `step`'s files match the digests recorded for it, none of its metadata
+    files larger than esr writes."""
+    return (bool(digests.get(str(step))) and not _metadata_too_large(Path(run_dir) / CHECKPOINT_DIR / str(step))
+            and step_digests(run_dir, step) == digests[str(step)])
 
 
 def record_digests(run_dir: Path, steps, saved: int) -> None:

@@ -107,3 +107,4 @@ def test_rows_beyond_a_runs_length_are_not_read_as_its_epochs(tmp_path):
     assert [r["epoch"] for r in finals.read_rows(run)] == [1, 2, 3]
     (run / "pending.json").write_text("[]")  # no record of its length: every sound row
     assert len(finals.read_rows(run)) == 5
+
