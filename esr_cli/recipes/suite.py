@@ -70,6 +70,11 @@ def _check_grid(v: dict) -> dict:
     return v
 
 
+SBATCH_WORD = re.compile(r"[^\x00-\x20\x7f]+")
+SBATCH_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,63}")
+CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+
+
 class SlurmOptions(_Model):
     """Resources of each SLURM job (one run per job, submitted as one job array). The upper
     bounds are far above any node; they catch a slip of the keyboard before sbatch does."""
@@ -87,6 +92,28 @@ class SlurmOptions(_Model):
     array_parallelism: spec_model.Int = Field(64, ge=1, le=MAX_RUNS, description="at most this many jobs of the array run at once")
     setup: tuple[str, ...] = Field((), description="shell lines run before each job (module load, ...)")
     additional: dict[str, Any] = Field(default_factory=dict, description="extra sbatch options, e.g. {constraint: a100}")
+
+    # Each value becomes a `#SBATCH --name=value` line of the job script: a line break in one would
+    # end the comment and leave the rest of the value a shell line of every job (and sbatch stops
+    # reading options at the first such line, dropping the time limit and signal after it).
+    @field_validator("partition", "account", "qos")
+    @classmethod
+    def _one_word(cls, v):
+        if v is not None and not SBATCH_WORD.fullmatch(v):
+            raise ValueError("must be one word of printable characters (no spaces, line breaks or control characters)")
+        return v
+
+    @field_validator("additional")
+    @classmethod
+    def _sbatch_lines(cls, v):
+        for name, value in v.items():
+            if not SBATCH_NAME.fullmatch(name):
+                raise ValueError(f"{name[:40]!r} is not an sbatch option name (letters, digits, '-' and '_')")
+            if isinstance(value, bool) or not isinstance(value, (str, int, float)):
+                raise ValueError(f"{name}: must be a text or a number")
+            if isinstance(value, str) and CONTROL.search(value):
+                raise ValueError(f"{name}: must not hold a line break or a control character")
+        return v
 
 
 class _Overrides(_Model):

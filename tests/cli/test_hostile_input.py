@@ -420,7 +420,13 @@ def test_sweep_results_refuses_an_unknown_metric(tmp_path):
                                             ("gpus: true", "slurm.gpus: expected an integer, got the boolean true"),
                                             ("gpus: '2'", "slurm.gpus: expected an integer, got the text '2'"),
                                             ("partition: ''", "slurm.partition: String should have at least 1 character"),
-                                            ("setup: 'module load x'", "slurm.setup: expected a list")])
+                                            ("setup: 'module load x'", "slurm.setup: expected a list"),
+                                            # a value is a `#SBATCH` line: a line break would make the rest a shell line
+                                            ('partition: "gpu\\ntouch /tmp/x\\n#"', "slurm.partition: must be one word"),
+                                            ('qos: "a b"', "slurm.qos: must be one word"),
+                                            ('additional: {constraint: "a100\\necho x"}', "slurm.additional: constraint: must not hold a line break"),
+                                            ('additional: {"x\\ny": 1}', "slurm.additional: .* is not an sbatch option name"),
+                                            ("additional: {constraint: [a, b]}", "slurm.additional: constraint: must be a text or a number")])
 def test_slurm_options_refuse_non_finite_and_absurd_values(tmp_path, slurm, problem):
     p = write(tmp_path, f"specs: [{GRID_2}]\nslurm: {{{slurm}}}\n", "suite.yaml")
     with pytest.raises(suites.SuiteError, match=problem) as e:
@@ -437,7 +443,8 @@ def test_slurm_overrides_on_the_command_line_are_one_line_errors(tmp_path):
     assert str(e.value).endswith("--cpus: Input should be greater than or equal to 1"), str(e.value)
     assert not (tmp_path / "store").exists()
     for option, value, problem in (("--mem-gb", "inf", "--mem-gb: Input should be a finite number"),
-                                   ("--cpus", "0", "--cpus: Input should be greater than or equal to 1")):
+                                   ("--cpus", "0", "--cpus: Input should be greater than or equal to 1"),
+                                   ("--partition", "gpu\ntouch /tmp/x\n#", "--partition: must be one word")):
         proc = esr("sweep", str(p), "--executor", "slurm", option, value, store=tmp_path / "store", check=False)
         assert proc.returncode == 2 and problem in proc.stderr, proc.stderr
         assert "pydantic" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
