@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from esr_cli.cli.app import BudgetOpt, Exit, app, check_budget, check_executor, check_output_file, draw_preview, err, out
+from esr_cli.cli.app import BudgetOpt, Exit, app, check_budget, check_executor, check_output_file, draw_preview, err, out, refuse_inside_store
 from esr_cli.common import jsonl
 from esr_cli.common.printing import own, tagged
 from esr_cli.storage.artifacts import ensure
@@ -195,6 +195,13 @@ def paper_(
     if report:
         from esr_cli.report import reproduction
 
+        # Before any work: a report drawn from a mistyped store would be every row "not yet run",
+        # and one written into an artifact would be a file its manifest does not list.
+        if not ctx.obj.store.root.is_dir():
+            raise Exit(2, f"no store at {ctx.obj.store.root}: no runs to report on (--store names one)")
+        refuse_inside_store(report_out, "--out", ctx.obj.store)
+        if check and not report_out.is_file():  # a pipe or a device is never read
+            raise Exit(2, f"--out: {report_out} is {'not a regular file' if report_out.exists() else 'not there'}: nothing to check")
         if check:
             differences = reproduction.check(ctx.obj.store, report_out, err, exact=exact)
             if differences:
@@ -239,6 +246,8 @@ def tables(
     for path in files:
         if not path.is_file():
             raise Exit(2, f"{path}: no such file")
+    if not ctx.obj.store.root.is_dir():
+        raise Exit(2, f"no store at {ctx.obj.store.root}: no runs to draw tables from (--store names one)")
     try:
         if check:
             differences = doc_tables.check(files, ctx.obj.store)

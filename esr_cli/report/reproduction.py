@@ -834,14 +834,19 @@ def check(store: Store, committed: Path, console, exact: bool = True) -> list[st
     import difflib
     import tempfile
 
+    from esr_cli.report.doc_tables import TableError, read_doc
+
+    # Read first, bounded and only a regular file: what cannot be the report costs no work.
+    if not committed.is_file():
+        return [f"cannot read {committed}: {'not a regular file' if committed.exists() else 'no such file'}"]
+    try:
+        before = _comparable_lines("\n".join(read_doc(committed)))
+    except (OSError, TableError) as e:
+        return [f"cannot read {committed}: {getattr(e, 'strerror', None) or e}"]
     with tempfile.TemporaryDirectory() as tmp:
         fresh = Path(tmp) / committed.name
         report(store, fresh, console, exact=exact)
         now = _comparable_lines(fresh.read_text(encoding="utf-8"))
-    try:
-        before = _comparable_lines(committed.read_text(encoding="utf-8", errors="replace"))
-    except OSError as e:
-        return [f"cannot read {committed}: {e.strerror or e}"]
     diff = list(difflib.unified_diff(before, now, str(committed), "now", lineterm="", n=0))
     return diff[:60] + ([f"... {len(diff) - 60} more lines"] if len(diff) > 60 else [])
 

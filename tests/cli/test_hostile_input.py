@@ -1122,3 +1122,26 @@ def test_a_run_whose_metrics_esr_could_not_read_back_is_refused_before_any_work(
     many = specs.load(ROOT / "experiments/grid_5.yaml", "paper", ["train.seeds=200"])
     with pytest.raises(resources.ResourceError, match=r"200 seeds would log about .* MiB of metrics, more than the 256 MiB"):
         resources.check_run_fits(many)
+
+
+def test_the_report_and_tables_refuse_what_they_cannot_read_or_write_before_any_work(tmp_path):
+    """A pipe or a device as the report to check is never read (it would block, or never end);
+    a report is never written into an artifact; a mistyped store is named, not reported on as
+    a store without runs."""
+    store = tmp_path / "store"
+    (store / "runs" / "ab").mkdir(parents=True)
+    fifo = tmp_path / "report.md"
+    os.mkfifo(fifo)
+    page = tmp_path / "page.md"
+    page.write_text("# a page\n")
+    for args, problem in (
+            (["paper", "--report", "--no-exact", "--check", "--out", "/dev/zero"], "--out: /dev/zero is not a regular file"),
+            (["paper", "--report", "--no-exact", "--check", "--out", str(fifo)], "is not a regular file: nothing to check"),
+            (["paper", "--report", "--no-exact", "--out", str(store / "runs" / "ab" / "x.md")], "lies inside the store's runs/ folder"),
+            (["--store", str(tmp_path / "typo"), "paper", "--report", "--no-exact", "--out", str(tmp_path / "r.md")],
+             f"no store at {tmp_path / 'typo'}: no runs to report on"),
+            (["--store", str(tmp_path / "typo"), "tables", str(page)], "no runs to draw tables from")):
+        proc = esr(*args, store=store, check=False, timeout=60)
+        assert proc.returncode == 2 and problem in proc.stderr, (args, proc.stderr)
+        assert len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "r.md").exists() and page.read_text() == "# a page\n" and not (store / "runs" / "ab" / "x.md").exists()
