@@ -413,7 +413,12 @@ def _export_overcooked(found, export: Path, store: Store) -> None:
         raise Exit(2, "--export: none of these episodes is an Overcooked episode")
     export.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
-    frame.to_csv(buffer, index=False) if export.suffix == ".csv" else frame.to_pickle(buffer)
+    if export.suffix == ".csv":  # a participant's session or a run's name must open as text, never a formula
+        from esr_cli.play.results import frame_as_text
+
+        frame_as_text(frame).to_csv(buffer, index=False)
+    else:
+        frame.to_pickle(buffer)
     atomic_write_bytes(export, buffer.getvalue())
     err.print(tagged("exported", "green", f" {count} Overcooked episode(s), {len(frame)} rows: {export}"))
 

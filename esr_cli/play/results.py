@@ -46,8 +46,22 @@ def episode_rows(found: list[tuple[str, dict, dict]]) -> list[dict]:
 FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
 
 
+def as_text(value):
+    """`value` as a spreadsheet shows it: a text that would be read as a formula gets a leading quote."""
+    return "'" + value if isinstance(value, str) and value.startswith(FORMULA_STARTS) else value
+
+
 def _as_text(row: dict) -> dict:
-    return {k: "'" + v if isinstance(v, str) and v.startswith(FORMULA_STARTS) else v for k, v in row.items()}
+    return {k: as_text(v) for k, v in row.items()}
+
+
+def frame_as_text(frame):
+    """A table (pandas) whose every text cell is `as_text`'s, for a CSV a spreadsheet opens."""
+    frame = frame.copy()
+    for column in frame.columns:
+        if frame[column].dtype == object or str(frame[column].dtype) in ("string", "str"):
+            frame[column] = frame[column].map(as_text)
+    return frame
 
 
 def episodes_csv(rows: list[dict]) -> str:

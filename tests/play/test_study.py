@@ -662,3 +662,18 @@ def test_free_text_that_looks_like_a_formula_opens_as_text_in_a_spreadsheet():
     assert row["value"] == "'" + record["answers"]["why"]
     (episode,) = csv.DictReader(io.StringIO(episodes_csv([{"participant": "@p", "return": -1.5}])))
     assert episode["participant"] == "'@p" and episode["return"] == "-1.5"
+
+
+def test_the_overcooked_export_csv_opens_its_text_as_text():
+    """`esr plays --export FILE.csv` writes a table of every step: its text columns (a session,
+    a run's name) get the same guard; numbers, negative ones too, are left as they are."""
+    import pandas as pd
+
+    from esr_cli.play.results import frame_as_text
+
+    frame = pd.DataFrame({"run": ['=HYPERLINK("http://x","y")', "grid_2", "+1"], "reward": [1.0, -2.0, 0.0],
+                          "session": ["-s", "@x", None]})
+    rows = list(csv.DictReader(io.StringIO(frame_as_text(frame).to_csv(index=False))))
+    assert [r["run"] for r in rows] == ['\'=HYPERLINK("http://x","y")', "grid_2", "'+1"]
+    assert [r["reward"] for r in rows] == ["1.0", "-2.0", "0.0"] and [r["session"] for r in rows] == ["'-s", "'@x", ""]
+    assert frame["run"][0].startswith("=")  # the caller's table is left as it was
