@@ -195,13 +195,15 @@ def paper_(
     if report:
         from esr_cli.report import reproduction
 
-        # Before any work: a report drawn from a mistyped store would be every row "not yet run",
-        # and one written into an artifact would be a file its manifest does not list.
-        if not ctx.obj.store.root.is_dir():
-            raise Exit(2, f"no store at {ctx.obj.store.root}: no runs to report on (--store names one)")
-        refuse_inside_store(report_out, "--out", ctx.obj.store)
+        # Before any work: a report written into an artifact would be a file its manifest does not
+        # list, and one drawn from a mistyped store would be every row "not yet run".
         if check and not report_out.is_file():  # a pipe or a device is never read
             raise Exit(2, f"--out: {report_out} is {'not a regular file' if report_out.exists() else 'not there'}: nothing to check")
+        if not check:
+            check_output_file(report_out, "--out")
+        refuse_inside_store(report_out, "--out", ctx.obj.store)
+        if not ctx.obj.store.root.is_dir():
+            raise Exit(2, f"no store at {ctx.obj.store.root}: no runs to report on (--store names one)")
         if check:
             differences = reproduction.check(ctx.obj.store, report_out, err, exact=exact)
             if differences:
@@ -212,7 +214,6 @@ def paper_(
                 raise Exit(1, f"{report_out} is stale")
             err.print(tagged("reproduction report", "green", f": {report_out} is what the store's runs give"))
             return
-        check_output_file(report_out, "--out")
         findings = reproduction.report(ctx.obj.store, report_out, err, exact=exact)
         err.print(reproduction.summary_line(findings))
         err.print(tagged("reproduction report", "green", f": {report_out}"))

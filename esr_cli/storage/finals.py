@@ -54,7 +54,7 @@ def run_length(record: dict) -> int | None:
 
 def epoch_rows(rows: list[dict]) -> list[dict]:
     """`rows` up to the first that is not an epoch's metrics as training writes them: an integer
-    epoch above the row before's, a number of environment steps, and every metric (the return
+    epoch one above the row before's (the first 1), a number of environment steps, and every metric (the return
     always) a list of numbers over the seeds (None where undefined; a finite one within float32's
     range, as training writes them), as long in every row. What follows such a row is not
     trusted (a file from an archive or an older esr), so tables and figures read the run as far
@@ -63,7 +63,9 @@ def epoch_rows(rows: list[dict]) -> list[dict]:
     out, widths, last = [], {}, 0
     for row in rows:
         epoch = row.get("epoch")
-        if type(epoch) is not int or not last < epoch <= MAX_EPOCH or not isinstance(row.get("return"), list):
+        # Training logs every epoch, from 1 on: a gap would let a forged last row stand for the
+        # last 10% of a run's epochs, and its number for the run's length.
+        if type(epoch) is not int or epoch != last + 1 or epoch > MAX_EPOCH or not isinstance(row.get("return"), list):
             break
         if not all(_sound(name, value, widths) for name, value in row.items() if name != "epoch"):
             break

@@ -43,6 +43,7 @@ def test_sound_rows_are_read_whole_and_their_finals_computed_by_hand(tmp_path):
     {"epoch": 3, "env_steps": 300, "return": [1.0, 2.0], "mi_estimate": {"a": 1}},
     {"epoch": 3, "env_steps": "300", "return": [1.0, 2.0]},
     {"epoch": 2, "env_steps": 300, "return": [1.0, 2.0]},  # not after the epoch before
+    {"epoch": 3000, "env_steps": 300, "return": [50.0, 50.0]},  # a gap: one row would stand for a run's last 10%
     {"epoch": None, "env_steps": 300, "return": [1.0, 2.0]},
     {"epoch": 3.0, "env_steps": 300, "return": [1.0, 2.0]},
     {"epoch": 10 ** 30, "env_steps": 300, "return": [1.0, 2.0]},
@@ -58,6 +59,7 @@ def test_reading_ends_at_the_first_row_that_is_not_an_epochs(tmp_path, bad):
 def test_a_metrics_file_with_no_sound_row_reads_as_no_epoch(tmp_path):
     run = _write(tmp_path, ['{"epoch": "one"}', _row(2)])
     assert finals.read_rows(run) == [] and finals.run_progress(run) == (0, None)
+    assert finals.read_rows(_write(tmp_path, [_row(2), _row(3)])) == []  # training's first epoch is 1
     out = finals.run_finals(run, ("return",))
     assert (out["seeds"], out["epochs"]) == (0, 0)
 
