@@ -21,6 +21,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from esr_cli.common import specs, yamlio
+from esr_cli.common.markdown import plain_text
 from esr_cli.common.printing import train_line
 from esr_cli.common.stats import describe, format_summary, mean_difference_ci, probability_of_improvement, scored_seeds
 from esr_cli.model import spec as spec_model
@@ -136,8 +137,8 @@ def index_store(store: Store) -> dict[str, list[Evidence]]:
         info = entry.manifest or {}
         made = provenance.origin(info)
         resumable = entry.status == "complete" or bool(verified_steps(entry.path))
-        # The page is markdown: what the manifest says of the device keeps to its cell.
-        device = made.device.replace("|", "\\|") if made.device else None
+        # The page is markdown: what the manifest says of the device is shown as the text it is.
+        device = plain_text(made.device) if made.device else None
         budget = info.get("budget") if info.get("budget") in spec_model.BUDGETS else spec.budget
         ev = Evidence(entry.key, entry.path, entry.status, budget, spec, read_rows(entry.path), made.commit,
                       device, resumable, modified=made.modified, program=_program(info))

@@ -306,6 +306,9 @@ class Origin(NamedTuple):
     modified: bool  # that checkout had edits under esr_cli/ (its code digest still says which code ran)
 
 
+MAX_DEVICES_SHOWN = 4  # a run resumed on more devices than this names the first few and a count
+
+
 def origin(info: dict | None) -> Origin:
     def part(record: object, name: str) -> dict:  # a damaged manifest's field is read as empty, never trusted
         value = record.get(name) if isinstance(record, dict) else None
@@ -322,10 +325,12 @@ def origin(info: dict | None) -> Origin:
     # A manifest from before sessions were recorded names only the last one.
     commit = next((s["commit"] for s in sessions if commit_of(s.get("commit"))), None) or commit_of(part(made, "git").get("commit"))
     devices = list(dict.fromkeys(text(s["device"]) for s in sessions if text(s.get("device"))))
+    if len(devices) > MAX_DEVICES_SHOWN:  # each name is bounded, their number only by the file
+        devices = [*devices[:MAX_DEVICES_SHOWN - 1], f"{len(devices) - MAX_DEVICES_SHOWN + 1} more"]
     # An unfinished run made by an esr whose pending.json named only its backend (part of its key) says just that.
     backend = part(part(info, "key_components"), "toolchain").get("backend")
     device = ", then ".join(devices) or text(made.get("device")) or text(backend)
-    return Origin(commit, device, bool(sessions and sessions[0].get("dirty")))
+    return Origin(commit, device, sessions[0].get("dirty") is True if sessions else False)
 
 
 def package_versions() -> dict:
