@@ -32,6 +32,7 @@ END = "<!-- end of generated table -->"
 _START = re.compile(r"^<!-- (esr\s.*) -->$")  # any esr command: one that is not a sweep table is named
 MAX_DOC_BYTES = 4 << 20  # a markdown page of this project is tens of KiB
 MAX_DIFF_LINES = 60
+MAX_TABLES = 100  # generated tables in one page; this project's pages hold at most a handful
 _CHECK_FLAGS = {c.option: c.name for c in check_columns.REGISTRY.values()}  # flag -> check_columns name
 _FLAGS = {"--results", "--markdown", "--any-code", *_CHECK_FLAGS}
 _VALUED = {"--budget": "budget", "-b": "budget", "--metric": "metric"}
@@ -255,8 +256,13 @@ def refresh(path: Path, store: Store) -> tuple[list[str], list[str], int]:
     lines = read_doc(path)
     new = list(lines)
     found = blocks(path, lines)
+    if len(found) > MAX_TABLES:
+        raise TableError(f"{path}: {len(found):,} generated tables, more than the {MAX_TABLES} a page may hold")
+    made: dict = {}  # a command given twice is read from the store once (commands are frozen values)
     for b in reversed(found):  # from the end, so earlier indices stay valid
-        new[b.start:b.end] = b.command.lines(store, f"{path}:{b.line}")
+        if b.command not in made:
+            made[b.command] = b.command.lines(store, f"{path}:{b.line}")
+        new[b.start:b.end] = made[b.command]
     return lines, new, len(found)
 
 

@@ -295,3 +295,22 @@ def test_a_calibration_is_asked_for_by_the_humans_recipe_not_by_how_the_spec_nam
     assert sc.asked(preset, 3, 100)["steps"] == EPISODE_STEPS
     assert sc.components(preset, 3, 100)["humans"] == sc.human_keys(written, 3)  # three humans, seeds 0 to 2
     assert len(set(sc.human_keys(written, 3))) == 3
+
+
+def test_a_command_given_twice_is_read_once_and_a_page_holds_a_bounded_number_of_tables(tmp_path, monkeypatch):
+    """200 copies of one block would read the store 200 times and write a page 70 times larger:
+    a command is computed once per page, and more than MAX_TABLES tables is refused unread."""
+    monkeypatch.chdir(ROOT)
+    suite = one_run_suite(tmp_path)
+    block = f"<!-- esr sweep {suite} --budget smoke --results --markdown -->\n{END}\n"
+    page = tmp_path / "page.md"
+    page.write_text(block * 3)
+    calls = []
+    real = doc_tables.SweepTable.lines
+    monkeypatch.setattr(doc_tables.SweepTable, "lines", lambda self, store, where: calls.append(where) or real(self, store, where))
+    lines, new, count = doc_tables.refresh(page, Store(tmp_path / "store"))
+    assert count == 3 and len(calls) == 1 and sum(line.startswith("| grid_2 |") for line in new) == 3
+    page.write_text(block * (doc_tables.MAX_TABLES + 1))
+    with pytest.raises(doc_tables.TableError, match=f"{doc_tables.MAX_TABLES + 1} generated tables, more than the"):
+        doc_tables.refresh(page, Store(tmp_path / "store"))
+    assert len(calls) == 1  # refused before any table was read
