@@ -15,6 +15,7 @@ from esr_cli.recipes import targets
 from esr_cli.storage.artifacts import ensure
 from esr_cli.storage.store import RUN_KIND, Store, parse_dirname
 
+FIGURE_SUFFIXES = {".png", ".pdf", ".svg", ".jpg", ".jpeg"}  # what matplotlib writes that a reader opens
 PAPER_FIGURES = ("gridworld", "overcooked", "no-robot-action", "greedy", "mi", "representations", "filmstrip")
 
 
@@ -107,6 +108,8 @@ def _file_stem(text: str) -> str:
 
 def _plot_curve(ref: str, out_file: Optional[Path], store: Store) -> None:
     """A run's learning curves from its metrics so far; an unfinished run says so in the title."""
+    if out_file is not None and out_file.suffix.lower() not in FIGURE_SUFFIXES:  # matplotlib would draw, then refuse it
+        raise Exit(2, f"--out: {out_file}: a figure is written as {', '.join(sorted(FIGURE_SUFFIXES))}; name one of those")
     path, record, finished = targets.run_record(store, ref)
     from esr_cli.common import plots
     from esr_cli.report.listing import field

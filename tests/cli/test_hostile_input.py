@@ -662,6 +662,7 @@ def test_usage_errors_and_help_are_answered_without_loading_jax(tmp_path):
     (["paper", "--report", "--executor", "slurm"], "--executor: applies to training the paper suite"),
     (["paper", "--budget", "huge"], "--budget: unknown budget 'huge'"),
     (["plot", "geometry", "--state", "7"], "--state must be 0, 1 or 2, got 7"),
+    (["plot", "curve", "deadbeef", "--out", "c.txt"], "--out: c.txt: a figure is written as .jpeg, .jpg, .pdf, .png, .svg"),
     (["exact", "experiments/grid_4x4_3.yaml", "--gamma", "1.0"], "--gamma must be in [0, 1), got 1.0"),
     (["exact", "experiments/cramped_room.yaml"], "exact empowerment is defined for gridworld specs only"),
     (["ablate", "experiments/grid_5_ave.yaml", "--no-robot-action"], "--no-robot-action ablates ESR's representations"),
