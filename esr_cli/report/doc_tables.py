@@ -30,6 +30,7 @@ from esr_cli.storage.store import Store
 
 END = "<!-- end of generated table -->"
 _START = re.compile(r"^<!-- (esr\s.*) -->$")  # any esr command: one that is not a sweep table is named
+_OPENED = re.compile(r"^<!-- esr\s")  # the start of one, closed or not
 MAX_DOC_BYTES = 4 << 20  # a markdown page of this project is tens of KiB
 MAX_DIFF_LINES = 60
 MAX_TABLES = 100  # generated tables in one page; this project's pages hold at most a handful
@@ -239,6 +240,8 @@ def blocks(path: Path, lines: list[str]) -> list[Block]:
                 continue
             if lines[i].strip() == END:
                 raise TableError(f"{path}:{i + 1}: {END} without a table's opening comment above it")
+            if _OPENED.match(lines[i]):  # meant as a table: silently none would pass --check
+                raise TableError(f"{path}:{i + 1}: a table's opening comment must end with ' -->' on its own line")
             i += 1
             continue
         where = f"{path}:{i + 1}"

@@ -64,6 +64,10 @@ def test_blocks_are_found_between_their_comments_and_a_broken_one_is_named(tmp_p
     stray.write_text(f"text\n{END}\n")
     with pytest.raises(doc_tables.TableError, match=r"stray.md:2: .* without a table's opening comment"):
         doc_tables.blocks(stray, doc_tables.read_doc(stray))
+    open_ended = tmp_path / "open.md"
+    open_ended.write_text(f"text\n<!-- esr sweep s.yaml --results --markdown\n| old |\n{END}\n")
+    with pytest.raises(doc_tables.TableError, match=r"open.md:2: a table's opening comment must end with ' -->'"):
+        doc_tables.blocks(open_ended, doc_tables.read_doc(open_ended))
 
 
 def test_the_comments_shown_in_a_code_block_are_an_example_not_a_table(tmp_path):
