@@ -268,9 +268,11 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
         where = f"specs[{i}]"
         spec_path = (base / entry.spec).resolve()
         try:
-            raw_spec = read[spec_path] if spec_path in read else read.setdefault(spec_path, specs.load_raw(spec_path))
+            if spec_path not in read:
+                read[spec_path] = specs.load_raw(spec_path)
         except specs.SpecError as e:
             raise SuiteError(source, f"{where}.spec", f"{entry.spec}: {e.problem}") from None
+        raw_spec = read[spec_path]
         if "specs" in raw_spec and "env" not in raw_spec:
             raise SuiteError(source, f"{where}.spec", f"{entry.spec} is a suite, not a spec file: suites do not nest "
                              "(list its spec files here)")
