@@ -294,7 +294,11 @@ def plays(
         return
     found = ps.played_episodes(ctx.obj.store, participant, session)
     if not found:
-        raise Exit(1, f"no played episodes in {ctx.obj.store.root}" + (" for that selection" if participant or session else ""))
+        what = f"no played episodes in {ctx.obj.store.root}" + (" for that selection" if participant or session else "")
+        if export is not None or csv_file is not None:  # a file was asked for and none is written
+            raise Exit(1, what)
+        err.print(what)  # an empty listing, as `esr ls` says of an empty store
+        return
     rows = results.episode_rows(found)
     if by_robot:
         _print_by_robot(results.by_robot(rows))

@@ -1046,7 +1046,11 @@ def test_overcooked_episodes_export_to_the_human_data_schema_and_replay(tmp_path
     assert (data["player"] == 1).all() and not data["test"].any() and (data["game"] == 0).all()
     with pytest.raises(play_data.PlayDataError, match="is not an Overcooked episode on coord_ring"):
         play_data.convert([built.path], "coord_ring")
-    assert esr("plays", "--participant", "nobody", store=tmp_path, check=False).returncode == 1
+    # A selection of nothing lists nothing, as `esr ls` does; asked for a file, it writes none and fails.
+    nobody = esr("plays", "--participant", "nobody", store=tmp_path, check=False)
+    assert nobody.returncode == 0 and "no played episodes" in nobody.stderr and "for that selection" in nobody.stderr
+    nothing = esr("plays", "--participant", "nobody", "--csv", str(tmp_path / "out" / "none.csv"), store=tmp_path, check=False)
+    assert nothing.returncode == 1 and not (tmp_path / "out" / "none.csv").exists()
 
 
 @pytest.mark.slow
