@@ -121,7 +121,7 @@ def _kind_has_field(tree: dict, dotted: str) -> bool:
     if section not in KIND_MODELS:
         return True
     kind = (tree.get(section) or {}).get("kind") if isinstance(tree.get(section), dict) else None
-    model = KIND_MODELS[section].get(kind)
+    model = KIND_MODELS[section].get(kind) if isinstance(kind, str) else None  # a bad kind is validation's to name
     return model is None or field.split(".")[0] in model.model_fields
 
 

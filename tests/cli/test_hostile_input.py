@@ -296,6 +296,15 @@ def test_text_that_looks_like_a_number_stays_text(tmp_path):
     assert specs.load(write(tmp_path, VALID.replace("name: t", 'name: "1.5"'))).name == "1.5"
 
 
+def test_a_kind_that_is_not_a_name_is_refused_under_every_budget(tmp_path):
+    """A budget's defaults are applied where the kind has the field; a kind given as a list or a
+    mapping names no kind, and is refused as one, not looked up."""
+    for budget in ("paper", "quick", "smoke"):
+        for value in ("[esr]", "{a: 1}"):
+            with pytest.raises(specs.SpecError, match=r"method: kind .* is not one of esr, random"):
+                specs.load(write(tmp_path, VALID), budget, [f"method.kind={value}"])
+
+
 def test_unknown_top_level_keys_are_named_even_when_they_spell_a_kind(tmp_path):
     for key in ("random", "esr", "gridworld"):
         with pytest.raises(specs.SpecError, match=rf"s.yaml: {key}: unknown key"):
