@@ -135,7 +135,8 @@ def parse_override(text: str) -> tuple[str, Any]:
     if re.fullmatch(r"[^\[\]]+(\[\s*-?\d+\s*\])+", path.strip()):  # train.seeds[0]
         name = path.split("[")[0].strip()
         raise SpecError("--set", path.strip(), f"a list is set whole, not item by item: --set {name}=[...]")
-    if "[" in path or "]" in path:
+    if "[" in path or "]" in path or not all(_FIELD_NAME.fullmatch(p) for p in path.strip().split(".") if p):
+        # (`train.epochs+=5`, `train. epochs=5`: named here, as typed, not later as a spec file's unknown key)
         raise SpecError("--set", path.strip(), "not a key path like train.seeds (field names and dots)")
     if len(raw) > MAX_OVERRIDE_CHARS:
         raise SpecError("--set", path, f"value is {len(raw):,} characters long; at most {MAX_OVERRIDE_CHARS:,}")
@@ -147,6 +148,7 @@ def parse_override(text: str) -> tuple[str, Any]:
 
 
 MAX_OVERRIDE_CHARS = 10_000
+_FIELD_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
 # How pydantic names a validator or type in an error's location (`function-after[...]`,
