@@ -520,25 +520,30 @@ def load(path: str | Path, budget: str = "paper", overrides: list[str] | tuple[s
     try:
         return resolve(raw, budget, overrides, source=str(path))
     except SpecError as e:
-        # A bad value (or budget entry) from a file this one extends: name the file that wrote it.
-        own_source = re.fullmatch(re.escape(str(path)) + r"(?:, budgets\.([\w-]+))?", e.source)
-        if not own_source or not e.path:
-            raise
-        entry_of = own_source.group(1)  # the budget whose entry it is, or None: a value of the spec
+        raise attributed(path, e) from None
 
-        def writes(own: dict) -> bool:
-            if entry_of is None:
-                return _defines(own, e.path)
-            entries = (own.get("budgets") or {}).get(entry_of)
-            return isinstance(entries, dict) and e.path in map(str, entries)
 
-        for file, own in _chain(path):
-            if writes(own):
-                if file != Path(path):
-                    where = f"{file} (extended by {path})" + (f", budgets.{entry_of}" if entry_of else "")
-                    raise SpecError(where, e.path, e.problem) from None
-                break
-        raise
+def attributed(path: Path, e: SpecError) -> SpecError:
+    """`e`, raised resolving the spec file `path`, naming the file that wrote the bad value (or
+    budget entry) where that is a file `path` extends; `e` itself otherwise."""
+    own_source = re.fullmatch(re.escape(str(path)) + r"(?:, budgets\.([\w-]+))?", e.source)
+    if not own_source or not e.path:
+        return e
+    entry_of = own_source.group(1)  # the budget whose entry it is, or None: a value of the spec
+
+    def writes(own: dict) -> bool:
+        if entry_of is None:
+            return _defines(own, e.path)
+        entries = (own.get("budgets") or {}).get(entry_of)
+        return isinstance(entries, dict) and e.path in map(str, entries)
+
+    for file, own in _chain(path):
+        if writes(own):
+            if file != Path(path):
+                where = f"{file} (extended by {path})" + (f", budgets.{entry_of}" if entry_of else "")
+                return SpecError(where, e.path, e.problem)
+            break
+    return e
 
 
 def plays_with_paper_human(spec: Spec) -> bool:

@@ -271,7 +271,9 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
             if spec_path not in read:
                 read[spec_path] = specs.load_raw(spec_path)
         except specs.SpecError as e:
-            raise SuiteError(source, f"{where}.spec", f"{entry.spec}: {e.problem}") from None
+            inner = f"{e.path}: {e.problem}" if e.path else e.problem
+            origin = "" if e.source == str(spec_path) else f": {e.source}"
+            raise SuiteError(source, f"{where}.spec", f"{entry.spec}{origin}: {inner}") from None
         raw_spec = read[spec_path]
         if "specs" in raw_spec and "env" not in raw_spec:
             raise SuiteError(source, f"{where}.spec", f"{entry.spec} is a suite, not a spec file: suites do not nest "
@@ -286,8 +288,11 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
             except specs.SpecError as e:
                 # Name the suite entry and the overrides too: the spec file alone may be fine.
                 at = f" with {' '.join(sets)}" if sets else ""
+                # and where in the spec's files the value came from (a file it extends, a budget's entry)
+                e = specs.attributed(spec_path, e)
+                origin = "" if e.source == str(spec_path) else f": {e.source}"
                 inner = f"{e.path}: {e.problem}" if e.path else e.problem
-                raise SuiteError(source, where, f"{entry.spec}{at}: {inner}") from None
+                raise SuiteError(source, where, f"{entry.spec}{at}{origin}: {inner}") from None
             key, _ = runs.run_key(spec)
             if key in seen:
                 duplicates += 1

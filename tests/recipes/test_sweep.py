@@ -140,6 +140,24 @@ def test_bad_suites_name_the_key(tmp_path, text, where, problem):
     assert str(path) in str(e.value)
 
 
+def test_a_bad_value_from_a_file_a_spec_extends_is_named_with_that_file_and_budget(tmp_path):
+    """As `esr train` names it: the suite entry, then the file (and budget entry) that wrote the value."""
+    (tmp_path / "base.yaml").write_text(GRID_2.read_text() + "budgets: {smoke: {method.repr_dimm: 3}}\n")
+    (tmp_path / "child.yaml").write_text("name: child\nextends: base.yaml\n")
+    (tmp_path / "grand.yaml").write_text("name: grand\nextends: broken.yaml\n")
+    (tmp_path / "broken.yaml").write_text("env: [unclosed\n")
+    with pytest.raises(SuiteError) as e:
+        sweep.load_suite(write_suite(tmp_path, "specs: [child.yaml]\n"), "smoke")
+    assert e.value.path == "specs[0]"
+    assert f"child.yaml: {tmp_path / 'base.yaml'} (extended by {tmp_path / 'child.yaml'}), budgets.smoke: " \
+           "method.repr_dimm: unknown key" in str(e.value), str(e.value)
+    with pytest.raises(specs.SpecError, match=r"base.yaml \(extended by .*child.yaml\), budgets.smoke: method.repr_dimm"):
+        specs.load(tmp_path / "child.yaml", "smoke")  # the same words
+    with pytest.raises(SuiteError) as e:
+        sweep.load_suite(write_suite(tmp_path, "specs: [grand.yaml]\n"), "smoke")
+    assert e.value.path == "specs[0].spec" and f"grand.yaml: {tmp_path / 'broken.yaml'}: not a spec file" in str(e.value)
+
+
 def test_a_grid_over_the_method_kind_starts_the_section_again(tmp_path):
     """As `--set method.kind=random` does: ESR's fields do not follow into the Random robot."""
     path = write_suite(tmp_path, f"specs: [{GRID_2}]\ngrid: {{method.kind: [esr, random]}}\n")
