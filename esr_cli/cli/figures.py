@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import shlex
 
 from pathlib import Path
 from typing import Optional
@@ -87,7 +88,9 @@ def plot(
         try:
             recipe = paper.figure_recipe(ctx.obj.store, budget, figure, figs.PaperInputs(ctx.obj.store, budget, unfinished=unfinished))
         except figs.MissingRuns as e:
-            raise Exit(2, f"{e}\nor all at once: make paper-figures BUDGET={budget}", own_lines=True) from None
+            # the Makefile's target reads the store from ESR_STORE
+            named = "" if ctx.obj.store.invocation() == "esr" else f"ESR_STORE={shlex.quote(str(ctx.obj.store.root))} "
+            raise Exit(2, f"{e}\nor all at once: {named}make paper-figures BUDGET={budget}", own_lines=True) from None
         if recipe.unfinished:
             draw_preview(recipe, out_file or Path(f"{figure}-{budget}-unfinished"), ctx.obj.store)
             return

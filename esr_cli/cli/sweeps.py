@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 from typing import Optional
 
@@ -120,7 +121,8 @@ def sweep(
                 try:
                     recipe = paper.suite_figure_recipe(suite, ctx.obj.store, unfinished)
                 except figs.MissingRuns as e:
-                    raise Exit(2, f"{e}\nor all at once: esr sweep {suite_file} --budget {budget}", own_lines=True) from None
+                    raise Exit(2, f"{e}\nor all at once: {ctx.obj.store.invocation()} sweep {shlex.quote(str(suite_file))} "
+                               f"--budget {budget}", own_lines=True) from None
                 if recipe.unfinished:
                     draw_preview(recipe, out_dir or Path(f"suite-{suite.name}-{budget}-unfinished"), ctx.obj.store, print_path=False)
                 else:

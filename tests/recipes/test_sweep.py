@@ -487,6 +487,10 @@ def test_curves_of_unfinished_runs_are_a_preview_marked_unfinished_outside_the_s
 
     refused = esr("sweep", str(path), "--budget", "smoke", "--results", "--plot", store=store, check=False)
     assert refused.returncode == 2 and "needs 1 run(s) the store lacks" in refused.stderr
+    # A store named by --store (not the one ESR_STORE names) is named in every hint, the last one too.
+    named = esr("--store", str(store), "sweep", str(path), "--budget", "smoke", "--results", "--plot",
+                store=tmp_path / "elsewhere", check=False)
+    assert named.stderr.strip().splitlines()[-1] == f"or all at once: esr --store {store} sweep {path} --budget smoke"
     assert esr("sweep", str(path), "--budget", "smoke", "--results", "--unfinished", store=store,
                check=False).returncode == 2  # --unfinished without --plot: named, not ignored
 
