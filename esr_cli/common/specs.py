@@ -198,11 +198,12 @@ def first_problem(e: ValidationError) -> tuple[dict, str]:
     elif msg.startswith("Value error, "):
         msg = msg[len("Value error, ") :]
     elif err["type"] in ("model_attributes_type", "dict_type", "model_type"):
-        msg = f"expected a section (a mapping of keys), got {type(err['input']).__name__} {str(err['input'])[:40]!r}"
+        msg = "expected a section (a mapping of keys), got " + (
+            "an empty value (null)" if err["input"] is None else _described(err["input"]))
     elif err["type"] == "bool_type":
         msg = "expected true or false"
-    elif err["type"] == "string_type" and isinstance(err["input"], (int, float)) and not isinstance(err["input"], bool):
-        msg = f"expected text, got the number {err['input']!r:.40}: write it in quotes to mean the text"
+    elif err["type"] == "string_type" and isinstance(err["input"], (int, float)):
+        msg = f"expected text, got {_described(err['input'])}: write it in quotes to mean the text"
     elif err.get("input", ...) is None and err["type"].endswith("_type"):
         msg = "the value is empty (null): write one, or leave the key out for its default"
     elif err["type"] in ("tuple_type", "list_type"):

@@ -316,7 +316,7 @@ def test_missing_or_unknown_kind_lists_the_kinds(tmp_path):
         specs.load(write(tmp_path, VALID.replace("{kind: gridworld, blocks: 2}", "{}")))
     with pytest.raises(specs.SpecError, match=r"method: kind 'esrr' is not one of esr, random, ave"):
         specs.load(write(tmp_path, VALID.replace("{kind: esr}", "{kind: esrr}")))
-    with pytest.raises(specs.SpecError, match=r"env: expected a section \(a mapping of keys\), got str 'gridworld'"):
+    with pytest.raises(specs.SpecError, match=r"env: expected a section \(a mapping of keys\), got the text 'gridworld'"):
         specs.load(write(tmp_path, VALID.replace("{kind: gridworld, blocks: 2}", "gridworld")))
 
 

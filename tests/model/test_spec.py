@@ -336,7 +336,9 @@ def test_a_misspelt_kind_and_wrong_types_are_named_in_plain_words(tmp_path):
     assert e.value.path == "env.knd" and "did you mean `kind`?" in e.value.problem
     for sets, problem in ((["train.seeds=3.0"], "expected a list of seeds or a count (an integer), got 3.0"),
                           (["name=2024"], "expected text, got the number 2024"),
-                          (["train=null"], "expected a section (a mapping of keys)")):
+                          (["name=true"], "expected text, got the boolean true: write it in quotes"),
+                          (["train=null"], "train: expected a section (a mapping of keys), got an empty value (null)"),
+                          (["train=5"], "train: expected a section (a mapping of keys), got the number 5")):
         with pytest.raises(specs.SpecError, match=re.escape(problem)):
             specs.load("experiments/grid_2.yaml", "paper", sets)
     f.write_text("extends: null\n" + GOOD)
