@@ -874,6 +874,18 @@ def test_a_file_name_holding_a_newline_cannot_forge_a_line_of_verify(tmp_path, c
     assert lines[-1] == f"or all at once: ESR_STORE={tmp_path / 'empty'} make paper-figures BUDGET=smoke", lines
 
 
+def test_a_dangling_or_looping_link_as_a_spec_is_named_as_a_link(tmp_path):
+    a, b, dangling = tmp_path / "a.yaml", tmp_path / "b.yaml", tmp_path / "dangling.yaml"
+    a.symlink_to(b)
+    b.symlink_to(a)
+    dangling.symlink_to(tmp_path / "gone.yaml")
+    for link in (a, dangling):
+        with pytest.raises(yamlio.YamlInputError, match="a symbolic link that leads to no file"):
+            yamlio.read(link)
+    with pytest.raises(yamlio.YamlInputError, match="^file not found$"):
+        yamlio.read(tmp_path / "gone.yaml")
+
+
 def test_a_fifo_given_as_a_spec_is_refused_without_waiting(tmp_path, monkeypatch):
     fifo = tmp_path / "pipe.yaml"
     os.mkfifo(fifo)
