@@ -542,6 +542,16 @@ def test_values_that_are_not_spec_values_are_refused_by_line(text, problem):
         yamlio.parse(f"a: {text}")
 
 
+@pytest.mark.parametrize("text, where, character", [
+    ("name: a\x1bb\n", "line 1, column 8", "U+001B"), ("a: 1\nb: x\x00\n", "line 2, column 5", "U+0000"),
+    ("a: 1\n\x7f", "line 2, column 1", "U+007F"),
+])
+def test_a_character_yaml_refuses_is_named_by_line_and_column_on_one_line(text, where, character):
+    with pytest.raises(yamlio.YamlInputError) as e:
+        yamlio.parse(text)
+    assert str(e.value) == f"unreadable YAML: {where}: the character {character} is not allowed in YAML"
+
+
 def test_yaml_1_1_booleans_and_true_as_a_seat_are_named(tmp_path):
     for override, problem in (("env.goal_visible=yes", "env.goal_visible: expected true or false"),
                               (f"train.epochs={'9' * 5000}", "an integer of 5,000 digits")):
