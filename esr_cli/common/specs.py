@@ -94,10 +94,11 @@ class SpecError(Failure):
 
 
 # ---------------------------------------------------------------- loading
-def _set_path(tree: dict, dotted: str, value: Any, source: str) -> None:
+def _set_path(tree: dict, dotted: str, value: Any, source: str, within: str = "") -> None:
+    """Set `dotted` (a key path inside the section `within`, when a mapping sets a section's keys)."""
     parts = dotted.split(".")
     if not all(parts):
-        raise SpecError(source, dotted, "malformed key path")
+        raise SpecError(source, within + dotted if dotted else f"{within}(an empty key)", "malformed key path")
     node = tree
     for i, p in enumerate(parts[:-1]):
         nxt = node.get(p)
@@ -111,7 +112,7 @@ def _set_path(tree: dict, dotted: str, value: Any, source: str) -> None:
         # `train={epochs: 5}` means `train.epochs=5`: a mapping sets the keys it names and keeps
         # the section's others, as a YAML file's own section would not
         for key, item in value.items():
-            _set_path(old, str(key), item, source)
+            _set_path(old, str(key), item, source, f"{within}{dotted}.")
         return
     node[parts[-1]] = value
 

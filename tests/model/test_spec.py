@@ -298,6 +298,9 @@ def test_a_bad_value_names_the_set_or_budget_that_gave_it(tmp_path):
     (["learner.gamma:=0"], "learner.gamma:", "not a key path"),
     (["train. epochs=5"], "train. epochs", "not a key path"),
     (["train.ep\x1bochs=5"], "train.ep\x1bochs", "not a key path"),
+    # a mapping's keys are paths inside its section, named from the section
+    (['train={"": 5}'], "train.(an empty key)", "malformed key path"),
+    (['train={"a..b": 5}'], "train.a..b", "malformed key path"),
 ])
 def test_a_set_key_path_of_no_field_names_is_named_as_written(sets, path, problem):
     with pytest.raises(specs.SpecError) as e:
