@@ -245,6 +245,10 @@ def validate(raw: dict, source: str = "") -> Spec:
         for where, layout in (("human.layout", human.get("layout")), ("env.layout", env.get("layout"))):
             if not isinstance(layout, (str, type(None))):
                 raise SpecError(source, where, f"expected a layout's name, got {_described(layout)}")
+        if env.get("kind") in set(KIND_MODELS["env"]) - {"overcooked"} and not human.get("layout"):
+            raise SpecError(source, "human.preset", f"{human['preset']!r} names an Overcooked layout's human: "
+                                                    "it needs env.kind: overcooked (a gridworld's human is a kind, "
+                                                    "such as noisy_greedy)")
     try:
         return Spec.model_validate(raw)
     except ValidationError as e:

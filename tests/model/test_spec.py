@@ -227,6 +227,9 @@ def test_the_paper_preset_is_a_whole_human_per_layout_whatever_the_file_s_kind()
         specs.load(Path("experiments/cramped_room.yaml"), "smoke", ["human.preset=paper"])
     with pytest.raises(specs.SpecError, match=r"human.preset='paper' is defined for cramped_room.*not 'forced_coord'"):
         specs.load(Path("experiments/forced_coord_random.yaml"), "quick", ["human={preset: paper}"])
+    with pytest.raises(specs.SpecError, match=r"human.preset: 'paper' names an Overcooked layout's human: it needs "
+                                              r"env.kind: overcooked"):
+        specs.load(Path("experiments/grid_2.yaml"), "paper", ["human={preset: paper}"])
 
 
 def test_the_paper_layouts_play_with_the_paper_human_except_at_the_smoke_budget():
