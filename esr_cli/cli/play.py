@@ -288,7 +288,7 @@ def plays(
     if export is not None and csv_file is not None and export.resolve() == csv_file.resolve():
         raise Exit(2, "--export and --csv name the same file")
     if study is not None:
-        found = _plays_study(ctx.obj.store, study, participant, session, csv_file, answers)
+        found = _plays_study(ctx.obj.store, study, participant, session, csv_file, answers, export)
         if export is not None:
             _export(found, export, ctx.obj.store)
         return
@@ -331,7 +331,7 @@ def _write(path: Path, text: str, what: str) -> None:
 
 
 def _plays_study(store: Store, study: str, participant: Optional[str], session: Optional[str],
-                 csv_file: Optional[Path], answers: Optional[Path]) -> list:
+                 csv_file: Optional[Path], answers: Optional[Path], export: Optional[Path]) -> list:
     """`esr plays --study NAME`: the study's table per robot and its sessions; -> its episodes."""
     from esr_cli.play import results, study_session as ss
     from esr_cli.play.study import NAME
@@ -343,7 +343,11 @@ def _plays_study(store: Store, study: str, participant: Optional[str], session: 
                if participant in (None, r["participant"]) and session in (None, r["session"])]
     if not found and not records:
         narrowed = " for that selection" if participant or session else ""
-        raise Exit(1, f"no sessions of study {study!r} in {store.root}{narrowed}")
+        what = f"no sessions of study {study!r} in {store.root}{narrowed}"
+        if csv_file is not None or answers is not None or export is not None:  # a file was asked for and none is written
+            raise Exit(1, what)
+        err.print(what)  # an empty listing, as `esr plays` and `esr ls` say of one
+        return []
     rows = results.episode_rows(found)
     table, items = results.study_table(rows, records), results.study_items(records)
     _print_study(study, table, items)

@@ -185,7 +185,11 @@ def test_the_cli_refuses_a_bad_study_in_one_line_before_any_work(tmp_path, capsy
         said = capsys.readouterr().err.strip()
         assert expected in said and len(said.splitlines()) == 1, (args, said)
     assert not (store / PLAY_KIND).exists()
-    assert main(["--store", str(store), "plays", "--study", "t_study"]) == 1  # nothing played yet
+    # nothing played yet: an empty listing, and no file written where one is asked for
+    assert main(["--store", str(store), "plays", "--study", "t_study"]) == 0
+    assert "no sessions of study 't_study'" in capsys.readouterr().err
+    assert main(["--store", str(store), "plays", "--study", "t_study", "--csv", str(tmp_path / "t.csv")]) == 1
+    assert not (tmp_path / "t.csv").exists()
 
 
 @pytest.mark.slow
