@@ -116,7 +116,7 @@ def ensure(recipe: Recipe, store: Store) -> Built:
         # Every start and resume is a session (checkout, time, a run's device), kept in order:
         # a run resumed on another machine or from another checkout of the same training code
         # says so. "commit" and "device" name the first, where it was made.
-        sessions = provenance.with_session(provenance.earlier_sessions(read_pending(store.partial_path(recipe.kind, key))),
+        sessions = provenance.with_session(provenance.carried_sessions(read_pending(store.partial_path(recipe.kind, key))),
                                            provenance.session(with_device=recipe.kind == RUN_KIND))
         first = {k: sessions[0][k] for k in ("commit", "device") if k in sessions[0]}
         # The key components are in pending.json from the start: an unfinished run can then be

@@ -286,6 +286,31 @@ def earlier_sessions(pending: dict | None) -> list[dict]:
     return [last] if last else []
 
 
+def carried_sessions(pending: dict | None) -> list[dict]:
+    """`earlier_sessions`, as the manifest of the run they resumed keeps them: each record only
+    the fields `session` and `with_session` write, each of its type, its texts bounded and
+    escaped as `origin` shows them (a pending.json may come from an archive)."""
+    return [_as_recorded(s) for s in earlier_sessions(pending)]
+
+
+def _as_recorded(record: dict) -> dict:
+    kept = {}
+    for name, value in record.items():
+        if name == "commit" and isinstance(value, str) and COMMIT.fullmatch(value):
+            kept[name] = value
+        elif name in ("device", "started_at") and isinstance(value, str) and value:
+            kept[name] = printable(value[:MAX_DEVICE_CHARS])
+        elif name == "dirty" and isinstance(value, bool):
+            kept[name] = value
+        elif name in ("cpu_cores", "omitted") and type(value) is int and 0 < value < 1 << 31:
+            kept[name] = value
+        elif name == "wall_s" and session_wall(record) is not None:
+            kept[name] = value
+    return kept
+
+
+
+
 def _seconds_between(start: object, end: object) -> float | None:
     try:
         seconds = (datetime.strptime(end, ISO_FORMAT) - datetime.strptime(start, ISO_FORMAT)).total_seconds()

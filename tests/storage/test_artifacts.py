@@ -193,6 +193,27 @@ def test_a_pending_record_from_before_sessions_counts_as_the_last_session(tmp_pa
     assert provenance.earlier_sessions(None) == [] == provenance.earlier_sessions({"commit": 5})
 
 
+def test_a_resumed_pending_record_carries_only_session_fields_into_the_manifest(tmp_path, monkeypatch):
+    """A pending.json may come from an archive: the run it resumes is finished with its sessions'
+    own fields only, a commit only if it names one, texts bounded and escaped as they are shown."""
+    from esr_cli.storage import provenance
+
+    monkeypatch.setattr(provenance, "git_state", lambda: {"commit": "c" * 40, "dirty": False})
+    store = Store(tmp_path / "store")
+    recipe = Recipe(RUN_KIND, "run", {"n": "forged"}, _writer([], "run"))
+    partial = store.partial_path(RUN_KIND, recipe.key)
+    partial.mkdir(parents=True)
+    forged = {"commit": "not\x1b[2J a commit", "dirty": "yes", "device": "gpu\n| 999 |" + "x" * 500,
+              "started_at": "2026-12-01T20:12:38+0000", "cpu_cores": True, "wall_s": 12.5, "payload": {"a": [1] * 9}}
+    (partial / "pending.json").write_text(json.dumps({"key": recipe.key, "sessions": [forged, {"omitted": 3}]}))
+    manifest = json.loads((ensure(recipe, store).path / MANIFEST).read_text())
+    first, omitted, latest = manifest["sessions"]
+    assert first == {"device": ("gpu\\n| 999 |" + "x" * 500)[:provenance.MAX_DEVICE_CHARS + 1],
+                     "started_at": "2026-12-01T20:12:38+0000", "wall_s": 12.5}
+    assert omitted == {"omitted": 3} and latest["commit"] == "c" * 40
+    assert "commit" not in manifest and manifest["device"] == first["device"]
+
+
 def test_a_resumed_run_counts_the_working_time_of_every_session(tmp_path, monkeypatch):
     """A run stopped at a chunk boundary records its session's seconds; the one that finishes it
     adds its own, and the manifest's wall time is the sum (not the last session's alone)."""
