@@ -97,7 +97,7 @@ def play(
         table.add_row(r["robot_label"], *([r["robot"][:12]] if web else []), *cells)
     err.print(table)
     if not web:
-        err.print(f"the robots' keys: esr plays --session {session}", highlight=False)
+        err.print(f"the robots' keys: {ctx.obj.store.invocation()} plays --session {session}", highlight=False)
     for p in played:
         out.print(p["path"], highlight=False)
     if played and not played[-1]["completed"]:
@@ -216,7 +216,7 @@ def _play_study(ctx: typer.Context, path: Path, target: Optional[str], participa
         raise Exit(130)
     else:
         err.print(f"study {the_study.name}: {who}: finished, {len(outcome.episodes)} episode(s); "
-                  f"esr plays --study {the_study.name}", highlight=False)
+                  f"{ctx.obj.store.invocation()} plays --study {the_study.name}", highlight=False)
 
 
 def _print_paths(outcome) -> None:
