@@ -245,7 +245,7 @@ def _serve_study(ctx: typer.Context, the_study, port: int, serving: Serving) -> 
             _print_paths(s.outcome)
     finished = sum(1 for s in served if s.outcome is not None and s.outcome.code is not None)
     err.print(f"study {the_study.name}: {len(served)} of {serving.participants} link(s) used, {finished} session(s) "
-              f"finished; esr plays --study {the_study.name}", highlight=False)
+              f"finished; {ctx.obj.store.invocation()} plays --study {the_study.name}", highlight=False)
     if stopped is not None and not isinstance(stopped, KeyboardInterrupt):
         raise stopped  # SIGTERM: its own line and exit code, once every session has written what it played
     if stopped is not None and any(s.outcome is None or s.outcome.ended_early for s in served):

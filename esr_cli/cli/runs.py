@@ -185,7 +185,7 @@ def diagnose(
         built = ensure(dr.diagnosis_recipe(ctx.obj.store, path, seed_index, options), ctx.obj.store)
         report = summary_or_empty(built.path)
         if not report:
-            raise Exit(1, f"{built.path}: its summary.json cannot be read as a diagnosis; `esr verify {built.path.name[:12]}` "
+            raise Exit(1, f"{built.path}: its summary.json cannot be read as a diagnosis; `{ctx.obj.store.invocation()} verify {built.path.name[:12]}` "
                           "says why (remove the folder to compute it again)")
         err.print(tagged("cache hit" if built.cached else "computed", "green", f": {built.path}"))
     else:  # an unfinished run changes with every chunk: shown, never stored

@@ -82,7 +82,7 @@ def export(store: Store, ref: str, out: Path | None = None, without_checkpoint: 
             shutil.copytree(src, stage, ignore=_leaving_out(src, LEFT_OUT[kind]) if without_checkpoint else None)
             problems = verify_artifact(store, stage)
             if problems:
-                raise StoreError(f"{kind} {key[:12]} fails its manifest ({problems[0]}); `esr verify {key[:12]}` lists every problem")
+                raise StoreError(f"{kind} {key[:12]} fails its manifest ({problems[0]}); `{store.invocation()} verify {key[:12]}` lists every problem")
         elif without_checkpoint:
             shutil.copytree(src, stage, ignore=_record_only(src))
         else:
