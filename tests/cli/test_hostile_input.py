@@ -1017,6 +1017,9 @@ def test_a_run_whose_spec_yaml_is_not_its_keys_is_not_evaluated_or_diagnosed(smo
     for command in ("diagnose", "eval"):
         proc = esr(command, path.name[:12], store=tmp_path / "store", check=False)
         assert proc.returncode == 2 and problem in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+        assert f"(`esr verify {path.name[:12]}`)" in proc.stderr  # the store ESR_STORE names: plain esr
+    named = esr("--store", str(tmp_path / "store"), "eval", path.name[:12], store=tmp_path / "elsewhere", check=False)
+    assert f"(`esr --store {tmp_path / 'store'} verify {path.name[:12]}`)" in named.stderr, named.stderr
     assert not (tmp_path / "store" / "diagnoses").exists() and not (tmp_path / "store" / "evals").exists()
 
 
