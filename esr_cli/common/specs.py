@@ -245,7 +245,11 @@ def validate(raw: dict, source: str = "") -> Spec:
         for where, layout in (("human.layout", human.get("layout")), ("env.layout", env.get("layout"))):
             if not isinstance(layout, (str, type(None))):
                 raise SpecError(source, where, f"expected a layout's name, got {_described(layout)}")
-        if env.get("kind") in set(KIND_MODELS["env"]) - {"overcooked"} and not human.get("layout"):
+        # ... and so the environment's, which is named first where it is none
+        kind = env.get("kind")
+        if "kind" in env and not (isinstance(kind, str) and kind in KIND_MODELS["env"]):
+            raise SpecError(source, "env", f"kind {str(kind)!r} is not one of {', '.join(KIND_MODELS['env'])}")
+        if kind != "overcooked" and kind is not None and not human.get("layout"):
             raise SpecError(source, "human.preset", f"{human['preset']!r} names an Overcooked layout's human: "
                                                     "it needs env.kind: overcooked (a gridworld's human is a kind, "
                                                     "such as noisy_greedy)")

@@ -8,6 +8,7 @@ code (esr_cli/recipes/runs.py) is imported after the checks pass.
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 
 from pydantic import ValidationError
@@ -100,7 +101,7 @@ def run_spec(run_path: Path):
     raw, problem = read_spec_yaml(run_path) if source.exists() else (None, "it has no spec.yaml")
     problem = problem or spec_mismatch(raw, record or {})  # None: a mapping with a human section
     if problem:
-        raise StoreError(f"{run_path}: {problem}; the run cannot be read (`{Store(run_path.parents[2]).invocation()} verify {run_path.name[:12]}`)")
+        raise StoreError(f"{run_path}: {problem}; the run cannot be read (`esr verify {shlex.quote(str(run_path))}`)")
     # The stored fields are the preset's values when the run trained: read again, a named preset
     # would lay today's table over them (the key is of the values, not the name).
     raw["human"] = {k: v for k, v in raw["human"].items() if k != "preset"}
