@@ -239,6 +239,20 @@ def run_count(model: SuiteModel) -> int:
     return sum(math.prod(len(v) for v in {**model.grid, **entry.grid}.values()) for entry in model.specs)
 
 
+
+def _origin(e: specs.SpecError, spec_path: Path) -> str:
+    """': WHERE: PATH: PROBLEM' of a spec's error, after the suite entry that names the spec: where
+    in the spec's files the value came from (a file it extends, a budget's entry), unless that is
+    the spec file itself or the entry's own --set values, which the entry already names."""
+    where = e.source
+    if where == str(spec_path) or where.startswith("--set"):
+        where = ""
+    elif where.startswith(f"{spec_path}, "):
+        where = where[len(f"{spec_path}, "):]  # its own budget's entry: 'budgets.smoke'
+    inner = f"{e.path}: {e.problem}" if e.path else e.problem
+    return f": {where}: {inner}" if where else f": {inner}"
+
+
 def load(path: str | Path, budget: str = "paper") -> Suite:
     """Read, validate and expand a suite: every run's spec is loaded and validated here."""
     p = specs.experiment_file(path)
@@ -271,9 +285,7 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
             if spec_path not in read:
                 read[spec_path] = specs.load_raw(spec_path)
         except specs.SpecError as e:
-            inner = f"{e.path}: {e.problem}" if e.path else e.problem
-            origin = "" if e.source == str(spec_path) else f": {e.source}"
-            raise SuiteError(source, f"{where}.spec", f"{entry.spec}{origin}: {inner}") from None
+            raise SuiteError(source, f"{where}.spec", f"{entry.spec}{_origin(e, spec_path)}") from None
         raw_spec = read[spec_path]
         if "specs" in raw_spec and "env" not in raw_spec:
             raise SuiteError(source, f"{where}.spec", f"{entry.spec} is a suite, not a spec file: suites do not nest "
@@ -288,11 +300,7 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
             except specs.SpecError as e:
                 # Name the suite entry and the overrides too: the spec file alone may be fine.
                 at = f" with {' '.join(sets)}" if sets else ""
-                # and where in the spec's files the value came from (a file it extends, a budget's entry)
-                e = specs.attributed(spec_path, e)
-                origin = "" if e.source == str(spec_path) else f": {e.source}"
-                inner = f"{e.path}: {e.problem}" if e.path else e.problem
-                raise SuiteError(source, where, f"{entry.spec}{at}{origin}: {inner}") from None
+                raise SuiteError(source, where, f"{entry.spec}{at}{_origin(specs.attributed(spec_path, e), spec_path)}") from None
             key, _ = runs.run_key(spec)
             if key in seen:
                 duplicates += 1

@@ -156,6 +156,14 @@ def test_a_bad_value_from_a_file_a_spec_extends_is_named_with_that_file_and_budg
     with pytest.raises(SuiteError) as e:
         sweep.load_suite(write_suite(tmp_path, "specs: [grand.yaml]\n"), "smoke")
     assert e.value.path == "specs[0].spec" and f"grand.yaml: {tmp_path / 'broken.yaml'}: not a spec file" in str(e.value)
+    # the spec's own budget entry by the entry alone; a value of the suite's own --set once
+    (tmp_path / "own.yaml").write_text(GRID_2.read_text() + "budgets: {smoke: {train.epochz: 1}}\n")
+    with pytest.raises(SuiteError) as e:
+        sweep.load_suite(write_suite(tmp_path, "specs: [own.yaml]\n"), "smoke")
+    assert str(e.value).endswith("specs[0]: own.yaml: budgets.smoke: train.epochz: unknown key; did you mean `epochs`?")
+    with pytest.raises(SuiteError) as e:
+        sweep.load_suite(write_suite(tmp_path, f"specs: [{GRID_2}]\ngrid: {{learner.gamma: [2.0]}}\n"), "smoke")
+    assert str(e.value).endswith(f"specs[0]: {GRID_2} with learner.gamma=2.0: learner.gamma: Input should be less than 1")
 
 
 def test_a_grid_over_the_method_kind_starts_the_section_again(tmp_path):
