@@ -296,12 +296,12 @@ def carried_sessions(pending: dict | None) -> list[dict]:
 def _as_recorded(record: dict) -> dict:
     kept = {}
     for name, value in record.items():
-        if name == "commit" and isinstance(value, str) and COMMIT.fullmatch(value):
+        if name == "commit" and (value is None or isinstance(value, str) and COMMIT.fullmatch(value)):
+            kept[name] = value  # None: made outside a git checkout, as `session` records it
+        elif name == "dirty" and (value is None or isinstance(value, bool)):
             kept[name] = value
         elif name in ("device", "started_at") and isinstance(value, str) and value:
-            kept[name] = printable(value[:MAX_DEVICE_CHARS])
-        elif name == "dirty" and isinstance(value, bool):
-            kept[name] = value
+            kept[name] = printable(value[:MAX_SESSION_TEXT])
         elif name in ("cpu_cores", "omitted") and type(value) is int and 0 < value < 1 << 31:
             kept[name] = value
         elif name == "wall_s" and session_wall(record) is not None:
@@ -309,6 +309,7 @@ def _as_recorded(record: dict) -> dict:
     return kept
 
 
+MAX_SESSION_TEXT = 200  # a device's name or a start time, as a session records them
 
 
 def _seconds_between(start: object, end: object) -> float | None:
