@@ -105,7 +105,7 @@ def _set_path(tree: dict, dotted: str, value: Any, source: str, within: str = ""
         if nxt is None:
             nxt = node[p] = {}
         if not isinstance(nxt, dict):
-            raise SpecError(source, ".".join(parts[: i + 1]), "is not a section, cannot set a key inside it")
+            raise SpecError(source, within + ".".join(parts[: i + 1]), "is not a section, cannot set a key inside it")
         node = nxt
     old = node.get(parts[-1])
     if isinstance(value, dict) and isinstance(old, dict):
@@ -149,7 +149,7 @@ def parse_override(text: str) -> tuple[str, Any]:
 
 
 MAX_OVERRIDE_CHARS = 10_000
-_FIELD_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+_FIELD_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*")  # a hyphen passes: `repr-dim` gets its did-you-mean
 
 
 # How pydantic names a validator or type in an error's location (`function-after[...]`,

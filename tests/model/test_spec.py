@@ -304,11 +304,17 @@ def test_a_bad_value_names_the_set_or_budget_that_gave_it(tmp_path):
     # a mapping's keys are paths inside its section, named from the section
     (['train={"": 5}'], "train.(an empty key)", "malformed key path"),
     (['train={"a..b": 5}'], "train.a..b", "malformed key path"),
+    (['train={"epochs.x": 5}'], "train.epochs", "is not a section"),
 ])
 def test_a_set_key_path_of_no_field_names_is_named_as_written(sets, path, problem):
     with pytest.raises(specs.SpecError) as e:
         specs.load("experiments/grid_2.yaml", "paper", sets)
     assert e.value.source == "--set" and e.value.path == path and problem in str(e.value)
+
+
+def test_a_set_key_with_a_hyphen_is_an_unknown_key_with_its_suggestion():
+    with pytest.raises(specs.SpecError, match=r"^--set method.repr-dim=3: method.repr-dim: unknown key; did you mean `repr_dim`\?$"):
+        specs.load("experiments/grid_2.yaml", "paper", ["method.repr-dim=3"])
 
 
 @pytest.mark.parametrize("key, named", [("ep[ochs", "train.ep[ochs"), ("seeds[0]", "train.seeds[0]"), ("x[y]", "train.x[y]")])
