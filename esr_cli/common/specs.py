@@ -305,8 +305,11 @@ def load_raw(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict:
     if len(_seen) + 1 >= MAX_EXTENDS:
         raise SpecError(str(_seen[0]), "extends", f"a chain of more than {MAX_EXTENDS} files extending one another "
                         f"(file {MAX_EXTENDS} of it is {path}); shorten it")
+    named = Path(path).parent / parent
+    if named.is_symlink() and not named.exists():
+        raise SpecError(str(path), "extends", f"{parent[:60]!r}: {yamlio.DANGLING_LINK}")
     try:
-        base_path = (Path(path).parent / parent).resolve()
+        base_path = named.resolve()
         here = Path(path).resolve()
     except (OSError, RuntimeError, ValueError) as e:  # a symlink loop, a NUL in the name
         raise SpecError(str(path), "extends", f"cannot follow {parent[:60]!r}: {e}") from None

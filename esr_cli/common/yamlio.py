@@ -185,6 +185,9 @@ def parse(text: str) -> Any:
         raise YamlInputError(f"unreadable YAML: {e}") from None
 
 
+DANGLING_LINK = "a symbolic link that leads to no file (its target is missing, or a loop)"
+
+
 def read(path: str | Path, max_bytes: int = MAX_FILE_BYTES, follow_links: bool = True,
          what: str = "a spec or suite file") -> Any:
     """Parse a file after checking its size. Raises YamlInputError (missing, too large, bad).
@@ -193,8 +196,7 @@ def read(path: str | Path, max_bytes: int = MAX_FILE_BYTES, follow_links: bool =
     if not follow_links and p.is_symlink():
         raise YamlInputError("a symbolic link, not a file")
     if not p.exists():
-        raise YamlInputError("a symbolic link that leads to no file (its target is missing, or a loop)"
-                             if p.is_symlink() else "file not found")
+        raise YamlInputError(DANGLING_LINK if p.is_symlink() else "file not found")
     if not p.is_file():
         raise YamlInputError("not a file")
     too_large = f"larger than the {max_bytes:,} bytes esr reads from {what}"

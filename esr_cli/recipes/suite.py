@@ -280,7 +280,10 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
     read: dict[Path, dict] = {}
     for i, entry in enumerate(model.specs):
         where = f"specs[{i}]"
-        spec_path = (base / entry.spec).resolve()
+        named = base / entry.spec
+        if named.is_symlink() and not named.exists():  # (which follows the link) not resolved: a loop would raise
+            raise SuiteError(source, f"{where}.spec", f"{entry.spec}: {yamlio.DANGLING_LINK}")
+        spec_path = named.resolve()
         try:
             if spec_path not in read:
                 read[spec_path] = specs.load_raw(spec_path)

@@ -897,6 +897,14 @@ def test_a_dangling_or_looping_link_as_a_spec_is_named_as_a_link(tmp_path):
             yamlio.read(link)
     with pytest.raises(yamlio.YamlInputError, match="^file not found$"):
         yamlio.read(tmp_path / "gone.yaml")
+    # named the same as a suite's entry and as a file a spec extends (a loop never raised uncaught)
+    for link in (a, dangling):
+        (tmp_path / "suite.yaml").write_text(f"specs: [{link.name}]\n")
+        with pytest.raises(suites.SuiteError, match=f"specs\\[0\\].spec: {link.name}: a symbolic link that leads to no file"):
+            suites.load(tmp_path / "suite.yaml", "smoke")
+        (tmp_path / "child.yaml").write_text(f"name: c\nextends: {link.name}\n")
+        with pytest.raises(specs.SpecError, match=f"extends: '{link.name}': a symbolic link that leads to no file"):
+            specs.load(tmp_path / "child.yaml")
 
 
 def test_a_fifo_given_as_a_spec_is_refused_without_waiting(tmp_path, monkeypatch):
