@@ -165,16 +165,18 @@ for _tag in ("binary", "timestamp", "set", "omap", "pairs"):
     _BoundedLoader.add_constructor(f"tag:yaml.org,2002:{_tag}", _refuse_tag)
 
 
+_LINE_BREAK = re.compile("\r\n|[\r\n\x85\u2028\u2029]")
+
+
 def parse(text: str) -> Any:
     """The YAML value of `text` (bounded: see the module doc). Raises YamlInputError."""
     try:
         return yaml.load(text, Loader=_BoundedLoader)  # noqa: S506 - a SafeLoader subclass
     except yaml.reader.ReaderError as e:  # a character YAML does not allow: named where it is, on one line
-        line = text.count("\n", 0, e.position) + 1
-        column = e.position - (text.rfind("\n", 0, e.position) + 1) + 1
-        what = f"U+{e.character:04X}" if isinstance(e.character, int) else "a byte"
-        raise YamlInputError(f"unreadable YAML: line {line}, column {column}: the character {what} is not "
-                             "allowed in YAML") from None
+        breaks = list(_LINE_BREAK.finditer(text, 0, e.position))  # the breaks YAML counts lines by
+        column = e.position - (breaks[-1].end() if breaks else 0) + 1
+        raise YamlInputError(f"unreadable YAML: line {len(breaks) + 1}, column {column}: the character "
+                             f"U+{e.character:04X} is not allowed in YAML") from None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""

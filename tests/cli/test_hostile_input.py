@@ -548,6 +548,7 @@ def test_values_that_are_not_spec_values_are_refused_by_line(text, problem):
 @pytest.mark.parametrize("text, where, character", [
     ("name: a\x1bb\n", "line 1, column 8", "U+001B"), ("a: 1\nb: x\x00\n", "line 2, column 5", "U+0000"),
     ("a: 1\n\x7f", "line 2, column 1", "U+007F"),
+    ("a: 1\r\nb: 2\rc: \x1b", "line 3, column 4", "U+001B"),  # lines as YAML counts them: CRLF, CR
 ])
 def test_a_character_yaml_refuses_is_named_by_line_and_column_on_one_line(text, where, character):
     with pytest.raises(yamlio.YamlInputError) as e:
