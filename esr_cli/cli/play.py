@@ -287,17 +287,18 @@ def plays(
             check_output_file(path, option)
     if export is not None and csv_file is not None and export.resolve() == csv_file.resolve():
         raise Exit(2, "--export and --csv name the same file")
+    writes_a_file = any(path is not None for path in (export, csv_file, answers))  # none written: exit 1
     if study is not None:
-        found = _plays_study(ctx.obj.store, study, participant, session, csv_file, answers, export)
+        found = _plays_study(ctx.obj.store, study, participant, session, csv_file, answers, writes_a_file)
         if export is not None:
             _export(found, export, ctx.obj.store)
         return
     found = ps.played_episodes(ctx.obj.store, participant, session)
     if not found:
         what = f"no played episodes in {ctx.obj.store.root}" + (" for that selection" if participant or session else "")
-        if export is not None or csv_file is not None:  # a file was asked for and none is written
+        if writes_a_file:
             raise Exit(1, what)
-        err.print(what)  # an empty listing, as `esr ls` says of an empty store
+        err.print(what, highlight=False)  # an empty listing, as `esr ls` says of an empty store
         return
     rows = results.episode_rows(found)
     if by_robot:
@@ -331,7 +332,7 @@ def _write(path: Path, text: str, what: str) -> None:
 
 
 def _plays_study(store: Store, study: str, participant: Optional[str], session: Optional[str],
-                 csv_file: Optional[Path], answers: Optional[Path], export: Optional[Path]) -> list:
+                 csv_file: Optional[Path], answers: Optional[Path], writes_a_file: bool) -> list:
     """`esr plays --study NAME`: the study's table per robot and its sessions; -> its episodes."""
     from esr_cli.play import results, study_session as ss
     from esr_cli.play.study import NAME
@@ -344,9 +345,9 @@ def _plays_study(store: Store, study: str, participant: Optional[str], session: 
     if not found and not records:
         narrowed = " for that selection" if participant or session else ""
         what = f"no sessions of study {study!r} in {store.root}{narrowed}"
-        if csv_file is not None or answers is not None or export is not None:  # a file was asked for and none is written
+        if writes_a_file:
             raise Exit(1, what)
-        err.print(what)  # an empty listing, as `esr plays` and `esr ls` say of one
+        err.print(what, highlight=False)  # an empty listing, as `esr plays` and `esr ls` say of one
         return []
     rows = results.episode_rows(found)
     table, items = results.study_table(rows, records), results.study_items(records)
