@@ -97,11 +97,14 @@ def run_spec(run_path: Path):
     from esr_cli.storage.transfer import read_spec_yaml, spec_mismatch
 
     source = run_path / "spec.yaml"
-    record = read_pending(run_path) if parse_dirname(run_path.name)[1] == "partial" else load_manifest(run_path)
+    unfinished = parse_dirname(run_path.name)[1] == "partial"
+    record = read_pending(run_path) if unfinished else load_manifest(run_path)
     raw, problem = read_spec_yaml(run_path) if source.exists() else (None, "it has no spec.yaml")
     problem = problem or spec_mismatch(raw, record or {})  # None: a mapping with a human section
     if problem:
-        raise StoreError(f"{run_path}: {problem}; the run cannot be read (`esr verify {shlex.quote(str(run_path))}`)")
+        # (`esr verify` checks a finished artifact's files; an unfinished one has no manifest to check them by)
+        what = f"remove {run_path} to start it over" if unfinished else f"`esr verify {shlex.quote(str(run_path))}`"
+        raise StoreError(f"{run_path}: {problem}; the run cannot be read ({what})")
     # The stored fields are the preset's values when the run trained: read again, a named preset
     # would lay today's table over them (the key is of the values, not the name).
     raw["human"] = {k: v for k, v in raw["human"].items() if k != "preset"}

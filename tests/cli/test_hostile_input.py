@@ -1033,6 +1033,19 @@ def test_a_run_whose_spec_yaml_is_not_its_keys_is_not_evaluated_or_diagnosed(smo
     assert not (tmp_path / "store" / "diagnoses").exists() and not (tmp_path / "store" / "evals").exists()
 
 
+def test_an_unreadable_spec_yaml_of_an_unfinished_run_says_to_start_it_over(tmp_path):
+    """`esr verify` checks finished artifacts only: an unfinished run's hint is to remove it."""
+    from esr_cli.recipes.targets import run_spec
+    from esr_cli.storage.store import StoreError
+
+    run = tmp_path / "runs" / "ab" / ("ab" * 16 + ".partial")
+    run.mkdir(parents=True)
+    (run / "pending.json").write_text(json.dumps({"key": "ab" * 16}))
+    (run / "spec.yaml").write_text("name: x\n: [\n")
+    with pytest.raises(StoreError, match=rf"its spec.yaml cannot be read.*; the run cannot be read \(remove {re.escape(str(run))} to start it over\)$"):
+        run_spec(run)
+
+
 def test_a_stored_run_keeps_the_human_it_trained_with_when_its_preset_changes(tmp_path, monkeypatch):
     """A run's spec.yaml holds its human's fields as its preset resolved them when it trained;
     read back, the preset's name must not lay a later table of values over them."""
