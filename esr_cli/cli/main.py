@@ -92,7 +92,9 @@ def _run(argv: list[str], debug: bool, stops: StopSignals) -> int:
             code, msg = 2, f"file name too long: {name[:60]}{'...' if len(name) > 60 else ''} (at most 255 bytes per component)"
         else:
             code, msg = 1, f"{type(e).__name__}: {e} (run with --debug for a traceback)"
-        if msg:
+        if msg and getattr(e, "on_purpose", False):  # a stop asked for (exit 75): no error
+            err.print(msg, highlight=False)
+        elif msg:
             own_lines = isinstance(e, Failure) and e.own_lines  # esr's hint below the error, not a name from a store
             err.print(tagged("error:", "red", " ", own(msg) if own_lines else msg), highlight=False)
         return code

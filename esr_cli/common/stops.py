@@ -38,6 +38,7 @@ class TimeLimitReached(Failure):
     """The next chunk would end past the run's time limit; the run stopped after saving."""
 
     exit_code = 75
+    on_purpose = True  # the stop --stop-after asked for: said as it is, never as an error
 
     def __init__(self, epoch: int, total: int):
         self.epoch, self.total = epoch, total

@@ -54,6 +54,7 @@ def test_stop_after_ends_at_a_chunk_boundary_and_resumes_to_the_uninterrupted_re
     stopped = esr(*SMOKE, "--stop-after", "0s", store=store, check=False)
     assert stopped.returncode == 75, stopped.stderr
     assert "stopped after epoch 1 of 2" in stopped.stderr and "run the same command again" in stopped.stderr
+    assert "error" not in stopped.stderr  # a stop asked for, said as such
     assert stopped.stdout == "" and committed(store) == []
     (part,) = partials(store)
     assert len((part / "metrics.jsonl").read_text().splitlines()) == 1
