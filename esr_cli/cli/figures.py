@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import re
-import shlex
 
 from pathlib import Path
 from typing import Optional
@@ -88,9 +87,8 @@ def plot(
         try:
             recipe = paper.figure_recipe(ctx.obj.store, budget, figure, figs.PaperInputs(ctx.obj.store, budget, unfinished=unfinished))
         except figs.MissingRuns as e:
-            # the Makefile's target reads the store from ESR_STORE
-            named = "" if ctx.obj.store.invocation() == "esr" else f"ESR_STORE={shlex.quote(str(ctx.obj.store.root))} "
-            raise Exit(2, f"{e}\nor all at once: {named}make paper-figures BUDGET={budget}", own_lines=True) from None
+            # (what `make paper-figures` runs, which works outside a checkout too)
+            raise Exit(2, f"{e}\nor all at once: {ctx.obj.store.invocation()} paper --budget {budget}", own_lines=True) from None
         if recipe.unfinished:
             draw_preview(recipe, out_file or Path(f"{figure}-{budget}-unfinished"), ctx.obj.store)
             return

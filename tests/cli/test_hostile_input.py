@@ -884,8 +884,8 @@ def test_a_file_name_holding_a_newline_cannot_forge_a_line_of_verify(tmp_path, c
     assert main(["--store", str(tmp_path / "empty"), "plot", "greedy", "--budget", "smoke"]) == 2
     lines = capsys.readouterr().err.splitlines()
     assert "needs 12 run(s) the store lacks; make them with:" in lines[0] and lines[1].startswith("  esr ")
-    # the store named, as every hint names it: the Makefile's target reads it from ESR_STORE
-    assert lines[-1] == f"or all at once: ESR_STORE={tmp_path / 'empty'} make paper-figures BUDGET=smoke", lines
+    # the store named, as every hint names it
+    assert lines[-1] == f"or all at once: esr --store {tmp_path / 'empty'} paper --budget smoke", lines
 
 
 def test_a_dangling_or_looping_link_as_a_spec_is_named_as_a_link(tmp_path):
