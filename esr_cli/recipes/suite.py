@@ -283,6 +283,9 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
         named = base / entry.spec
         if named.is_symlink() and not named.exists():  # (which follows the link) not resolved: a loop would raise
             raise SuiteError(source, f"{where}.spec", f"{entry.spec}: {yamlio.DANGLING_LINK}")
+        if not named.exists() and not Path(entry.spec).is_absolute():
+            raise SuiteError(source, f"{where}.spec", f"{entry.spec}: file not found (a suite's spec paths are read "
+                                                      f"from the suite file's folder, {base})")
         spec_path = named.resolve()
         try:
             if spec_path not in read:

@@ -118,7 +118,7 @@ def test_baselines_quick_suite_is_every_method_on_grid_2_and_grid_5_with_five_se
     (f"specs: [{{spec: {GRID_2}, grid: {{'train.seeds=[5] #': [1]}}}}]\n", "specs[0].grid", "not a key path"),
     (f"specs: [{GRID_2}]\nset: {{'train.ep[ochs': 3}}\n", "set", "not a key path"),
     ('specs: ["a\\0b.yaml"]\n', "specs[0].spec", "cannot hold a NUL"),
-    ("specs: [no_such_spec.yaml]\n", "specs[0].spec", "file not found"),
+    ("specs: [no_such_spec.yaml]\n", "specs[0].spec", "file not found (a suite's spec paths are read from the suite file's folder"),
     (f"specs: [{GRID_2}]\ngrid: {{learner.gamma: [0.5, 2.0]}}\n", "specs[0]", "learner.gamma: Input should be less than 1"),
     (f"specs: [{GRID_2}]\nset: {{method.no_such_field: 1}}\n", "specs[0]", "method.no_such_field: unknown key"),
     (f"specs: [{GRID_2}]\nslurm: {{gpus: -1}}\n", "slurm.gpus", "greater than or equal to 0"),
