@@ -10,7 +10,7 @@ import typer
 
 from esr_cli.cli.app import BudgetOpt, Exit, app, check_budget, check_executor, check_output_file, draw_preview, err, out, refuse_inside_store
 from esr_cli.common import jsonl
-from esr_cli.common.printing import own, tagged
+from esr_cli.common.printing import own, print_table, tagged
 from esr_cli.storage.artifacts import ensure
 
 
@@ -112,7 +112,7 @@ def sweep(
             elif markdown:
                 out.print(own(sw.results_markdown(suite, rows, metrics, checks)), highlight=False)
             else:
-                out.print(sw.results_table(suite, rows, metrics, checks))
+                print_table(out, sw.results_table(suite, rows, metrics, checks))  # piped: every cell in full
                 for line in sw.table_notes(rows, checks):  # whole lines, to copy and paste
                     out.print(line, highlight=False, soft_wrap=True)
             if plot:
@@ -135,7 +135,7 @@ def sweep(
             if as_json:
                 out.print_json(jsonl.dumps(sw.status_json(rows)))
             else:
-                out.print(sw.status_table(suite, rows))
+                print_table(out, sw.status_table(suite, rows))
             return
         result = sw.run_suite(suite, budget, executor, ctx.obj.store, err, wait, overrides)
     except sw.SuiteError as e:
