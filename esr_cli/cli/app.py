@@ -68,11 +68,30 @@ BudgetOpt = typer.Option("paper", "--budget", "-b", help="paper | quick | smoke"
 SetOpt = typer.Option(None, "--set", "-s", help="override a spec field: key.path=value (repeatable)")
 
 
+def _print_version(asked: bool) -> None:
+    """`esr --version`: the package's version, the training code's digest (part of every run's
+    key: runs continue and pool only under the same one) and the checkout's commit, if any."""
+    if not asked:
+        return
+    from importlib import metadata
+
+    from esr_cli.storage import provenance
+
+    git = provenance.git_state()
+    line = f"esr-cli {metadata.version('esr-cli')}; training code {provenance.code_digest()[:8]}"
+    if git["commit"]:
+        line += f"; commit {git['commit'][:12]}" + (" (esr_cli/ modified)" if git["dirty"] else "")
+    out.print(line, highlight=False)
+    raise typer.Exit()
+
+
 @app.callback()
 def main_options(
     ctx: typer.Context,
     store: Optional[str] = StoreOpt,  # text, not Path: Path("") would silently mean the current directory
     debug: bool = typer.Option(False, "--debug", help="show tracebacks"),
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                 help="print the version, the training code's digest and the commit, and exit"),
 ):
     from esr_cli.storage.provenance import compile_cache_dir, matmul_precision
 

@@ -171,6 +171,16 @@ def test_runs_can_share_a_gpu_unless_the_user_says_otherwise(tmp_path, monkeypat
     assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "true"
 
 
+def test_version_names_the_package_and_the_training_code_digest(tmp_path):
+    from importlib import metadata
+
+    from esr_cli.storage import provenance
+
+    proc = esr("--version", store=tmp_path / "store")
+    assert proc.stdout.startswith(f"esr-cli {metadata.version('esr-cli')}; training code {provenance.code_digest()[:8]}")
+    assert not (tmp_path / "store").exists()  # nothing else done
+
+
 def test_help_shows_flags_as_flags_and_values_with_their_type(tmp_path):
     text = esr("play", "--help", store=tmp_path, COLUMNS="200").stdout
     web = next(line for line in text.splitlines() if "--web " in line)
