@@ -125,14 +125,15 @@ class TrainingReport:
     def estimate(self, epoch: int, total: int, epoch_seconds: float) -> None:
         """The lines after the warm-up chunk: an epoch's time, the run's, --budget quick's."""
         seeds, left = len(self.spec.train.seeds), (total - epoch) * epoch_seconds
-        run = (f"the {total - epoch:,} epochs left: about {duration(left)}" if self.started else
-               f"{total:,} epochs: about {duration(total * epoch_seconds)}")
-        line = f"{self.label}: {duration(epoch_seconds)} an epoch ({seeds} seed{'s' * (seeds != 1)}); {run} here"
+        # (said once the first chunk is done, which timed an epoch: what is left is after it)
+        run = (f"{total:,} epochs: about {duration(total * epoch_seconds)} here" if not self.started else
+               f"the {total - epoch:,} epochs left: about {duration(left)} here" if epoch < total else "no epoch left")
+        line = f"{self.label}: {duration(epoch_seconds)} an epoch ({seeds} seed{'s' * (seeds != 1)}); {run}"
         if self.quick is not None:
             quick, differ = quick_estimate(self.spec, self.quick, epoch_seconds)
             more = f" and {len(differ) - 1} more" if len(differ) > 1 else ""
             line += (f"; --budget quick: about {duration(quick)}" if quick is not None else
-                     f"; --budget quick: not estimated (it changes {differ[0]}{more})")
+                     f"; --budget quick: not estimated ({differ[0]}{more} differ from this run's)")
         self.say(line)
         if left > 86400:
             self.say(tagged("note:", "yellow", f" this run needs more than a day on this machine ({duration(left)}); "
