@@ -68,20 +68,27 @@ def ls(
 @app.command()
 def show(
     ctx: typer.Context,
-    ref: str = typer.Argument(..., help="artifact key, key prefix or path", show_default=False),
-    as_json: bool = typer.Option(False, "--json", help="the whole manifest, every component of the key included"),
+    ref: str = typer.Argument(..., help="artifact key, key prefix or path (an unfinished run's too)", show_default=False),
+    as_json: bool = typer.Option(False, "--json", help="the whole manifest (an unfinished run's pending.json), every component of the key included"),
 ):
-    """Print what an artifact is: a readable summary, or its manifest with --json."""
-    path = ctx.obj.store.resolve(ref)
-    manifest = ctx.obj.store.read_manifest(path)
+    """Print what an artifact is (an unfinished run too): a readable summary, or its manifest
+    (an unfinished run's pending.json) with --json."""
+    from esr_cli.storage.store import Entry
+
+    entry = ctx.obj.store.find(ref, include_partial=True)
+    if entry.status == "complete":
+        manifest = ctx.obj.store.read_manifest(entry.path)
+        entry = Entry(entry.kind, entry.key, entry.path, "complete", manifest)
+    else:  # what its pending.json says (read bounded); nothing is finished to check its files by
+        manifest = entry.manifest if isinstance(entry.manifest, dict) else {}
+    path = entry.path
     if as_json:  # stdout is the JSON alone, for a pipe (`| jq`); the path goes beside it
-        err.print(Text(printable(str(path)), style="bold"), highlight=False)
+        unfinished = "" if entry.status == "complete" else "  (unfinished: its pending.json)"
+        err.print(Text(printable(str(path)) + unfinished, style="bold"), highlight=False)
         out.print_json(jsonl.dumps(manifest))
         return
     from esr_cli.report import listing
-    from esr_cli.storage.store import Entry
 
-    entry = Entry(path.parent.parent.name, path.name, path, "complete", manifest)
     for label, value in _show_lines(listing.row(entry), manifest):
         out.print(f"{label + ':':<14} {printable(str(value))}", highlight=False, markup=False)
 

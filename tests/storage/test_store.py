@@ -519,3 +519,28 @@ def test_show_names_a_commit_only_when_it_is_a_git_object_name(tmp_path):
     bad, good = esr("show", "abab", store=tmp_path), esr("show", "cdcd", store=tmp_path)
     assert "\ncommit:" not in bad.stdout and "RED" not in bad.stdout and "\x1b" not in bad.stdout
     assert "3a619620b454f78a08c1a6f3eb993e46c92295db" in good.stdout
+
+
+def test_show_reads_an_unfinished_run_from_its_pending_record(tmp_path, capsys):
+    """`esr show` of a run still training (or stopped): what its pending.json says, its texts
+    escaped; --json prints that record, saying it is one."""
+    from esr_cli.cli.main import main
+
+    key = "ab" * 16
+    store = Store(tmp_path)
+    components = {"kind": "runs", "spec": {"name": "g", "train": {"epochs": 40}, "method": {"kind": "esr"}}}
+    store.begin("runs", key, {"name": "g\x1b[2J", "key": key, "budget": "quick", "seeds": [0],
+                              "key_components": components,
+                              "sessions": [{"commit": "a" * 40, "device": "cpu\x1b]0;x"}]})
+    partial = store.partial_path("runs", key)
+    rows = ({"epoch": e, "env_steps": 100 * e, "return": [float(e)]} for e in (1, 2))  # as training logs them
+    (partial / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert main(["--store", str(tmp_path), "show", key[:6]]) == 0
+    shown = capsys.readouterr().out
+    assert "\x1b" not in shown and "g\\x1b[2J" in shown and "cpu\\x1b]0;x" in shown
+    lines = dict(line.split(":", 1) for line in shown.splitlines())
+    assert lines["status"].strip() == "partial" and lines["epochs"].strip() == "2 of 40"  # as esr ls says it
+    assert lines["path"].strip() == str(partial) and lines["commit"].strip() == "a" * 40
+    assert main(["--store", str(tmp_path), "show", key[:6], "--json"]) == 0
+    printed = capsys.readouterr()
+    assert json.loads(printed.out)["budget"] == "quick" and "(unfinished: its pending.json)" in printed.err
