@@ -6,6 +6,7 @@ interrupted (resumable)."""
 from __future__ import annotations
 
 import errno
+import inspect
 import os
 import signal
 import sys
@@ -28,6 +29,18 @@ def _help_place(command) -> int:
 
 
 app.registered_commands.sort(key=_help_place)
+
+
+def _one_line(command) -> None:
+    """The command list shows a docstring's first paragraph as one line, wrapped to the
+    terminal, not with the line breaks of its source."""
+    doc = inspect.getdoc(command.callback) or ""
+    if command.short_help is None and "\n" in doc.split("\n\n")[0]:
+        command.short_help = " ".join(doc.split("\n\n")[0].split())
+
+
+for _command in [*app.registered_commands, *(c for g in app.registered_groups for c in g.typer_instance.registered_commands)]:
+    _one_line(_command)
 
 GLOBAL_FLAGS, GLOBAL_VALUED = ("--debug",), ("--store",)
 

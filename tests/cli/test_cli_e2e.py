@@ -171,6 +171,15 @@ def test_runs_can_share_a_gpu_unless_the_user_says_otherwise(tmp_path, monkeypat
     assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "true"
 
 
+def test_the_command_list_gives_each_command_one_unbroken_summary():
+    from esr_cli.cli.main import app
+
+    commands = [*app.registered_commands, *(c for g in app.registered_groups for c in g.typer_instance.registered_commands)]
+    for command in commands:  # wrapped to the terminal by the list, never at the source's line breaks
+        summary = command.short_help or (command.callback.__doc__ or "").strip().split("\n\n")[0]
+        assert summary and "\n" not in summary, command.callback.__name__
+
+
 def test_version_names_the_package_and_the_training_code_digest(tmp_path):
     from importlib import metadata
 
