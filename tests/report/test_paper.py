@@ -107,7 +107,7 @@ def test_plot_with_missing_runs_names_the_commands(tmp_path):
     proc = esr("plot", "mi", "--budget", "smoke", store=tmp_path, check=False)
     assert proc.returncode == 2
     assert "esr train" in proc.stderr and "grid_2.yaml --budget smoke" in proc.stderr
-    assert "make paper-figures BUDGET=smoke" in proc.stderr
+    assert "or all at once: esr paper --budget smoke" in proc.stderr  # what make paper-figures runs
     assert not (tmp_path / "figures").exists()
 
 
