@@ -233,6 +233,10 @@ def other_problems(e: ValidationError) -> str:
     return f" (and {n} more problem(s))" if n else ""
 
 
+def _not_a_kind(kind, kinds) -> str:
+    return f"kind {kind!r} is not one of {', '.join(kinds)}"
+
+
 def validate(raw: dict, source: str = "") -> Spec:
     human = raw.get("human")
     if isinstance(human, dict) and not isinstance(human.get("preset", ""), (str, type(None))):
@@ -248,7 +252,7 @@ def validate(raw: dict, source: str = "") -> Spec:
         # ... and so the environment's, which is named first where it is none
         kind = env.get("kind")
         if "kind" in env and not (isinstance(kind, str) and kind in KIND_MODELS["env"]):
-            raise SpecError(source, "env", f"kind {str(kind)!r} is not one of {', '.join(KIND_MODELS['env'])}")
+            raise SpecError(source, "env", _not_a_kind(str(kind), KIND_MODELS["env"]))
         if kind != "overcooked" and kind is not None and not human.get("layout"):
             raise SpecError(source, "human.preset", f"{human['preset']!r} names an Overcooked layout's human: "
                                                     "it needs env.kind: overcooked (a gridworld's human is a kind, "
@@ -276,7 +280,7 @@ def validate(raw: dict, source: str = "") -> Spec:
             elif typo:
                 loc, msg = loc + (typo[0],), f"unknown key; did you mean `kind`? (the section {msg})"
         elif err["type"] == "union_tag_invalid":
-            msg = f"kind {err.get('ctx', {}).get('tag')!r} is not one of {', '.join(section)}"
+            msg = _not_a_kind(err.get("ctx", {}).get("tag"), section)
         raise SpecError(source, yamlio.key_path(loc, lambda i, part: _is_tag(i, part, loc), err["type"] == "extra_forbidden"), msg + other_problems(e)) from None
 
 
@@ -306,7 +310,7 @@ def load_raw(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict:
         raise SpecError(str(_seen[0]), "extends", f"a chain of more than {MAX_EXTENDS} files extending one another "
                         f"(file {MAX_EXTENDS} of it is {path}); shorten it")
     named = Path(path).parent / parent
-    if named.is_symlink() and not named.exists():
+    if yamlio.leads_nowhere(named):
         raise SpecError(str(path), "extends", f"{parent[:60]!r}: {yamlio.DANGLING_LINK}")
     try:
         base_path = named.resolve()

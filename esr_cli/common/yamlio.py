@@ -190,6 +190,11 @@ def parse(text: str) -> Any:
 DANGLING_LINK = "a symbolic link that leads to no file (its target is missing, or a loop)"
 
 
+def leads_nowhere(path: Path) -> bool:
+    """Whether `path` is a symbolic link to no file (`exists` follows it; a loop is not resolved)."""
+    return path.is_symlink() and not path.exists()
+
+
 def read(path: str | Path, max_bytes: int = MAX_FILE_BYTES, follow_links: bool = True,
          what: str = "a spec or suite file") -> Any:
     """Parse a file after checking its size. Raises YamlInputError (missing, too large, bad).

@@ -239,7 +239,6 @@ def run_count(model: SuiteModel) -> int:
     return sum(math.prod(len(v) for v in {**model.grid, **entry.grid}.values()) for entry in model.specs)
 
 
-
 def _origin(e: specs.SpecError, spec_path: Path) -> str:
     """': WHERE: PATH: PROBLEM' of a spec's error, after the suite entry that names the spec: where
     in the spec's files the value came from (a file it extends, a budget's entry), unless that is
@@ -281,7 +280,7 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
     for i, entry in enumerate(model.specs):
         where = f"specs[{i}]"
         named = base / entry.spec
-        if named.is_symlink() and not named.exists():  # (which follows the link) not resolved: a loop would raise
+        if yamlio.leads_nowhere(named):  # checked before resolving it, which a loop would make raise
             raise SuiteError(source, f"{where}.spec", f"{entry.spec}: {yamlio.DANGLING_LINK}")
         if not named.exists() and not Path(entry.spec).is_absolute():
             raise SuiteError(source, f"{where}.spec", f"{entry.spec}: file not found (a suite's spec paths are read "

@@ -301,15 +301,12 @@ def _as_recorded(record: dict) -> dict:
         elif name == "dirty" and (value is None or isinstance(value, bool)):
             kept[name] = value
         elif name in ("device", "started_at") and isinstance(value, str) and value:
-            kept[name] = printable(value[:MAX_SESSION_TEXT])
+            kept[name] = printable(value[:MAX_DEVICE_CHARS])  # as `origin` shows it
         elif name in ("cpu_cores", "omitted") and type(value) is int and 0 < value < 1 << 31:
             kept[name] = value
         elif name == "wall_s" and session_wall(record) is not None:
             kept[name] = value
     return kept
-
-
-MAX_SESSION_TEXT = 200  # a device's name or a start time, as a session records them
 
 
 def _seconds_between(start: object, end: object) -> float | None:
@@ -321,7 +318,7 @@ def _seconds_between(start: object, end: object) -> float | None:
 
 
 COMMIT = re.compile(r"[0-9a-f]{7,64}")  # a git object name: anything else a manifest says is no commit
-MAX_DEVICE_CHARS = 200
+MAX_DEVICE_CHARS = 200  # a session's device name (or start time), kept and shown
 
 
 class Origin(NamedTuple):

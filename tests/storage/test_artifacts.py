@@ -208,7 +208,7 @@ def test_a_resumed_pending_record_carries_only_session_fields_into_the_manifest(
     (partial / "pending.json").write_text(json.dumps({"key": recipe.key, "sessions": [forged, {"omitted": 3}]}))
     manifest = json.loads((ensure(recipe, store).path / MANIFEST).read_text())
     first, omitted, latest = manifest["sessions"]
-    assert first == {"device": ("gpu\\n| 999 |" + "x" * 500)[:provenance.MAX_SESSION_TEXT + 1],
+    assert first == {"device": ("gpu\\n| 999 |" + "x" * 500)[:provenance.MAX_DEVICE_CHARS + 1],
                      "started_at": "2026-12-01T20:12:38+0000", "wall_s": 12.5}
     assert omitted == {"omitted": 3} and latest["commit"] == "c" * 40
     assert "commit" not in manifest and manifest["device"] == first["device"]
