@@ -19,7 +19,7 @@ from typing import Any
 import yaml
 from pydantic import ValidationError
 
-from esr_cli.common import yamlio
+from esr_cli.common import inert_fields, yamlio
 from esr_cli.common.failures import Failure
 from esr_cli.model.spec import BUDGETS, HUMAN_PRESETS, KIND_MODELS, Spec
 
@@ -442,7 +442,11 @@ def _apply_budget(tree: dict, budget: str, entries: Any, own: bool, switched: se
 def _validated(tree: dict, budget: str, given: dict[str, str], source: str) -> Spec:
     tree["budget"] = budget
     try:
-        return validate(tree, source)
+        spec = validate(tree, source)
+        inert = inert_fields.first_inert(spec)  # written input only: a stored spec is validated as it is
+        if inert:
+            raise SpecError(source, *inert)
+        return spec
     except SpecError as e:
         raise _blame(e, given) from None
 

@@ -5,6 +5,7 @@ import re
 from pathlib import Path
 
 import pytest
+import yaml
 from conftest import ROOT
 
 from esr_cli.cli.main import main
@@ -375,3 +376,68 @@ def test_a_budget_that_gives_a_section_of_another_kind_keeps_every_field_it_name
     assert specs.load(path, "smoke", ["human.seed=3"]).human.seed == 3
     assert specs.load(path, "smoke", ["human={preset: paper}"]).human.kind == "ppo"
     assert specs.load(path, "smoke", ["human={kind: bc}"]).human.stay_weight == 0.1
+
+
+# Each field that acts only beside another field's value, given away from its default where it
+# cannot act: (spec file, the --set values that make it inert, the --set that makes it act).
+INERT = [
+    ("grid_2", ["method.inferred_codes=16"], "method.human_action=inferred"),
+    ("grid_2_goal_inference", ["method.step=0.25"], "method.variant=original"),
+    ("cramped_room", ["human.kind=ppo", "human.kl_coef=0.5"], "human.mode=bc_kl"),
+    ("cramped_room", ["human.kind=bc", "human.adapt_lr=0.01"], "human.adapt=true"),
+    ("cramped_room", ["human.kind=bc", "human.adapt_kl=2.5"], "human.adapt=true"),
+    ("cramped_room", ["human.kind=bc", "human.adapt_gamma=0.5"], "human.adapt=true"),
+    ("grid_2", ["network.mlp_layers=[8]"], "network.kind=mlp"),
+    ("cramped_room", ["network.conv_channels=[8]"], "network.kind=conv"),
+    ("cramped_room", ["network.hidden=50"], "network.kind=conv"),
+]
+
+
+def test_every_field_that_acts_only_beside_another_is_covered():
+    from esr_cli.common import inert_fields
+    covered = {sets[-1].split("=")[0] for _, sets, _ in INERT}
+    assert covered == {f"{r.section}.{r.field}" for r in inert_fields.INERT_FIELDS}
+
+
+@pytest.mark.parametrize("stem, sets, acts", INERT, ids=[s[-1].split("=")[0] for _, s, _ in INERT])
+def test_a_field_where_it_cannot_act_is_refused_by_name(stem, sets, acts):
+    """It would change only the run's key: a second run of the same program under a new key."""
+    path = f"experiments/{stem}.yaml"
+    key, value = sets[-1].split("=")
+    needs = acts.split("=")[0]
+    with pytest.raises(specs.SpecError) as e:
+        specs.load(path, "smoke", sets)
+    assert e.value.source == f"--set {sets[-1]}" and e.value.path == key
+    assert e.value.problem.startswith(f"{value} does nothing while {needs} is ") and f"set {acts.replace('=', ': ')}" in e.value.problem
+    specs.load(path, "smoke", [*sets, acts])  # where it acts, it is taken
+    specs.load(path, "smoke", [*sets[:-1], f"{key}={_default(key)}"])  # at its default it changes nothing
+
+
+def test_an_inert_field_in_a_file_names_the_set_that_made_it_inert(tmp_path):
+    f = tmp_path / "s.yaml"
+    f.write_text(f"extends: {Path('experiments/grid_2.yaml').resolve()}\nname: x\n"
+                 "method: {human_action: inferred, inferred_codes: 16}\n")
+    assert specs.load(f, "smoke").method.inferred_codes == 16
+    with pytest.raises(specs.SpecError) as e:
+        specs.load(f, "smoke", ["method.human_action=observed"])
+    assert e.value.source == str(f) and e.value.path == "method.inferred_codes"
+    assert "(method.human_action from --set method.human_action=observed)" in e.value.problem
+
+
+def test_a_spec_written_out_in_full_loads_again(tmp_path):
+    """A stored run's spec.yaml holds every field, the inert ones at their defaults."""
+    for stem in ("grid_2", "grid_2_goal_inference", "cramped_room"):
+        spec = specs.load(f"experiments/{stem}.yaml", "smoke")
+        written = yaml.safe_load(specs.to_yaml(spec))
+        written.pop("budget")  # chosen with --budget
+        f = tmp_path / f"{stem}.yaml"
+        f.write_text(yaml.safe_dump(written))
+        assert specs.load(f, "smoke") == spec
+
+
+def _default(key: str) -> str:
+    from esr_cli.common import inert_fields
+    rule = next(r for r in inert_fields.INERT_FIELDS if f"{r.section}.{r.field}" == key)
+    model = next(m for m in spec_model.KIND_MODELS.get(rule.section, {}).values()
+                 if rule.field in m.model_fields) if rule.kind else spec_model.NetworkSpec
+    return inert_fields.as_yaml(model.model_fields[rule.field].default)
