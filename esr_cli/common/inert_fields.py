@@ -21,6 +21,7 @@ class InertField:
     field: str
     needs: str  # the field of the same section that decides whether `field` acts
     acts_when: tuple[Any, ...]  # the values of `needs` under which it acts
+    only_where: tuple[tuple[str, Any], ...] = ()  # (key path, value): the rule holds only where these do
 
 
 INERT_FIELDS = (
@@ -30,6 +31,8 @@ INERT_FIELDS = (
     InertField("human", "bc", "adapt_lr", "adapt", (True,)),
     InertField("human", "bc", "adapt_kl", "adapt", (True,)),
     InertField("human", "bc", "adapt_gamma", "adapt", (True,)),
+    # the published Overcooked AvE steps once from s, whatever the rollout length (docs/baselines.md)
+    InertField("method", "ave", "rollout_length", "variant", ("fixed",), only_where=(("env.kind", "overcooked"),)),
     InertField("network", None, "mlp_layers", "kind", ("mlp",)),
     InertField("network", None, "conv_channels", "kind", ("conv",)),
     InertField("network", None, "hidden", "kind", ("conv",)),
@@ -45,18 +48,28 @@ def as_yaml(value: Any) -> str:
     return str(value)
 
 
+def _value(spec: Spec, dotted: str) -> Any:
+    node: Any = spec
+    for part in dotted.split("."):
+        node = getattr(node, part, None)
+    return node
+
+
 def first_inert(spec: Spec) -> tuple[str, str] | None:
     """(key path, problem) of the first field set away from its default where it cannot act."""
     for rule in INERT_FIELDS:
         section = getattr(spec, rule.section)
         if rule.kind is not None and getattr(section, "kind", None) != rule.kind:
             continue
+        if any(_value(spec, path) != value for path, value in rule.only_where):
+            continue
         value, default = getattr(section, rule.field), type(section).model_fields[rule.field].default
         decider = getattr(section, rule.needs)
         if value == default or decider in rule.acts_when:
             continue
         wanted = " or ".join(as_yaml(v) for v in rule.acts_when)
+        where = "".join(f" and {path} is {as_yaml(v)}" for path, v in rule.only_where)
         return (f"{rule.section}.{rule.field}",
-                f"{as_yaml(value)} does nothing while {rule.section}.{rule.needs} is {as_yaml(decider)}; it acts "
-                f"only with {rule.needs}: {wanted} (remove it, or set {rule.section}.{rule.needs}: {wanted})")
+                f"{as_yaml(value)} does nothing while {rule.section}.{rule.needs} is {as_yaml(decider)}{where}; it "
+                f"acts only with {rule.needs}: {wanted} (remove it, or set {rule.section}.{rule.needs}: {wanted})")
     return None

@@ -19,9 +19,9 @@ from typing import Any
 import yaml
 from pydantic import ValidationError
 
-from esr_cli.common import inert_fields, yamlio
+from esr_cli.common import inert_fields, ppo_batch, yamlio
 from esr_cli.common.failures import Failure
-from esr_cli.model.spec import BUDGETS, HUMAN_PRESETS, KIND_MODELS, Spec
+from esr_cli.model.spec import BUDGETS, HUMAN_PRESETS, KIND_MODELS, BCHumanSpec, Spec
 
 # Budget overrides used when a spec does not define its own `budgets:` entry for that budget.
 # `paper` is the spec as written. `quick` shows learning in minutes on a laptop CPU; `smoke`
@@ -237,7 +237,23 @@ def _not_a_kind(kind, kinds) -> str:
     return f"kind {kind!r} is not one of {', '.join(kinds)}"
 
 
+def _without_conv_widths(human: Any) -> Any:
+    """A BC human of network conv refuses `hidden` (the MLP's widths) written at all. A spec
+    written out in full, as a run's spec.yaml is, writes it at its default, which says nothing
+    (every field at its default passes, docs/specs.md): that one is left out."""
+    if not isinstance(human, dict):
+        return human
+    default = list(BCHumanSpec.model_fields["hidden"].default)
+    if human.get("network") == "conv" and isinstance(human.get("hidden"), (list, tuple)) and list(human["hidden"]) == default:
+        human = {k: v for k, v in human.items() if k != "hidden"}
+    if isinstance(human.get("clone"), dict):  # a PPO human's BC clone (mode bc_kl)
+        human = {**human, "clone": _without_conv_widths(human["clone"])}
+    return human
+
+
 def validate(raw: dict, source: str = "") -> Spec:
+    if "human" in raw:
+        raw = {**raw, "human": _without_conv_widths(raw["human"])}
     human = raw.get("human")
     if isinstance(human, dict) and not isinstance(human.get("preset", ""), (str, type(None))):
         # The spec's preset step runs before field types are checked, and looks the name up.
@@ -443,12 +459,22 @@ def _validated(tree: dict, budget: str, given: dict[str, str], source: str) -> S
     tree["budget"] = budget
     try:
         spec = validate(tree, source)
-        inert = inert_fields.first_inert(spec)  # written input only: a stored spec is validated as it is
-        if inert:
-            raise SpecError(source, *inert)
+        refused = _refused(spec)  # written input only: a stored spec is validated as it is
+        if refused:
+            raise SpecError(source, *refused)
         return spec
     except SpecError as e:
         raise _blame(e, given) from None
+
+
+def _refused(spec: Spec) -> tuple[str, str] | None:
+    """(key path, problem) of what a valid spec asks that esr would refuse or ignore: a field
+    where it cannot act, a PPO human whose batch PPO cannot split."""
+    if getattr(spec.human, "kind", None) == "ppo":
+        problem = ppo_batch.problem(spec.human)
+        if problem:
+            return problem
+    return inert_fields.first_inert(spec)
 
 
 def _switch_kind(tree: dict, dotted: str, value: Any) -> bool:

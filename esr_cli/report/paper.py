@@ -21,6 +21,7 @@ from rich.console import Console
 from esr_cli.common import specs
 from esr_cli.common.printing import tagged
 from esr_cli.common.stats import format_summary
+from esr_cli.model import spec as spec_model
 from esr_cli.recipes import sweep
 from esr_cli.report import figures as figs
 from esr_cli.storage import provenance
@@ -169,7 +170,8 @@ NAMED_ABLATIONS = {
 # (the methods a named ablation changes, in words for the refusal)
 ABLATION_APPLIES = {
     "no_robot_action": (lambda spec: spec.method.kind == "esr", "ESR's representations (method.kind: esr)"),
-    "greedy": (lambda spec: spec.method.kind != "random", "a method that learns a critic (the Random robot learns nothing)"),
+    "greedy": (lambda spec: spec.method.kind not in spec_model.POLICY_FREE_METHODS,
+               "a method that learns a critic (the Random and Goal Inference robots learn none)"),
 }
 # The package's own spec files, wherever esr is run from.
 DEFAULT_ABLATION_SPECS = tuple(str(figs.PAPER_SUITE.parents[1] / f"grid_{n}.yaml") for n in figs.GRID_NS)

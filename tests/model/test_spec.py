@@ -387,6 +387,7 @@ INERT = [
     ("cramped_room", ["human.kind=bc", "human.adapt_lr=0.01"], "human.adapt=true"),
     ("cramped_room", ["human.kind=bc", "human.adapt_kl=2.5"], "human.adapt=true"),
     ("cramped_room", ["human.kind=bc", "human.adapt_gamma=0.5"], "human.adapt=true"),
+    ("cramped_room_ave", ["method.variant=original", "method.rollout_length=2"], "method.variant=fixed"),
     ("grid_2", ["network.mlp_layers=[8]"], "network.kind=mlp"),
     ("cramped_room", ["network.conv_channels=[8]"], "network.kind=conv"),
     ("cramped_room", ["network.hidden=50"], "network.kind=conv"),
@@ -441,3 +442,39 @@ def _default(key: str) -> str:
     model = next(m for m in spec_model.KIND_MODELS.get(rule.section, {}).values()
                  if rule.field in m.model_fields) if rule.kind else spec_model.NetworkSpec
     return inert_fields.as_yaml(model.model_fields[rule.field].default)
+
+
+def test_a_conv_bc_human_takes_the_mlp_widths_only_at_their_default():
+    """A run's spec.yaml writes every field, `hidden` too; written by hand it must be left out."""
+    conv = ["human.kind=bc", "human.network=conv"]
+    spec = specs.load("experiments/cramped_room_random.yaml", "smoke", conv)
+    written = yaml.safe_load(specs.to_yaml(spec))
+    assert written["human"]["hidden"] == [64, 64] and specs.validate(written) == spec
+    assert specs.load("experiments/cramped_room_random.yaml", "smoke", [*conv, "human.hidden=[64,64]"]) == spec
+    with pytest.raises(specs.SpecError, match="human.hidden sizes the MLP"):
+        specs.load("experiments/cramped_room_random.yaml", "smoke", [*conv, "human.hidden=[32]"])
+
+
+PPO_HUMAN = "human={kind: ppo, total_steps: 2000, num_envs: %d, rollout_steps: %d}"
+
+
+@pytest.mark.parametrize("envs, steps, path, problem", [
+    (1, 9, "human", "1 x 9 x 2 = 18 actor-steps an update, which PPO's 4 minibatches cannot split evenly"),
+    (250, 9, "human.total_steps", "2,000 is less than one rollout: num_envs x rollout_steps = 250 x 9 = 2,250"),
+])
+def test_a_ppo_human_that_ppo_cannot_train_is_refused_before_any_work(tmp_path, capsys, envs, steps, path, problem):
+    with pytest.raises(specs.SpecError) as e:
+        specs.load("experiments/cramped_room.yaml", "smoke", [PPO_HUMAN % (envs, steps)])
+    assert e.value.path == path and problem in e.value.problem
+    assert main(["--store", str(tmp_path / "s"), "train", "experiments/cramped_room.yaml", "--budget", "smoke",
+                 "--set", PPO_HUMAN % (envs, steps)]) == 2
+    assert problem in capsys.readouterr().err and not (tmp_path / "s").exists()
+    specs.load("experiments/cramped_room.yaml", "smoke", [PPO_HUMAN % (2, 9)])  # 36 actor-steps split
+
+
+def test_the_ppo_batch_rule_uses_ppos_own_numbers():
+    from esr_cli.common import ppo_batch
+    from esr_cli.model.envs.overcooked import Overcooked
+    from esr_cli.model.humans import ppo
+    assert ppo_batch.MINIBATCHES == ppo.PPOConfig().num_minibatches
+    assert ppo_batch.SEATS == ppo.overcooked_env(Overcooked("cramped_room", 400)).players

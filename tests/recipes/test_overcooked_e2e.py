@@ -313,3 +313,14 @@ def test_a_human_cloned_from_played_episodes_partners_a_robot(per_seed_run, stor
         targets.complete_play_key(store, "ffff" if not any(k.startswith("ffff") for k in keys) else "0000")
     with pytest.raises(StoreError, match="is not in"):
         _evaluate(path, store, 2, console, "play:" + "0" * 32)
+
+
+@pytest.mark.slow
+def test_a_run_with_the_paper_network_as_its_bc_human_evaluates(small_data, store, console):
+    """Its spec.yaml writes the MLP widths out at their default, which a conv human refuses when
+    they are written by hand: read back from the store, the run is evaluated all the same."""
+    spec = specs.load("experiments/coord_ring_random.yaml", "smoke", SMALL_HUMAN + ["human.network=conv"])
+    path, _ = ensure(runs.run_recipe(spec, console), store)
+    assert "hidden:" in (path / "spec.yaml").read_text()
+    _, summary, _ = _evaluate(path, store, 2, console)
+    assert summary["human"] == "training" and summary["results"]
