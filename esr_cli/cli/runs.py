@@ -37,7 +37,7 @@ def train(
     import time
 
     if wandb and importlib.util.find_spec("wandb") is None:
-        raise Exit(2, "--wandb needs the wandb package: pip install 'esr[wandb]' (or pip install wandb)")
+        raise Exit(2, "--wandb needs the wandb package: pip install 'esr-cli[wandb]' (or pip install wandb)")
 
     # the limit counts from the command's start, as a scheduler's or a lent machine's does
     stop_at = None if stop_after is None else time.monotonic() + parse_duration(stop_after, "--stop-after")

@@ -148,5 +148,5 @@ def test_wandb_without_the_package_is_one_line_before_any_work(tmp_path, monkeyp
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "wandb" else real(name, *a))
     assert main(["--store", str(tmp_path), "train", "experiments/grid_2.yaml", "-b", "smoke", "--wandb"]) == 2
-    assert "--wandb needs the wandb package: pip install 'esr[wandb]'" in capsys.readouterr().err
+    assert "--wandb needs the wandb package: pip install 'esr-cli[wandb]'" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
