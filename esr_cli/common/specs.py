@@ -467,11 +467,17 @@ def _validated(tree: dict, budget: str, given: dict[str, str], source: str) -> S
         raise _blame(e, given) from None
 
 
+# Problems of one kind of a section that its builder would meet only once begun, asked when the
+# spec is read: (section, kind) -> problem(the section's spec) -> (key path, problem) or None.
+KIND_PROBLEMS = {("human", "ppo"): ppo_batch.problem}
+
+
 def _refused(spec: Spec) -> tuple[str, str] | None:
     """(key path, problem) of what a valid spec asks that esr would refuse or ignore: a field
     where it cannot act, a PPO human whose batch PPO cannot split."""
-    if getattr(spec.human, "kind", None) == "ppo":
-        problem = ppo_batch.problem(spec.human)
+    for (section, kind), problem_of in KIND_PROBLEMS.items():
+        part = getattr(spec, section)
+        problem = problem_of(part) if getattr(part, "kind", None) == kind else None
         if problem:
             return problem
     return inert_fields.first_inert(spec)
