@@ -1,20 +1,18 @@
 """Reading the JSON esr writes into a store (manifests, pending.json, checkpoint digests) and the
 JSON-lines files appended as work goes (metrics, played steps), with bounded work: a file or
-line larger than esr ever writes is refused unread, and so is nesting deeper than MAX_DEPTH, so
-one damaged or hostile artifact costs a listing one line, never its memory or its stack. Each
-file is opened without blocking and without following a link, and read only once the open file
-is known to be a regular one: a FIFO or a device put in a file's place is refused, never waited
-on (nor is a name checked first and opened after, when something else may lie there)."""
+line larger than esr ever writes is refused unread, and so is nesting deeper than MAX_DEPTH and a
+line or file of more lists and objects than esr ever writes (each costs the parser a Python object,
+far more than its two bytes of text), so one damaged or hostile artifact costs a listing one line,
+never its memory, its time or its stack. Files are opened as common/bounded_files.py opens them:
+regular files only, never a link, a FIFO or a device."""
 
 from __future__ import annotations
 
-import errno
-import fcntl
 import json
-import os
-import stat
 from pathlib import Path
 from typing import Any, BinaryIO
+
+from esr_cli.common import bounded_files
 
 MAX_DEPTH = 64  # a manifest nests about 6 levels (key components, spec, section, list)
 MAX_LINE_BYTES = 1 << 20  # a metrics line of 1,024 seeds is about 250 KiB
@@ -23,10 +21,29 @@ MAX_LINE_BYTES = 1 << 20  # a metrics line of 1,024 seeds is about 250 KiB
 # a command at a few GiB; training refuses a run whose metrics would pass it
 # (runner/resources.py::check_metrics_readable).
 MAX_JSONL_BYTES = 256 << 20
+# Lists and objects: a manifest holds about 50, a metrics line about 15 (one list a metric), a
+# played step's state a few hundred (its grids as nested lists), a metrics file of 10,000 epochs
+# about 150,000. A line of 1 MiB could hold 350,000, and a file of such lines take the parser
+# minutes and many GiB.
+MAX_CONTAINERS = 1 << 16  # in one JSON text (a file, or a line of a JSON-lines file)
+MAX_JSONL_CONTAINERS = 1 << 22
 
 
-class JsonInputError(ValueError):
+class JsonInputError(bounded_files.UnreadableInput):
     """A JSON text esr refuses to read; `str()` is one line."""
+
+
+def _containers(data: bytes) -> int:
+    """How many lists and objects `data` can hold at most (a bracket in a string counts too)."""
+    return data.count(b"{") + data.count(b"[")
+
+
+def _open(path: Path) -> BinaryIO:
+    """bounded_files.open_regular, its refusals as JsonInputError."""
+    try:
+        return bounded_files.open_regular(path)
+    except bounded_files.UnreadableInput as e:
+        raise JsonInputError(str(e)) from None
 
 
 def _depth(value: Any) -> int:
@@ -58,7 +75,9 @@ def _object(pairs: list) -> dict:
 
 def parse(data: bytes) -> Any:
     """The JSON value of `data`; JsonInputError where it is not UTF-8 JSON, names a key twice in
-    one object or nests too deeply."""
+    one object, holds more than MAX_CONTAINERS lists and objects or nests too deeply."""
+    if _containers(data) > MAX_CONTAINERS:
+        raise JsonInputError(f"JSON of more than {MAX_CONTAINERS:,} lists and objects (esr writes a few hundred at most)")
     too_deep = JsonInputError(f"nested deeper than {MAX_DEPTH} levels")
     try:
         value = json.loads(data, object_pairs_hook=_object)
@@ -77,66 +96,39 @@ def parse(data: bytes) -> Any:
     return value
 
 
-def open_regular(path: Path) -> BinaryIO:
-    """`path` open for reading, once the open file is known to be a regular one. Opened without
-    blocking (a FIFO does not wait for a writer) and without following a link, then made blocking
-    again. OSError where it cannot be opened (FileNotFoundError where nothing is there);
-    JsonInputError where it is a link or not a regular file."""
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW | os.O_CLOEXEC)
-    except OSError as e:
-        if e.errno == errno.ELOOP:  # O_NOFOLLOW met a link
-            raise JsonInputError("a link, not a regular file") from None
-        raise
-    try:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):  # a FIFO would block the reader, a device never end
-            raise JsonInputError("not a regular file")
-        flags = fcntl.fcntl(fd, fcntl.F_GETFL)
-        if flags & os.O_NONBLOCK:
-            fcntl.fcntl(fd, fcntl.F_SETFL, flags & ~os.O_NONBLOCK)
-        return os.fdopen(fd, "rb")
-    except BaseException:
-        os.close(fd)
-        raise
-
-
-def _too_large(f: BinaryIO, max_bytes: int) -> JsonInputError | None:
-    size = os.fstat(f.fileno()).st_size
-    return JsonInputError(f"{size:,} bytes, more than the {max_bytes:,} esr reads") if size > max_bytes else None
-
-
 def read_json(path: Path, max_bytes: int) -> Any:
     """The JSON value of file `path`. OSError where it cannot be read; JsonInputError where it is
     a link, not a regular file, larger than `max_bytes`, not UTF-8 JSON or nested too deeply."""
-    with open_regular(path) as f:
-        too_large = _too_large(f, max_bytes)
-        if too_large:
-            raise too_large
-        data = f.read(max_bytes + 1)  # a size the system misreports cannot make esr read more
-    if len(data) > max_bytes:
-        raise JsonInputError(f"more than the {max_bytes:,} bytes esr reads")
+    with _open(path) as f:
+        try:
+            data = bounded_files.read_at_most(f, max_bytes)
+        except bounded_files.UnreadableInput as e:
+            raise JsonInputError(str(e)) from None
     return parse(data)
 
 
 def read_jsonl(path: Path) -> list[dict]:
     """One dict per line; [] where the file does not exist yet. A line cut short by a kill ends
     the reading: everything after it is untrusted, as is everything after a line that is not a
-    JSON object, is longer than MAX_LINE_BYTES or nests too deeply, and after the first
-    MAX_JSONL_BYTES (a file that grew past them while it was read). JsonInputError where the file
-    is a link, not a regular file or larger than MAX_JSONL_BYTES; OSError where it cannot be read."""
+    JSON object, is longer than MAX_LINE_BYTES, holds more than MAX_CONTAINERS lists and objects
+    or nests too deeply, and after the first MAX_JSONL_BYTES or MAX_JSONL_CONTAINERS (a
+    file that grew past them while it was read, or one no esr command wrote). JsonInputError where
+    the file is a link, not a regular file or larger than MAX_JSONL_BYTES; OSError where it cannot
+    be read."""
     try:
-        f = open_regular(path)
+        f = _open(path)
     except FileNotFoundError:
         return []
     rows = []
     with f:
-        too_large = _too_large(f, MAX_JSONL_BYTES)
+        too_large = bounded_files.size_problem(f, MAX_JSONL_BYTES)
         if too_large:
-            raise too_large
-        left = MAX_JSONL_BYTES
+            raise JsonInputError(str(too_large))
+        left, containers_left = MAX_JSONL_BYTES, MAX_JSONL_CONTAINERS
         while left and (line := f.readline(min(MAX_LINE_BYTES + 1, left))):
             left -= len(line)
-            if len(line) > MAX_LINE_BYTES:
+            containers_left -= _containers(line)
+            if len(line) > MAX_LINE_BYTES or containers_left < 0:
                 break
             try:
                 row = parse(line)

@@ -234,7 +234,7 @@ def other_problems(e: ValidationError) -> str:
 
 
 def _not_a_kind(kind, kinds) -> str:
-    return f"kind {kind!r} is not one of {', '.join(kinds)}"
+    return f"kind {shown_override(repr(kind))} is not one of {', '.join(kinds)}"
 
 
 def _without_conv_widths(human: Any) -> Any:

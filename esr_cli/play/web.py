@@ -34,6 +34,7 @@ import threading
 import time
 from dataclasses import dataclass
 
+import h11
 import numpy as np
 import uvicorn
 from PIL import Image
@@ -42,6 +43,7 @@ from starlette.requests import HTTPConnection
 from starlette.responses import HTMLResponse, PlainTextResponse
 from starlette.routing import Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect
+from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from esr_cli.play.game import CLOSED, KeyPress, View
 from esr_cli.play.study import MAX_TEXT_ANSWER
@@ -55,6 +57,13 @@ MAX_WAITING = 1024  # messages queued and not yet taken by the game: no person t
 # Close codes with which the websocket layer ends a connection over a bad frame from the browser.
 BAD_FRAMES = {1002: "a malformed frame", 1007: "text that is not UTF-8", 1009: f"a message over {MAX_MESSAGE_BYTES:,} bytes"}
 SCALE = {True: 3, False: 2}  # a small picture (the gridworld's) drawn larger than a large one
+# A request's line and headers must arrive whole this soon after the connection is made (or its
+# last response is sent): a browser sends them at once, while a client trickling a header every
+# few seconds would otherwise hold its connection, and a file descriptor, for ever.
+HEAD_TIMEOUT_S = 10.0
+# Connections open at once, websockets included: a study's participants hold one each (and a page
+# load or two); past this a new connection is closed at once, before it costs more than its socket.
+MAX_CONNECTIONS = 256
 
 PAGE = """<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>esr play</title>
@@ -424,6 +433,48 @@ def is_loopback(host: str) -> bool:
         return host == "localhost"
 
 
+class BoundedH11(H11Protocol):
+    """uvicorn's HTTP/1.1 protocol with the two bounds a server open to many clients needs:
+    at most MAX_CONNECTIONS at once, and each request's head within HEAD_TIMEOUT_S."""
+
+    head_deadline: asyncio.TimerHandle | None = None
+
+    def connection_made(self, transport) -> None:
+        super().connection_made(transport)
+        if len(self.connections) > MAX_CONNECTIONS:
+            transport.close()
+            return
+        self._await_head()
+
+    def _await_head(self) -> None:
+        self._head_arrived()
+        self.head_deadline = self.loop.call_later(HEAD_TIMEOUT_S, self._head_too_slow)
+
+    def _head_arrived(self) -> None:
+        if self.head_deadline is not None:
+            self.head_deadline.cancel()
+            self.head_deadline = None
+
+    def _head_too_slow(self) -> None:
+        self.head_deadline = None
+        if self.conn.their_state is h11.IDLE and not self.transport.is_closing():
+            self.transport.close()
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        if self.conn.their_state is not h11.IDLE:  # a request's head was read (a websocket's upgrade too)
+            self._head_arrived()
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        if not self.transport.is_closing() and self.conn.their_state is h11.IDLE:  # kept alive: the next head is timed
+            self._await_head()
+
+    def connection_lost(self, exc) -> None:
+        self._head_arrived()
+        super().connection_lost(exc)
+
+
 class Server(abc.ABC):
     """The page and its websocket served by uvicorn in a thread beside the game loops. Each
     admission token lets one participant in: `admit(token)` -> the Channel its tab plays on."""
@@ -444,7 +495,7 @@ class Server(abc.ABC):
         self.local = is_loopback(host)
         self.base = public_url or f"http://{host if host not in ('0.0.0.0', '::') else socket.gethostname()}:{port}/"
         app = Starlette(routes=[Route("/", self._page), WebSocketRoute("/ws", self._play)])
-        config = uvicorn.Config(app, host=host.strip("[]"), port=port, log_level="warning", lifespan="off",
+        config = uvicorn.Config(app, host=host.strip("[]"), port=port, log_level="warning", lifespan="off", http=BoundedH11,
                                 ws="websockets-sansio", ws_max_size=MAX_MESSAGE_BYTES, log_config=None)  # logs: OneLine
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, name="esr-play-web", daemon=True)

@@ -23,6 +23,7 @@ import numpy as np
 from flax import serialization
 from rich.console import Console
 
+from esr_cli.common import bounded_files
 from esr_cli.model.envs.overcooked import Overcooked
 from esr_cli.model.humans import bc, human_eval, overcooked_data as od
 from esr_cli.recipes import play_data
@@ -32,10 +33,16 @@ from esr_cli.storage.store import DATA_KIND, HUMAN_KIND, PLAY_KIND, Store, Store
 
 DATA_SOURCES = ("model/envs/overcooked.py", "model/humans/overcooked_data.py")
 BC_SOURCES = DATA_SOURCES + ("model/humans/bc.py", "model/humans/human_eval.py", "model/networks.py")
-PLAY_DATA_SOURCES = ("model/envs/overcooked.py", "recipes/play_data.py")
+# Played episodes become data through the environments and the two readers below, taken without
+# what they import (the store's and JSON's plumbing decides which files are read, never the pairs).
+PLAY_DATA_SOURCES = ("model/envs", "model/spec.py")
+PLAY_DATA_READERS = ("recipes/play_data.py", "storage/play_log.py")
 # Rows checked by replaying the recorded joint action when the data artifact is built.
 REPLAY_SAMPLE = 1000
 PARAMS_FILE, POLICY_FILE, DATA_FILE = "params.msgpack", "policy.json", "data.npz"
+# What esr reads of a stored human's parameters (a convolutional actor-critic is under 1 MiB) and
+# of human data (the largest layout's trials, both players' views: about 100 MiB unpacked).
+MAX_PARAMS_BYTES, MAX_DATA_BYTES = 64 << 20, 2 << 30
 
 
 def _version(name: str) -> str | None:
@@ -67,7 +74,7 @@ def play_data_key(episodes: tuple[str, ...], layout: str) -> tuple[str, dict]:
         "source": "play",
         "layout": layout,
         "episodes": list(episodes),
-        "code": provenance.code_digest(PLAY_DATA_SOURCES),
+        "code": provenance.code_digest(PLAY_DATA_SOURCES, PLAY_DATA_READERS),
         "toolchain": provenance.toolchain(),
     }
     return content_key(components), components
@@ -150,8 +157,11 @@ def play_data_recipe(episodes: tuple[str, ...], layout: str, console: Console) -
 
 
 def load_data(path: Path) -> dict[str, np.ndarray]:
-    with np.load(Path(path) / DATA_FILE) as f:
-        return {k: f[k] for k in f.files}
+    file = Path(path) / DATA_FILE
+    try:
+        return bounded_files.load_npz(file, MAX_DATA_BYTES)
+    except (bounded_files.UnreadableInput, OSError) as e:
+        raise StoreError(f"damaged human data: {file}: {e}") from None
 
 
 def human_recipe(human_spec, layout: str, console: Console) -> Recipe:
@@ -201,4 +211,8 @@ def human_recipe(human_spec, layout: str, console: Console) -> Recipe:
 
 
 def load_params(path: Path):
-    return serialization.msgpack_restore((Path(path) / PARAMS_FILE).read_bytes())
+    file = Path(path) / PARAMS_FILE
+    try:
+        return serialization.msgpack_restore(bounded_files.read_bytes(file, MAX_PARAMS_BYTES))
+    except (bounded_files.UnreadableInput, OSError) as e:
+        raise StoreError(f"damaged human: {file}: {e}") from None

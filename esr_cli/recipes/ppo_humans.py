@@ -27,6 +27,7 @@ import numpy as np
 from flax import serialization
 from rich.console import Console
 
+from esr_cli.common import bounded_files
 from esr_cli.model.envs.overcooked import Overcooked
 from esr_cli.model.humans import bc, conv_actor_critic as cac, human_eval, ppo
 from esr_cli.recipes import human_runs
@@ -37,6 +38,7 @@ from esr_cli.storage.store import HUMAN_KIND, Store, StoreError, atomic_write_by
 
 PPO_SOURCES = ("model/envs/overcooked.py", "model/humans/ppo.py", "model/humans/conv_actor_critic.py", "model/humans/human_eval.py")
 CHECKPOINT_FILE = "ppo_state.npz"
+CHECKPOINT_METRICS_BYTES = 64 << 20  # beside the state: each update's metrics (a few KiB per thousand updates)
 METRICS_FILE = "metrics.jsonl"
 EPISODE_STEPS = 400  # the paper's Overcooked horizon, in training and in the recorded returns
 
@@ -79,12 +81,17 @@ def load_checkpoint(out: Path, like: ppo.RunnerState) -> tuple[ppo.RunnerState, 
     """The state and metrics saved in `out`, shaped as `like`; None where there is none. A file
     that does not fit `like` is an error: the partial directory belongs to this key."""
     path = out / CHECKPOINT_FILE
-    if not path.is_file():
+    if not path.exists() and not path.is_symlink():  # anything else there is read, or refused by name
         return None
     leaves, treedef = jax.tree.flatten(like)
-    with np.load(path, allow_pickle=False) as f:
-        saved = [f[f"state_{i}"] for i in range(len(leaves)) if f"state_{i}" in f.files]
-        history = {k[len("metric_"):]: f[k].tolist() for k in f.files if k.startswith("metric_")}
+    # The state's own size, and room for the metrics of every update: a file that unpacks to more is not this human's.
+    most = sum(np.asarray(leaf).nbytes for leaf in leaves) + CHECKPOINT_METRICS_BYTES
+    try:
+        f = bounded_files.load_npz(path, most)
+    except (bounded_files.UnreadableInput, OSError) as e:
+        raise StoreError(f"{path} cannot be read ({e}): remove it to start the human afresh") from None
+    saved = [f[f"state_{i}"] for i in range(len(leaves)) if f"state_{i}" in f]
+    history = {k[len("metric_"):]: f[k].tolist() for k in f if k.startswith("metric_")}
     bad = len(saved) != len(leaves) or any(a.shape != np.shape(b) or a.dtype != np.asarray(b).dtype for a, b in zip(saved, leaves))
     if bad:
         raise StoreError(f"{path} does not hold this human's PPO state: remove it to start the human afresh")

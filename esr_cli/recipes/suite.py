@@ -304,7 +304,7 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
                 spec = specs.resolve(raw_spec, budget, list(sets), source=str(spec_path))
             except specs.SpecError as e:
                 # Name the suite entry and the overrides too: the spec file alone may be fine.
-                at = f" with {' '.join(sets)}" if sets else ""
+                at = f" with {' '.join(specs.shown_override(t) for t in sets)}" if sets else ""
                 raise SuiteError(source, where, f"{entry.spec}{at}{_origin(specs.attributed(spec_path, e), spec_path)}") from None
             key, _ = runs.run_key(spec)
             if key in seen:

@@ -44,7 +44,7 @@ from esr_cli.recipes import check_columns
 from esr_cli.recipes.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
 from esr_cli.storage import provenance
 from esr_cli.storage.artifacts import ensure
-from esr_cli.storage.store import RUN_KIND, Store, atomic_write_text, read_pending
+from esr_cli.storage.store import RUN_KIND, Store, StoreError, atomic_write_text, lock_holder, open_lock, read_pending
 
 EXECUTORS = ("local", "slurm", "submitit-local")
 STATES = ("done", "running", "queued", "stopped", "failed", "missing")
@@ -114,7 +114,7 @@ def _state_lock(store: Store, suite: Suite):
     """Two sweeps of one suite at once must not lose each other's job records."""
     path = state_path(store, suite).with_suffix(".lock")
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = open_lock(path, create=True)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX)
         yield
@@ -148,7 +148,7 @@ def _lock_holder(store: Store, key: str) -> Optional[str]:
     """Who holds the run's lock, or None. Probing takes a shared flock and drops it at once."""
     path = store.lock_path(RUN_KIND, key)
     try:
-        fd = os.open(path, os.O_RDONLY)
+        fd = open_lock(path)
     except FileNotFoundError:
         return None
     try:
@@ -157,7 +157,7 @@ def _lock_holder(store: Store, key: str) -> Optional[str]:
     except OSError as e:
         if e.errno not in (errno.EAGAIN, errno.EACCES):
             raise
-        return os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
+        return lock_holder(fd)
     finally:
         os.close(fd)  # also releases the probe's lock if it was taken
 
@@ -287,7 +287,10 @@ def _run_status(store: Store, run: Run, rec: object) -> RunStatus:
     if hit:
         return RunStatus(run, "done", path=hit)
     partial = store.partial_path(RUN_KIND, run.key)
-    holder = _lock_holder(store, run.key)
+    try:
+        holder = _lock_holder(store, run.key)
+    except StoreError as e:  # something not a lock file in the lock's place: this run cannot start
+        return RunStatus(run, "failed", str(e), partial if partial.is_dir() else None)
     if holder:
         return RunStatus(run, "running", holder, partial)
     job_state, detail = _job_outcome(store, rec) if rec is not None else ("", "")

@@ -11,14 +11,13 @@
 
 from __future__ import annotations
 
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
 from rich.console import Console
 
-from esr_cli.common import specs
+from esr_cli.common import bounded_files, specs
 from esr_cli.common.printing import tagged
 from esr_cli.common.stats import format_summary
 from esr_cli.model import spec as spec_model
@@ -26,7 +25,7 @@ from esr_cli.recipes import sweep
 from esr_cli.report import figures as figs
 from esr_cli.storage import provenance
 from esr_cli.storage.artifacts import Recipe, ensure, read_summary
-from esr_cli.storage.store import FIGURE_KIND, RUN_KIND, Store, atomic_write_text, content_key
+from esr_cli.storage.store import FIGURE_KIND, RUN_KIND, Store, StoreError, atomic_write_text, content_key
 
 PLOT_SOURCES = ("report/figures.py", "common/plots.py", "report/paper.py", "analysis")
 
@@ -56,6 +55,27 @@ def figure_recipe(store: Store, budget: str, name: str, inputs: Optional[figs.Pa
                   unfinished=tuple(figs.unfinished_note(*inputs.progress[p]) for p in paths if p in inputs.progress))
 
 
+MAX_FIGURE_FILE_BYTES = 64 << 20  # a figure's PNG, PDF or table: a few MiB at most
+
+
+def _copy_figure_file(figure_dir: Path, name, into: Path) -> None:
+    """One file a stored figure's summary lists, copied into the report: a plain name inside the
+    figure's folder, a regular file of bounded size (a summary or a file edited by hand is refused)."""
+    if not isinstance(name, str) or Path(name).name != name or name in ("", ".", ".."):
+        raise StoreError(f"damaged figure: {figure_dir}: its summary lists {str(name)[:80]!r}, which is not a file in its folder")
+    try:
+        bounded_files.copy_file(figure_dir / name, into / name, MAX_FIGURE_FILE_BYTES)
+    except (bounded_files.UnreadableInput, OSError) as e:
+        raise StoreError(f"damaged figure: {figure_dir / name}: {e}") from None
+
+
+def _figure_text(path: Path) -> str:
+    try:
+        return bounded_files.read_bytes(path, MAX_FIGURE_FILE_BYTES).decode()
+    except (bounded_files.UnreadableInput, OSError, UnicodeDecodeError) as e:
+        raise StoreError(f"damaged figure: {path}: {e}") from None
+
+
 def ensure_report(store: Store, budget: str, console: Console) -> Path:
     """Every figure (artifacts), then the report artifact with them inline."""
     from esr_cli.model.train import release_compiled  # some figures compile programs (jax)
@@ -78,13 +98,13 @@ def ensure_report(store: Store, budget: str, console: Console) -> Path:
             summary = read_summary(path)
             (out / figure).mkdir()
             for f in summary["files"]:
-                shutil.copy2(path / f, out / figure / f)
+                _copy_figure_file(path, f, out / figure)
             doc = _FIGURE_DOCS[figure]
             lines += [f"## {doc[0]}", "", doc[1], "", f"![{figure}]({figure}/{figure}.png)", "",
                       f"Artifact: `{path.name}`; runs: {len(summary['provenance']['artifacts'].get('runs', []))}; "
                       f"seeds: {summary['provenance'].get('seeds')}", ""]
             if figure == "fig2_overcooked":
-                lines += [(path / "fig2_overcooked.md").read_text(), ""]
+                lines += [_figure_text(path / "fig2_overcooked.md"), ""]
             if "final_return" in summary and figure != "fig2_overcooked":
                 lines += _final_table(summary["final_return"]) + [""]
         atomic_write_text(out / "report.md", "\n".join(lines))

@@ -213,6 +213,7 @@ def available_device_bytes() -> int | None:
 # A metrics row holds about 16 metrics: per seed some 12 bytes a value, per row some 300 bytes of
 # names and counters. On the safe side, so that a run esr writes can always be read back.
 METRICS_ROW_BYTES, METRICS_SEED_BYTES = 400, 240
+METRICS_ROW_CONTAINERS = 32  # lists and objects in one logged epoch (about 15: a list a metric)
 
 
 def metrics_bytes(spec) -> int:
@@ -222,9 +223,14 @@ def metrics_bytes(spec) -> int:
 
 def check_metrics_readable(spec) -> None:
     """Raise ResourceError when the run's metrics would pass what esr reads back of a
-    metrics.jsonl (`jsonl.MAX_JSONL_BYTES`): such a run could be trained but never reported."""
-    from esr_cli.common.jsonl import MAX_JSONL_BYTES
+    metrics.jsonl (`jsonl.MAX_JSONL_BYTES`, `jsonl.MAX_JSONL_CONTAINERS`): such a run could be
+    trained but never reported."""
+    from esr_cli.common.jsonl import MAX_JSONL_BYTES, MAX_JSONL_CONTAINERS
 
+    if spec.train.epochs * METRICS_ROW_CONTAINERS > MAX_JSONL_CONTAINERS:
+        raise ResourceError(
+            f"{spec.name}: {spec.train.epochs:,} epochs would log more lines of metrics than esr reads back of a run "
+            f"(at most {MAX_JSONL_CONTAINERS // METRICS_ROW_CONTAINERS:,} epochs): train fewer epochs")
     if metrics_bytes(spec) > MAX_JSONL_BYTES:
         raise ResourceError(
             f"{spec.name}: {spec.train.epochs:,} epochs of {len(spec.train.seeds):,} seeds would log about "

@@ -24,6 +24,7 @@ import os
 import re
 import shlex
 import shutil
+import stat
 import tempfile
 import time
 from contextlib import contextmanager
@@ -264,7 +265,7 @@ class Store:
         or with wait=False raise LockBusy at once."""
         path = self.lock_path(kind, key)
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = open_lock(path, create=True)
         try:
             told = False
             while True:
@@ -277,8 +278,7 @@ class Store:
                     if not wait:
                         raise LockBusy(f"{kind} {key[:12]} is being written by another process") from None
                     if on_wait and not told:
-                        holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
-                        on_wait(holder)
+                        on_wait(lock_holder(fd))
                         told = True
                     time.sleep(poll_s)
             os.ftruncate(fd, 0)
@@ -391,6 +391,31 @@ class Store:
 
 STAGING_PREFIX = ".import-"  # an import's staging folder: .import-<pid>-<random>@<host>
 STAGING_RE = re.compile(re.escape(STAGING_PREFIX) + r"(?P<pid>[0-9]{1,10})-[a-z0-9_]+@(?P<host>[A-Za-z0-9._-]+)")
+
+
+def open_lock(path: Path, create: bool = False) -> int:
+    """A descriptor of the lock file `path` (to take the lock: created, open for writing; else
+    open for reading, to see who holds it), once it is known to be a regular file: a link is never followed (locking truncates the file, so a link could empty
+    another), a FIFO or device put in its place is never waited on. FileNotFoundError where there
+    is none and `create` is False; StoreError naming the file where it is not a lock file."""
+    flags = os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC | (os.O_RDWR | os.O_CREAT if create else os.O_RDONLY)
+    try:
+        fd = os.open(path, flags, 0o644)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise StoreError(f"{printable(str(path))} is a link, not a lock file: remove it") from None
+        if isinstance(e, FileNotFoundError):
+            raise
+        raise StoreError(f"lock file {printable(str(path))} cannot be opened ({e.strerror or e})") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise StoreError(f"{printable(str(path))} is not a regular file, so not a lock file: remove it")
+    return fd
+
+
+def lock_holder(fd: int) -> str:
+    """Who a held lock file says holds it (its first 200 bytes, escaped), or 'another process'."""
+    return printable(os.pread(fd, 200, 0).decode(errors="replace").strip()) or "another process"
 
 
 def _host() -> str:

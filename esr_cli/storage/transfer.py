@@ -27,7 +27,8 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO, Iterator
 
-from esr_cli.common import faults, tar_reader, yamlio
+from esr_cli.common import bounded_files, faults, tar_reader, yamlio
+from esr_cli.common.printing import printable
 from esr_cli.common.jsonl import read_jsonl
 from esr_cli.storage.checkpoint_files import CHECKPOINT_DIR, epochs_problem, state_epochs_problem, verified_steps, verify_artifact
 from esr_cli.storage.finals import epoch_rows, run_length
@@ -79,12 +80,12 @@ def export(store: Store, ref: str, out: Path | None = None, without_checkpoint: 
     with tempfile.TemporaryDirectory(prefix=".export-", dir=out.parent) as tmp:
         stage = Path(tmp) / arcroot  # laid out as in a store: verify checks the kind folder
         if status == "complete":
-            shutil.copytree(src, stage, ignore=_leaving_out(src, LEFT_OUT[kind]) if without_checkpoint else None)
+            copy_plain_tree(src, stage, ignore=_leaving_out(src, LEFT_OUT[kind]) if without_checkpoint else None)
             problems = verify_artifact(store, stage)
             if problems:
                 raise StoreError(f"{kind} {key[:12]} fails its manifest ({problems[0]}); `{store.invocation()} verify {key[:12]}` lists every problem")
         elif without_checkpoint:
-            shutil.copytree(src, stage, ignore=_record_only(src))
+            copy_plain_tree(src, stage, ignore=_record_only(src))
         else:
             snapshot_partial(src, stage)
         files = sorted(p for p in stage.rglob("*") if p.is_file())
@@ -120,12 +121,68 @@ def snapshot_partial(src: Path, stage: Path) -> None:
             raise StoreError(f"{src} has no verified checkpoint yet: nothing that could resume")
         step = steps[0]
         try:
-            shutil.copytree(src, stage, ignore=_keep_checkpoint(src / CHECKPOINT_DIR, step))
-        except (FileNotFoundError, shutil.Error):
+            copy_plain_tree(src, stage, ignore=_keep_checkpoint(src / CHECKPOINT_DIR, step))
+        except FileNotFoundError:
             continue  # a checkpoint was removed while it was copied
         if verified_steps(stage) == [step]:
             return
     raise StoreError(f"{src} kept changing while it was copied ({SNAPSHOT_TRIES} tries); try again")
+
+
+def copy_plain_tree(src: Path, dst: Path, ignore=None) -> None:
+    """Copy the folder `src` to `dst` (new), as shutil.copytree with `ignore` would, where an
+    artifact holds folders and regular files only: a link, a FIFO or a device inside it is refused
+    by name (StoreError), never followed or read, and each file is copied to the size it had when
+    listed (a file that grows meanwhile cannot fill the disk). Before a byte is written, those
+    sizes together must fit the free space of `dst`'s disk. FileNotFoundError where a file goes
+    away meanwhile (a run deleting an old checkpoint)."""
+    plan: list[tuple[Path, int | None]] = []  # (relative path, its size; None for a folder)
+    total, todo = 0, [Path()]
+    while todo:
+        rel = todo.pop()
+        plan.append((rel, None))
+        with os.scandir(src / rel) as entries:
+            listed = {e.name: e for e in entries}
+        skipped = set(ignore(str(src / rel), list(listed)) if ignore else ())
+        for name in sorted(set(listed) - skipped):
+            entry = listed[name]
+            if entry.is_dir(follow_symlinks=False):
+                todo.append(rel / name)
+            elif entry.is_file(follow_symlinks=False):
+                size = entry.stat(follow_symlinks=False).st_size
+                plan.append((rel / name, size))
+                total += size
+            else:
+                what = "a link" if entry.is_symlink() else "a FIFO, a socket or a device"
+                raise StoreError(f"{printable(str(src / rel / name))} is {what}: an artifact holds plain files and folders "
+                                 f"only; `esr verify` checks it, remove what is not the artifact's")
+    free = shutil.disk_usage(_existing_parent(dst)).free
+    if total > free:
+        raise StoreError(f"{src} holds {total / (1 << 20):,.1f} MiB but {_existing_parent(dst)} has {free / (1 << 20):,.1f} MiB free")
+    for rel, size in plan:
+        if size is None:
+            (dst / rel).mkdir(parents=True, exist_ok=rel != Path())
+        else:
+            _copy_regular(src / rel, dst / rel, size)
+
+
+def _existing_parent(path: Path) -> Path:
+    while not path.exists():
+        path = path.parent
+    return path
+
+
+def _copy_regular(src: Path, dst: Path, size: int) -> None:
+    """Copy at most `size` bytes of one regular file, without following a link or waiting on a FIFO."""
+    try:
+        f = bounded_files.open_regular(src)
+    except bounded_files.UnreadableInput as e:  # replaced by a link or a FIFO since it was listed
+        raise StoreError(f"{printable(str(src))} is {e}: an artifact holds plain files only") from None
+    with f, open(dst, "xb") as out:
+        left = size
+        while left > 0 and (block := f.read(min(left, 1 << 20))):
+            out.write(block)
+            left -= len(block)
 
 
 def _remove_copy(tree: Path) -> None:

@@ -1185,6 +1185,9 @@ def test_a_run_whose_metrics_esr_could_not_read_back_is_refused_before_any_work(
     many = specs.load(ROOT / "experiments/grid_5.yaml", "paper", ["train.seeds=200"])
     with pytest.raises(resources.ResourceError, match=r"200 seeds would log about .* MiB of metrics, more than the 256 MiB"):
         resources.check_run_fits(many)
+    long = specs.load(ROOT / "experiments/grid_5.yaml", "paper", ["train.seeds=1", "train.epochs=500000"])
+    with pytest.raises(resources.ResourceError, match=r"500,000 epochs would log more lines of metrics than esr reads back of a run \(at most 131,072 epochs\)"):
+        resources.check_run_fits(long)
 
 
 def test_the_report_and_tables_refuse_what_they_cannot_read_or_write_before_any_work(tmp_path):

@@ -991,6 +991,46 @@ def test_a_port_left_in_time_wait_is_free_to_serve_on():
         assert web.url.startswith(f"http://127.0.0.1:{port}/?token=")
 
 
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_client_trickling_its_request_head_is_cut_off_and_connections_are_bounded(monkeypatch):
+    """A request whose line and headers do not arrive whole within HEAD_TIMEOUT_S is closed (a
+    client sending a header line every few seconds once held its connection for ever), and past
+    MAX_CONNECTIONS a new connection is closed at once; a browser's request is answered."""
+    from rich.console import Console
+
+    from esr_cli.play import web as web_module
+
+    monkeypatch.setattr(web_module, "HEAD_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(web_module, "MAX_CONNECTIONS", 3)
+    port = _free_port()
+    with web_module.Web(port, Console(file=io.StringIO())) as web:
+        slow = socket.create_connection(("127.0.0.1", port), timeout=10)
+        slow.sendall(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+        t0 = time.monotonic()
+        for _ in range(3):  # a header line now and then: the head is still not whole
+            time.sleep(0.3)
+            try:
+                slow.sendall(b"X-Slow: 1\r\n")
+            except OSError:
+                break
+        assert slow.recv(1024) == b"" and time.monotonic() - t0 < 5  # closed by the server, unanswered
+        slow.close()
+        held = [socket.create_connection(("127.0.0.1", port), timeout=10) for _ in range(3)]
+        extra = socket.create_connection(("127.0.0.1", port), timeout=10)
+        assert extra.recv(1024) == b""  # the fourth at once: closed before its request
+        for c in held + [extra]:
+            c.close()
+        time.sleep(0.2)
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as ok:
+            ok.sendall(f"GET /?token={web.token} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n".encode())
+            assert ok.recv(64).startswith(b"HTTP/1.1 200")
+
+
 # ---------------------------------------------------------------- the data it leaves
 @pytest.mark.slow
 def test_overcooked_episodes_export_to_the_human_data_schema_and_replay(tmp_path):

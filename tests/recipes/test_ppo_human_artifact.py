@@ -5,6 +5,7 @@ calibrated with returns a plain evaluation of the same human reproduces."""
 
 import json
 import math
+import os
 import shlex
 import signal
 import subprocess
@@ -129,6 +130,49 @@ def test_a_checkpoint_of_another_shape_is_refused(tmp_path):
     other = runner._replace(episode_return=np.zeros(7, np.float32))
     with pytest.raises(StoreError, match="does not hold this human's PPO state"):
         ppo_humans.load_checkpoint(tmp_path, other)
+
+
+@pytest.mark.parametrize("put", ["link to /dev/zero", "fifo", "too large"])
+def test_a_stored_humans_files_are_read_as_regular_files_of_bounded_size(tmp_path, monkeypatch, put):
+    """A human's params.msgpack and human data's data.npz, replaced by hand with a link to
+    /dev/zero (read until memory ran out), a FIFO (waited on for ever) or a file larger than esr
+    writes, are refused in one line naming the file; a PPO checkpoint likewise."""
+    monkeypatch.setattr(human_runs, "MAX_PARAMS_BYTES", 1000)
+    monkeypatch.setattr(human_runs, "MAX_DATA_BYTES", 1000)
+    for name, load in ((human_runs.PARAMS_FILE, human_runs.load_params), (human_runs.DATA_FILE, human_runs.load_data),
+                       (ppo_humans.CHECKPOINT_FILE, lambda p: ppo_humans.load_checkpoint(p, {"w": np.zeros(3)}))):
+        folder = tmp_path / name
+        folder.mkdir()
+        if put == "link to /dev/zero":
+            (folder / name).symlink_to("/dev/zero")
+        elif put == "fifo":
+            os.mkfifo(folder / name)
+        else:
+            (folder / name).write_bytes(b"\0" * (64 << 20) + b"\0" * 2000 if name == ppo_humans.CHECKPOINT_FILE else b"\0" * 2000)
+        signal.alarm(20)  # a regression would block on the FIFO: the alarm ends the test
+        try:
+            with pytest.raises(StoreError) as refused:
+                load(folder)
+        finally:
+            signal.alarm(0)
+        said = str(refused.value)
+        assert str(folder / name) in said and "\n" not in said
+        assert any(w in said for w in ("a link, not a regular file", "not a regular file", "more than the")), said
+
+
+def test_an_npz_is_read_only_to_the_size_its_arrays_may_unpack_to(tmp_path):
+    """A compressed .npz of a few KiB may unpack to gigabytes: its members' declared sizes are
+    summed before anything is unpacked; pickled objects are never read."""
+    from esr_cli.common import bounded_files
+
+    np.savez_compressed(tmp_path / "small.npz", a=np.zeros(10_000, np.uint8))
+    assert (tmp_path / "small.npz").stat().st_size < 1000
+    assert bounded_files.load_npz(tmp_path / "small.npz", 20_000)["a"].shape == (10_000,)
+    with pytest.raises(bounded_files.UnreadableInput, match=r"^unpacks to 10,\d{3} bytes, more than the 5,000 esr reads$"):
+        bounded_files.load_npz(tmp_path / "small.npz", 5000)
+    np.savez(tmp_path / "objects.npz", a=np.array([{"x": 1}], dtype=object))
+    with pytest.raises(bounded_files.UnreadableInput, match="not an .npz file of plain arrays"):
+        bounded_files.load_npz(tmp_path / "objects.npz", 1 << 20)
 
 
 @pytest.mark.slow

@@ -3,6 +3,7 @@
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -221,6 +222,32 @@ def test_lock_of_a_dead_process_is_free(tmp_path):
         pass
 
 
+@pytest.mark.parametrize("intruder", ["link", "fifo"])
+def test_a_lock_file_that_is_a_link_or_a_fifo_is_named_never_followed_or_waited_on(tmp_path, intruder):
+    """Taking a lock empties its file, so a link in its place once emptied the file it led to; a
+    FIFO hung `esr sweep --status`. Both are refused by name, and what the link leads to is kept."""
+    from esr_cli.recipes.sweep import _lock_holder
+
+    store = Store(tmp_path / "store")
+    key = "ab" * 16
+    lock = store.lock_path("runs", key)
+    lock.parent.mkdir(parents=True)
+    precious = tmp_path / "precious.txt"
+    precious.write_text("keep me")
+    lock.symlink_to(precious) if intruder == "link" else os.mkfifo(lock)
+    said = "is a link, not a lock file" if intruder == "link" else "is not a regular file, so not a lock file"
+    signal.alarm(20)  # a regression would block on the FIFO: the alarm ends the test
+    try:
+        with pytest.raises(StoreError, match=said):
+            with store.lock("runs", key):
+                pytest.fail("took a lock that is not a lock file")
+        with pytest.raises(StoreError, match=said):
+            _lock_holder(store, key)
+    finally:
+        signal.alarm(0)
+    assert precious.read_text() == "keep me"
+
+
 def test_a_runs_code_digest_is_the_model_package(tmp_path, monkeypatch):
     """A run's key digests every file under esr_cli/model, imported or not, and nothing else:
     host code (the store, the runner loop, the CLI, spec-file reading) can change without
@@ -370,13 +397,29 @@ def test_the_reproduction_report_is_written_from_a_store_holding_damaged_manifes
 
 
 @pytest.mark.parametrize("bad", [b'{"epoch": 2, "x": "' + b"y" * (1 << 20) + b'"}', b'{"epoch": 2, "x": ' + b"[" * 100 + b"]" * 100 + b"}",
-                                 b"[" * 10_000, b"3", b'{"epoch": 2'])
+                                 b"[" * 10_000, b"3", b'{"epoch": 2',
+                                 b'{"epoch": 2, "x": [' + b",".join([b"{}"] * 70_000) + b"]}"])
 def test_a_metrics_line_too_long_too_deep_or_not_an_object_ends_the_reading(tmp_path, bad):
     """As a line cut short by a kill: it and everything after it are untrusted, never a crash."""
     from esr_cli.common.jsonl import read_jsonl
 
     (tmp_path / "metrics.jsonl").write_bytes(b'{"epoch": 1}\n' + bad + b'\n{"epoch": 3}\n')
     assert read_jsonl(tmp_path / "metrics.jsonl") == [{"epoch": 1}]
+
+
+def test_json_of_more_lists_and_objects_than_esr_writes_is_refused_unparsed(tmp_path, monkeypatch):
+    """Each list or object costs the parser a Python object (an empty one about 30 times its two
+    bytes of text): a manifest, or a whole JSON-lines file, of more than esr writes is refused
+    before the parser builds them, where the bytes alone would pass."""
+    from esr_cli.common import jsonl
+
+    many = b'{"x": [' + b",".join([b"{}"] * (jsonl.MAX_CONTAINERS + 1)) + b"]}"
+    (tmp_path / "manifest.json").write_bytes(many)
+    with pytest.raises(jsonl.JsonInputError, match=r"^JSON of more than 65,536 lists and objects"):
+        jsonl.read_json(tmp_path / "manifest.json", 16 << 20)
+    monkeypatch.setattr(jsonl, "MAX_JSONL_CONTAINERS", 10)
+    (tmp_path / "metrics.jsonl").write_bytes(b'{"epoch": 1, "r": [1]}\n' * 5 + b'{"epoch": 6, "r": [1]}\n' * 5)
+    assert [r["epoch"] for r in jsonl.read_jsonl(tmp_path / "metrics.jsonl")] == [1] * 5  # 2 a line: the 6th passes 10
 
 
 @pytest.mark.slow
@@ -426,7 +469,7 @@ def test_json_readers_open_only_regular_files_and_read_a_bounded_amount(tmp_path
     monkeypatch.setattr(jsonl, "MAX_JSONL_BYTES", 30)
     with pytest.raises(jsonl.JsonInputError, match="^39 bytes, more than the 30 esr reads$"):
         jsonl.read_jsonl(real)
-    monkeypatch.setattr(jsonl, "_too_large", lambda f, limit: None)  # as if it grew after its size was read
+    monkeypatch.setattr(jsonl.bounded_files, "size_problem", lambda f, limit: None)  # as if it grew after its size was read
     assert jsonl.read_jsonl(real) == [{"epoch": 1}] * 2  # 26 bytes, then 4 of a line: not an object
 
 

@@ -343,6 +343,70 @@ def test_an_unreadable_archive_is_one_line(smoke_run, tmp_path, content):
     assert not list((tmp_path / "other").glob("runs/*/*"))
 
 
+def _hand_made_run(root: Path, name: str = "x") -> tuple[Path, str]:
+    """A committed run of one metrics line, made through the store as training makes one."""
+    components = {"kind": "runs", "spec": {"name": name}}
+    key = content_key(components)
+    store = Store(root)
+    (store.begin("runs", key, {"name": name, "key": key, "key_components": components}) / "metrics.jsonl").write_text('{"epoch": 1}\n')
+    return store.commit("runs", key, {"kind": "runs", "name": name, "key": key, "key_components": components}), key
+
+
+@pytest.mark.parametrize("intruder", ["link to a device", "link to a file", "fifo", "link to a folder"])
+def test_export_refuses_what_is_not_a_plain_file_in_an_artifact_and_reads_none_of_it(tmp_path, intruder):
+    """A link (to /dev/zero, to a file outside, to a folder) or a FIFO put into a committed
+    artifact by hand is named, never followed or waited on: exporting a link to /dev/zero once
+    wrote until the disk was full. Nothing is left beside the archive."""
+    from esr_cli.storage.transfer import export
+
+    path, key = _hand_made_run(tmp_path / "store")
+    (tmp_path / "outside.txt").write_text("secret")
+    place = path / "figures"
+    place.mkdir(mode=0o755, exist_ok=True)
+    target = {"link to a device": "/dev/zero", "link to a file": str(tmp_path / "outside.txt"), "link to a folder": str(tmp_path)}
+    if intruder == "fifo":
+        os.mkfifo(place / "zz")
+    else:
+        (place / "zz").symlink_to(target[intruder])
+    out = tmp_path / "out"
+    out.mkdir()
+    signal.alarm(20)  # a regression would block on the FIFO or copy /dev/zero: the alarm ends the test
+    try:
+        with pytest.raises(StoreError, match=r"figures/zz is (a link|a FIFO, a socket or a device): an artifact holds plain files and folders only"):
+            export(Store(tmp_path / "store"), key[:8], out / "x.tar.gz")
+    finally:
+        signal.alarm(0)
+    assert list(out.iterdir()) == []
+    (place / "zz").unlink()
+    assert export(Store(tmp_path / "store"), key[:8], out / "x.tar.gz").path == out / "x.tar.gz"  # intact again: exports
+
+
+def test_export_copies_no_more_than_a_file_held_when_it_was_opened(tmp_path, monkeypatch):
+    """A file that grows while it is copied is copied to the size it had when opened, and the
+    whole copy must fit the free disk before a byte is written."""
+    import esr_cli.storage.transfer as transfer
+
+    src = tmp_path / "src"
+    (src / "d").mkdir(parents=True)
+    (src / "a.bin").write_bytes(b"a" * 1000)
+    (src / "d" / "b.bin").write_bytes(b"b" * 10)
+    real_open = transfer.bounded_files.open_regular
+
+    def growing(path, follow_links=False):
+        f = real_open(path, follow_links)
+        with open(path, "ab") as more:
+            more.write(b"+" * 5000)  # after the open: not copied
+        return f
+
+    monkeypatch.setattr(transfer.bounded_files, "open_regular", growing)
+    transfer.copy_plain_tree(src, tmp_path / "dst")
+    assert (tmp_path / "dst" / "a.bin").read_bytes() == b"a" * 1000 and (tmp_path / "dst" / "d" / "b.bin").read_bytes() == b"b" * 10
+    monkeypatch.setattr(transfer.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(10**9, 10**9 - 100, 100))
+    with pytest.raises(StoreError, match=r"holds 0\.0 MiB but .* has 0\.0 MiB free"):
+        transfer.copy_plain_tree(src, tmp_path / "dst2")
+    assert not (tmp_path / "dst2").exists()
+
+
 def test_export_names_a_missing_artifact(tmp_path):
     proc = esr("export", "beef", store=tmp_path / "empty", check=False)
     assert proc.returncode == 2 and "no artifact with key 'beef'" in proc.stderr
