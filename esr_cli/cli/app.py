@@ -121,7 +121,9 @@ def refuse_spec_options(target: str, budget: str, sets: Optional[List[str]]) -> 
 
 
 def load_spec(path: Path, budget: str, sets: Optional[List[str]], store: Store):
-    """The spec, with any played-episode key prefix in it completed from the store."""
+    """The spec, with any played-episode key prefix in it completed from the store. An unknown
+    budget is the option's mistake, named as such (not the spec file's)."""
+    check_budget(budget)
     return targets.complete_play_keys(specs.load(path, budget, list(sets or [])), store)
 
 

@@ -253,12 +253,15 @@ def tables(
         raise Exit(2, f"no store at {ctx.obj.store.root}: no runs to draw tables from (--store names one)")
     try:
         if check:
-            differences = doc_tables.check(files, ctx.obj.store)
+            differences, counts = doc_tables.check(files, ctx.obj.store)
             if differences:
                 for line in differences:  # each line escaped: the file on disk may hold anything
                     err.print(line, highlight=False)
                 raise Exit(1, "generated tables are stale: `esr tables FILE...` brings them up to date")
-            err.print(tagged("tables", "green", f": every generated table in {len(files)} file(s) is what the store gives"))
+            err.print(tagged("tables", "green", f": every generated table ({sum(counts):,} in {len(files)} file(s)) is what the store gives"))
+            for path, count in zip(files, counts):
+                if not count:
+                    err.print(tagged("tables", "yellow", f": {path} holds no generated table"), highlight=False)
             return
         for path, count, changed in doc_tables.update(files, ctx.obj.store):
             err.print(tagged("tables", "green", f": {path}: {count} table(s), {'rewritten' if changed else 'unchanged'}"))

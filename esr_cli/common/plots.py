@@ -78,19 +78,32 @@ def learning_curve(rows: list[dict], out_png: Path, title: str, provenance: dict
         ax.set_title(label, fontsize=10)
         ax.grid(alpha=0.3)
     seeds = len(rows[0]["return"]) if rows else 0
-    fig.suptitle(f"{title}  ({seeds} seed{'s' if seeds != 1 else ''}, mean ± 1 SE)", fontsize=11)
+    fig.suptitle(f"{title}  ({'1 seed' if seeds == 1 else f'{seeds} seeds, mean ± 1 SE'})", fontsize=11)
     fig.tight_layout()
     return save_figure(fig, out_png, provenance)
 
 
+# Where each format keeps a figure's provenance: a PNG's and an SVG's description, a PDF's
+# subject; JPEG keeps none (its sidecar JSON does).
+PROVENANCE_FIELD = {".png": "Description", ".svg": "Description", ".pdf": "Subject"}
+
+
+def _metadata(path: Path, provenance: dict) -> dict:
+    """savefig's keyword for the provenance of a figure written to `path` (none for JPEG, whose
+    writer refuses any metadata)."""
+    field = PROVENANCE_FIELD.get(path.suffix.lower())
+    return {"metadata": {field: json.dumps(provenance, sort_keys=True)}} if field else {}
+
+
 def save_figure(fig, out_png: Path, provenance: dict, pdf: bool = False) -> Path:
-    """PNG (provenance in its text metadata) plus a sidecar JSON with the same provenance;
-    with `pdf`, a PDF twin (provenance in its Subject)."""
+    """The figure (PNG, or the format `out_png`'s suffix names; provenance in its metadata where
+    the format has a field for it) plus a sidecar JSON with the same provenance; with `pdf`, a
+    PDF twin."""
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=110, metadata={"Description": json.dumps(provenance, sort_keys=True)})
+    fig.savefig(out_png, dpi=110, **_metadata(out_png, provenance))
     if pdf:
-        fig.savefig(out_png.with_suffix(".pdf"), metadata={"Subject": json.dumps(provenance, sort_keys=True)})
+        fig.savefig(out_png.with_suffix(".pdf"), **_metadata(out_png.with_suffix(".pdf"), provenance))
     plt.close(fig)
     out_png.with_suffix(".json").write_text(json.dumps(provenance, indent=2, sort_keys=True))
     return out_png

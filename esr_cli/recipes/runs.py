@@ -97,8 +97,9 @@ def adopt_shorter_run(store: Store, key: str, components: dict, run_dir: Path, e
             except LockBusy:
                 continue
         if adopted:
-            console.print(f"starting from run {entry.key[:12]} ({entry.status}) at epoch {adopted}: "
-                          f"the same spec, {done} epochs long")
+            length = "finished at" if entry.status == "complete" else "unfinished, checkpointed at"
+            console.print(f"starting from run {entry.key[:12]} at epoch {adopted}: the same spec but for its length "
+                          f"({length} epoch {done:,})")
             return
 
 

@@ -269,14 +269,16 @@ def refresh(path: Path, store: Store) -> tuple[list[str], list[str], int]:
     return lines, new, len(found)
 
 
-def check(paths: list[Path], store: Store) -> list[str]:
-    """The differences (unified diff lines) between each file's tables and what the store gives."""
-    out = []
+def check(paths: list[Path], store: Store) -> tuple[list[str], list[int]]:
+    """The differences (unified diff lines) between each file's tables and what the store gives,
+    and how many generated tables each file holds."""
+    out, counts = [], []
     for path in paths:
-        lines, new, _ = refresh(path, store)
+        lines, new, count = refresh(path, store)
+        counts.append(count)
         if new != lines:
             out += list(difflib.unified_diff(lines, new, str(path), f"{path} (from the store)", n=0, lineterm=""))
-    return out[:MAX_DIFF_LINES] + ([f"... {len(out) - MAX_DIFF_LINES} more lines"] if len(out) > MAX_DIFF_LINES else [])
+    return out[:MAX_DIFF_LINES] + ([f"... {len(out) - MAX_DIFF_LINES} more lines"] if len(out) > MAX_DIFF_LINES else []), counts
 
 
 def update(paths: list[Path], store: Store) -> list[tuple[Path, int, bool]]:

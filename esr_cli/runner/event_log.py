@@ -17,7 +17,8 @@ import math
 import shutil
 from pathlib import Path
 
-EVENTS_DIR = "tensorboard"
+from esr_cli.storage.store import EVENTS_FOLDER
+
 MEAN_RUN = "mean"
 
 
@@ -46,7 +47,7 @@ class EventLog:
     def __init__(self, run_dir: Path, seeds: list[int], rows: list[dict]):
         from tensorboardX import SummaryWriter  # only when a run trains
 
-        root = Path(run_dir) / EVENTS_DIR
+        root = Path(run_dir) / EVENTS_FOLDER
         shutil.rmtree(root, ignore_errors=True)  # written afresh from the metrics kept
         self.seeds = list(seeds)
         names = [f"seed_{s}" for s in self.seeds] + [MEAN_RUN]

@@ -16,6 +16,7 @@ import contextlib
 import os
 import signal
 import threading
+import time
 from typing import Callable, TypeVar
 
 from esr_cli.common.stops import Interrupted, exit_code
@@ -24,6 +25,10 @@ from esr_cli.common.stops import Interrupted, exit_code
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 # How long the main thread waits on a worker before it looks for a stop request again.
 POLL_S = 0.1
+# The same signal again this soon is the same request: `timeout` (and some schedulers) send it to
+# the process and then to its whole process group, so it arrives twice at once. No person presses
+# Ctrl-C twice within this.
+SAME_REQUEST_S = 0.25
 
 T = TypeVar("T")
 
@@ -32,19 +37,23 @@ class StopRequests:
     """The training loop's handler of STOP_SIGNALS (`with requests.installed():`). The first
     signal asks the run to stop: `on_stop(signum, kept_epoch)` acknowledges it once, and the
     next `check` or `wait` raises Interrupted. A second one leaves the process at once, with
-    that signal's exit code."""
+    that signal's exit code (the same signal within SAME_REQUEST_S is the first one again)."""
 
     def __init__(self, on_stop: Callable[[int, int], None] | None = None, unit: str = "epoch"):
         self.signum: int | None = None
         self.unit = unit  # what `kept` counts, for the Interrupted raised
         self._on_stop = on_stop
         self._acknowledged = False
+        self._asked_at = 0.0
 
     def __call__(self, signum, frame) -> None:  # the handler: sets a flag, nothing that can block
+        now = time.monotonic()
         if self.signum is not None:
+            if signum == self.signum and now - self._asked_at < SAME_REQUEST_S:
+                return  # one request delivered twice (to the process, then to its group)
             os.write(2, b"second stop signal: exiting at once\n")
             os._exit(exit_code(signum))
-        self.signum = signum
+        self.signum, self._asked_at = signum, now
 
     @contextlib.contextmanager
     def installed(self):

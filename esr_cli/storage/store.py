@@ -44,6 +44,7 @@ MAX_MANIFEST_BYTES = 16 << 20  # a run's manifest is a few KiB; a figure's lists
 # The artifact kinds, each a top-level folder of the store; every module names them from here.
 RUN_KIND, EVAL_KIND, EXACT_KIND, FIGURE_KIND, DATA_KIND, HUMAN_KIND = "runs", "evals", "exact", "figures", "humandata", "humans"
 CHECKPOINT_FOLDER = "checkpoints"  # a run's checkpoints, one folder per epoch (checkpoint_files.py)
+EVENTS_FOLDER = "tensorboard"  # a run's TensorBoard event files (runner/event_log.py)
 PLAY_KIND = "play"  # an episode a person played with a robot (esr play)
 DIAGNOSIS_KIND = "diagnoses"  # why a finished run's robot helps or not, one seed (esr diagnose)
 CALIBRATION_KIND = "calibrations"  # an Overcooked human with each partner, no robot trained (esr human calibrate)
@@ -378,9 +379,8 @@ class Store:
         elif folder in KINDS and kind != folder:  # a directory outside a store has no kind folder
             problems.append(f"{MANIFEST} names kind {kind!r}, but the artifact is under {folder}/")
         listed = manifest["files"]
-        left_out = kept_without(kind, path)
-        if left_out:  # kept without its networks or arrays, on purpose (`esr export --without-checkpoint`)
-            listed = {rel: want for rel, want in listed.items() if rel != left_out and not rel.startswith(f"{left_out}/")}
+        for part in kept_without(kind, path):  # kept without its networks or arrays, on purpose (`esr export --without-checkpoint`)
+            listed = {rel: want for rel, want in listed.items() if rel != part and not rel.startswith(f"{part}/")}
         problems += [p for rel, want in sorted(listed.items()) if (p := _file_problem(path, rel, want))]
         for f in sorted(Path(path).rglob("*")):
             rel = f.relative_to(path).as_posix()
@@ -445,16 +445,20 @@ def _folders(path: Path) -> list[Path]:
 EXACT_ARRAYS = "exact.npz"  # an exact artifact's state space, occupancies and MI (recipes/exact_runs.py)
 EVAL_ROLLOUT = "rollout.gif"  # an evaluation's first episode, drawn (recipes/runs.py): megabytes
 # What `esr export --without-checkpoint` leaves out of a finished artifact, by kind: a run's
-# networks, an exact check's arrays, an evaluation's rollout GIF. What stays (manifest,
+# networks and its TensorBoard event files (a second copy of metrics.jsonl, most of what else a
+# run holds), an exact check's arrays, an evaluation's rollout GIF. What stays (manifest,
 # summaries, metrics) is what reports and tables read; the manifest keeps the digests of what
-# was left out.
-LEFT_OUT = {RUN_KIND: CHECKPOINT_FOLDER, EXACT_KIND: EXACT_ARRAYS, EVAL_KIND: EVAL_ROLLOUT}
+# was left out. The first part's absence marks an artifact kept without them (runs archived
+# before the event files were left out still hold theirs).
+LEFT_OUT = {RUN_KIND: (CHECKPOINT_FOLDER, EVENTS_FOLDER), EXACT_KIND: (EXACT_ARRAYS,), EVAL_KIND: (EVAL_ROLLOUT,)}
 
 
-def kept_without(kind: str, path: Path) -> str | None:
-    """The part (LEFT_OUT) a committed artifact was kept without, or None where it is whole."""
-    part = LEFT_OUT.get(kind)
-    return part if part is not None and not (Path(path) / part).exists() else None
+def kept_without(kind: str, path: Path) -> tuple[str, ...]:
+    """The parts (LEFT_OUT) a committed artifact was kept without; () where it is whole."""
+    parts = LEFT_OUT.get(kind, ())
+    if not parts or (Path(path) / parts[0]).exists():
+        return ()
+    return tuple(part for part in parts if not (Path(path) / part).exists())
 
 
 def without_checkpoint(path: Path) -> bool:
@@ -462,7 +466,7 @@ def without_checkpoint(path: Path) -> bool:
     out its whole checkpoint folder (a folder that is there is checked file by file, so a
     checkpoint damaged in part is still found). Its metrics, spec and manifest are checked as
     always; reading its final networks needs the full archive."""
-    return kept_without(RUN_KIND, path) is not None
+    return bool(kept_without(RUN_KIND, path))
 
 
 def _file_problem(path: Path, rel: str, want) -> str | None:

@@ -197,9 +197,9 @@ def _remove_copy(tree: Path) -> None:
     shutil.rmtree(tree, onerror=writable_then_again)
 
 
-def _leaving_out(src: Path, part: str):
+def _leaving_out(src: Path, parts: tuple[str, ...]):
     def ignore(directory: str, names: list[str]) -> list[str]:
-        return [part] if Path(directory) == src and part in names else []
+        return [n for n in names if n in parts] if Path(directory) == src else []
 
     return ignore
 

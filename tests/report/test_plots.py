@@ -19,6 +19,29 @@ def test_learning_curve_shades_the_warm_up_epochs(tmp_path):
     assert cols.min() < a.shape[1] // 3  # the band starts at the left of the first panel
 
 
+def test_every_figure_format_offered_is_written_with_its_provenance_where_the_format_keeps_one(tmp_path):
+    """`esr plot curve --out` offers PNG, PDF, SVG and JPEG: each is written (JPEG once failed on
+    the PNG's metadata, a PDF warned and lost it), the provenance in the field each format has
+    for it, and always in the sidecar JSON."""
+    import warnings
+
+    rows = [{"epoch": e, "return": [float(e)], "success": [0.5], "mi_estimate": [0.01]} for e in range(1, 6)]
+    provenance = {"run": "abc123"}
+    for suffix in (".png", ".pdf", ".svg", ".jpg", ".jpeg"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # matplotlib warns where a format lacks the field named
+            out = plots.learning_curve(rows, tmp_path / f"curve{suffix}", "t", provenance)
+        data = out.read_bytes()
+        assert out.suffix == suffix and len(data) > 1000
+        if suffix in (".png", ".svg"):
+            assert b"abc123" in data
+        elif suffix != ".pdf":  # a PDF's Subject is checked by matplotlib (it warned where the field was unknown)
+            assert b"abc123" not in data
+        assert '"abc123"' in out.with_suffix(".json").read_text()
+    with Image.open(tmp_path / "curve.png") as png:
+        assert "abc123" in png.info["Description"]
+
+
 def test_suite_panels_group_runs_by_environment_and_name_lines_by_method(tmp_path):
     from types import SimpleNamespace
 

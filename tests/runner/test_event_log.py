@@ -9,7 +9,8 @@ import pytest
 from conftest import esr
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from esr_cli.runner.event_log import EVENTS_DIR, EventLog
+from esr_cli.runner.event_log import EventLog
+from esr_cli.storage.store import EVENTS_FOLDER
 
 
 def scalars(path):
@@ -23,8 +24,8 @@ def test_a_trained_run_has_event_files_with_the_values_of_its_metrics(tmp_path):
     proc = esr("train", "experiments/grid_2.yaml", "-b", "smoke", "--set", "train.seeds=2", store=tmp_path)
     run = proc.stdout.strip().splitlines()[-1]
     rows = [json.loads(line) for line in open(f"{run}/metrics.jsonl")]
-    per_seed = {s: scalars(f"{run}/{EVENTS_DIR}/seed_{s}") for s in (0, 1)}
-    mean = scalars(f"{run}/{EVENTS_DIR}/mean")
+    per_seed = {s: scalars(f"{run}/{EVENTS_FOLDER}/seed_{s}") for s in (0, 1)}
+    mean = scalars(f"{run}/{EVENTS_FOLDER}/mean")
     names = [k for k, v in rows[0].items() if isinstance(v, list)]
     assert "return" in names and "return" in mean
     checked = 0
@@ -50,11 +51,11 @@ def test_events_are_written_afresh_from_the_metrics_kept(tmp_path):
     log = EventLog(tmp_path, [3, 7], [row(1), row(2)])
     log.append([row(3)])
     log.close()
-    assert scalars(tmp_path / EVENTS_DIR / "seed_3")["return"] == {1: 1.0, 2: 2.0, 3: 3.0}
-    assert scalars(tmp_path / EVENTS_DIR / "seed_7")["return"] == {1: -1.0, 3: -1.0}  # a NaN is left out
-    assert scalars(tmp_path / EVENTS_DIR / "mean")["return"] == {1: 0.0, 2: 2.0, 3: 1.0}
+    assert scalars(tmp_path / EVENTS_FOLDER / "seed_3")["return"] == {1: 1.0, 2: 2.0, 3: 3.0}
+    assert scalars(tmp_path / EVENTS_FOLDER / "seed_7")["return"] == {1: -1.0, 3: -1.0}  # a NaN is left out
+    assert scalars(tmp_path / EVENTS_FOLDER / "mean")["return"] == {1: 0.0, 2: 2.0, 3: 1.0}
     EventLog(tmp_path, [3, 7], [row(1)]).close()  # resumed at epoch 1: epochs 2 and 3 were not kept
-    assert scalars(tmp_path / EVENTS_DIR / "seed_3")["return"] == {1: 1.0}
+    assert scalars(tmp_path / EVENTS_FOLDER / "seed_3")["return"] == {1: 1.0}
 
 
 # ---------------------------------------------------------------- the wandb record (`esr train --wandb`)

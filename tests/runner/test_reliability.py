@@ -251,7 +251,7 @@ def test_a_longer_run_continues_a_shorter_one_bit_for_bit(tmp_path, reference):
     store = tmp_path / "store"
     short = Path(esr(*SMOKE, "--set", "train.epochs=1", store=store).stdout.strip())
     longer = esr(*SMOKE, store=store)
-    assert f"starting from run {short.name[:12]} (complete) at epoch 1" in longer.stderr
+    assert f"starting from run {short.name[:12]} at epoch 1: the same spec but for its length (finished at epoch 1)" in longer.stderr
     path = Path(longer.stdout.strip())
     assert_same_run(path, reference)
     assert (short / "manifest.json").is_file()  # the shorter artifact is untouched

@@ -3,6 +3,7 @@ of training, a second signal exits at once, and a run says up front how long it 
 See docs/reliability.md."""
 
 import io
+import os
 import signal
 import subprocess
 import sys
@@ -35,11 +36,12 @@ def final_arrays(run_dir):
     return [np.asarray(x) for x in jax.tree.leaves(loop.final_state(trainer, run_dir))]
 
 
-def stop_mid_chunk(store: Path, sig, args=LONG) -> tuple[int, float, str]:
+def stop_mid_chunk(store: Path, sig, args=LONG, as_timeout: bool = False) -> tuple[int, float, str]:
     """Start `args`, send `sig` a second into its long chunk; -> (exit code, seconds from the
-    signal to the exit, stderr)."""
+    signal to the exit, stderr). as_timeout: as GNU `timeout` sends it, to the process and then
+    to its process group, so that it arrives twice at once."""
     proc = subprocess.Popen([sys.executable, "-m", "esr_cli.cli.main", *args], cwd=ROOT, env=esr_env(store),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=as_timeout)
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)
     reader.start()
@@ -51,6 +53,8 @@ def stop_mid_chunk(store: Path, sig, args=LONG) -> tuple[int, float, str]:
         time.sleep(1)
         sent = time.monotonic()
         proc.send_signal(sig)
+        if as_timeout:
+            os.killpg(proc.pid, sig)
         proc.wait(timeout=60)
         took = time.monotonic() - sent
     finally:
@@ -83,8 +87,10 @@ def test_ctrl_c_mid_chunk_stops_within_seconds_and_the_run_resumes_bit_identical
 
 @pytest.mark.slow
 def test_sigterm_in_a_chunk_of_minutes_stops_within_seconds_with_143(tmp_path):
-    code, took, err = stop_mid_chunk(tmp_path / "store", signal.SIGTERM, VERY_LONG)
+    """Sent as `timeout` sends it (to the process, then to its group): one request, not two."""
+    code, took, err = stop_mid_chunk(tmp_path / "store", signal.SIGTERM, VERY_LONG, as_timeout=True)
     assert code == 143 and took < 5, (took, err)
+    assert "second stop signal" not in err
     assert "stopping (SIGTERM)" in err and "a second signal exits at once" in err
     assert "terminated (SIGTERM) after epoch 1; the checkpoint is saved" in err and "Traceback" not in err
     assert len((partial_run(tmp_path / "store") / "metrics.jsonl").read_text().splitlines()) == 1
@@ -120,6 +126,25 @@ def test_a_second_ctrl_c_exits_at_once_even_while_a_checkpoint_is_written(tmp_pa
         proc.kill()
     reader.join(timeout=10)
     assert "second stop signal: exiting at once" in "".join(lines)
+
+
+def test_the_same_signal_twice_at_once_is_one_request_and_a_later_one_a_second(monkeypatch):
+    from esr_cli.runner import stop_requests as sr
+
+    exits = []
+    monkeypatch.setattr(sr.os, "_exit", exits.append)
+    monkeypatch.setattr(sr.os, "write", lambda fd, data: len(data))
+    clock = iter([100.0, 100.01, 100.02, 100.5])
+    monkeypatch.setattr(sr.time, "monotonic", lambda: next(clock))
+    requests = sr.StopRequests()
+    requests(signal.SIGTERM, None)
+    requests(signal.SIGTERM, None)  # `timeout`'s second delivery: the same request
+    assert requests.signum == signal.SIGTERM and exits == []
+    requests(signal.SIGINT, None)  # another signal at once: a second request
+    assert exits == [130]
+    exits.clear()
+    requests(signal.SIGTERM, None)  # the same signal half a second later: a second request
+    assert exits == [143]
 
 
 def test_chunks_are_timed_by_a_one_epoch_warm_up_then_bounded_by_the_checkpoint_interval():

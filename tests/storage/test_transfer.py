@@ -55,17 +55,22 @@ def test_a_finished_run_moves_to_another_store(smoke_run, tmp_path):
 
 @pytest.mark.slow
 def test_a_finished_run_travels_as_metrics_only_and_says_what_it_cannot_do(smoke_run, tmp_path):
-    """`export --without-checkpoint`: the manifest, spec and metrics, no checkpoint folder. It
-    imports and verifies as a finished run and reports read it; evaluating it asks for the full
-    archive; a damaged metrics file is still found."""
+    """`export --without-checkpoint`: the manifest, spec and metrics, no checkpoint folder and
+    no TensorBoard event files (a second copy of the metrics). It imports and verifies as a
+    finished run and reports read it, as does one archived before the event files were left out;
+    evaluating it asks for the full archive; a damaged metrics file is still found."""
     store, path, _ = smoke_run
+    assert (path / "tensorboard").is_dir()
     full, slim = tmp_path / "full.tar.gz", tmp_path / "slim.tar.gz"
     esr("export", path.name[:8], "--out", str(full), store=store)
     esr("export", path.name[:8], "--out", str(slim), "--without-checkpoint", store=store)
     with tarfile.open(slim) as tar:
         names = tar.getnames()
-    assert not any("/checkpoints/" in n for n in names) and any(n.endswith("/metrics.jsonl") for n in names)
+    assert not any("/checkpoints/" in n or "/tensorboard/" in n for n in names) and any(n.endswith("/metrics.jsonl") for n in names)
     assert slim.stat().st_size < full.stat().st_size / 2
+    older = tmp_path / "older"  # metrics only with its event files, as runs were archived before
+    shutil.copytree(path, older / "runs" / path.name[:2] / path.name, ignore=lambda d, names: ["checkpoints"] if d == str(path) else [])
+    assert esr("verify", store=older).returncode == 0
     other = tmp_path / "other"
     copy = Path(esr("import", str(slim), store=other).stdout.strip())
     assert esr("verify", store=other).returncode == 0
