@@ -70,11 +70,7 @@ def plot(
     from esr_cli.recipes import exact_runs  # JAX, scipy, matplotlib: after the options are checked
 
     if figure == "estimator":
-        # Minutes of silent work where the store lacks it (about 10 on a 2-core CPU for the N = 2
-        # grid's 934,500 pairs): said up front, with a spinner on a terminal.
-        with err.status("esr plot estimator: ESR's reward over the exact future of every (state, robot action) pair; "
-                        "minutes where the store lacks it (about 10 on a 2-core CPU at N = 2)"):
-            built = ensure(exact_runs.estimator_recipe(ref, ctx.obj.store, err), ctx.obj.store)
+        built = ensure(exact_runs.estimator_recipe(ref, ctx.obj.store, err), ctx.obj.store)
         result = built.summary()
         for line in exact_runs.estimator_lines(result):
             err.print(line, highlight=False)

@@ -19,7 +19,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from scipy.stats import spearmanr
 
 from esr_cli.analysis import exact, geometry
-from esr_cli.common import plots
+from esr_cli.common import bounded_files, plots
 from esr_cli.model.envs import make_env
 from esr_cli.model.envs.gridworld import GridState
 from esr_cli.model.humans.registry import make_human
@@ -35,6 +35,9 @@ from esr_cli.storage.store import EXACT_ARRAYS, EXACT_KIND, FIGURE_KIND, Store, 
 # never what they are, and an edit there should not discard hours of exact computation.
 # (The robot's training code is pinned by its run's key, a component of its own.)
 EXACT_CODE = (provenance.MODEL_SOURCES + ("analysis",), ("recipes/exact_runs.py",))
+# What esr reads of an exact check's arrays: the 4 x 4 grid with 4 blocks writes about 20 MB; a
+# space large enough to pass this is refused before it is enumerated.
+MAX_EXACT_ARRAYS_BYTES = 2 << 30
 
 
 def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | None, seed_index: int,
@@ -147,14 +150,13 @@ def estimator_recipe(exact_ref: str, store: Store, console: Console) -> Recipe:
                   "code": provenance.code_digest(EXACT_CODE[0], EXACT_CODE[1] + ("common/plots.py",))}
 
     def build(out: Path, store: Store) -> dict:
-        with console.status("computing ESR's estimate for every state and robot action"):
-            return estimator_check(exact_path, store, out / "estimator.png")
+        return estimator_check(exact_path, store, out / "estimator.png", console)
 
     return Recipe(FIGURE_KIND, f"estimator-{manifest['name']}", components, _discard_on_failure(build),
                   budget=manifest.get("budget"))
 
 
-def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None) -> dict:
+def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None, console: Console | None = None) -> dict:
     """ESR's reward, averaged over g from the exact future distribution, against the exact MI.
 
     For every (s, aR): est(s, aR) = sum_aH pi_H(aH | s) (phi(s, aR, aH) - phi'(s, aR)) . psibar,
@@ -176,7 +178,10 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
     if trainer.spec.method.human_action == "inferred":
         raise StoreError("the estimator check evaluates phi at each true human action; this run infers them "
                          "(method.human_action: inferred), so its phi takes latent codes instead")
-    data = np.load(exact_path / EXACT_ARRAYS)
+    try:
+        data = bounded_files.load_npz(exact_path / EXACT_ARRAYS, MAX_EXACT_ARRAYS_BYTES)
+    except (bounded_files.UnreadableInput, OSError) as e:
+        raise StoreError(f"damaged exact check: {exact_path / EXACT_ARRAYS}: {e}") from None
     mstate = seed_slice(state.method, robot["seed_index"])
     goal = jnp.asarray(manifest["key_components"]["goal"], jnp.int32)
     n = len(data["human"])
@@ -201,21 +206,26 @@ def estimator_check(exact_path: Path, store: Store, out_png: Path | None = None)
 
     est = np.full(mi.shape, np.nan)
     chunk = 4096
-    for i in range(0, len(pair_state), chunk):
-        st, ar = pair_state[i : i + chunk], pair_action[i : i + chunk]
-        total = np.zeros(len(st))
-        for h in range(a_h):
-            phi_s, phi_sa = phis(obs[st], jnp.asarray(ar), jnp.full((len(st),), h))
-            diff = np.asarray(phi_sa, np.float64) - np.asarray(phi_s, np.float64)
-            total += data["pi_human"][st, h] * np.einsum("bd,bd->b", diff, psibar[data["next_state"][st, ar, h]])
-        est[st, ar] = total
+    # Minutes on a CPU (about 10 for the N = 2 grid's 934,500 pairs): a bar says how far it is.
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                  console=console, transient=True, disable=console is None) as bar:
+        task = bar.add_task("ESR's reward over the exact future of each (state, robot action) pair", total=len(pair_state))
+        for i in range(0, len(pair_state), chunk):
+            st, ar = pair_state[i : i + chunk], pair_action[i : i + chunk]
+            total = np.zeros(len(st))
+            for h in range(a_h):
+                phi_s, phi_sa = phis(obs[st], jnp.asarray(ar), jnp.full((len(st),), h))
+                diff = np.asarray(phi_sa, np.float64) - np.asarray(phi_s, np.float64)
+                total += data["pi_human"][st, h] * np.einsum("bd,bd->b", diff, psibar[data["next_state"][st, ar, h]])
+            est[st, ar] = total
+            bar.advance(task, len(st))
     rho, _ = spearmanr(est[computed], mi[computed])
     visited = exact.visited_pairs(occ, space.start, data["pi_robot"]) & computed
     rho_visited, _ = spearmanr(est[visited], mi[visited])
     result = {"spearman": float(rho), "pairs": int(computed.sum()), "complete": bool(computed.all()),
               "spearman_visited": float(rho_visited), "visited_pairs": int(visited.sum()), "visited_mass": exact.VISITED_MASS,
               "run": run_manifest["key"], "exact": manifest["key"]}
-    if "sampled" in data.files:  # a uniform sample of all pairs: its rank correlation, with an interval
+    if "sampled" in data:  # a uniform sample of all pairs: its rank correlation, with an interval
         sampled = data["sampled"] & computed
         rho_sample, low, high = spearman_interval(est[sampled], mi[sampled])
         result.update({"spearman_sample": rho_sample, "spearman_sample_ci": [low, high], "sample_pairs": int(sampled.sum())})
