@@ -87,11 +87,29 @@ def load_npz(path: Path, max_bytes: int) -> dict[str, np.ndarray]:
     try:
         with zipfile.ZipFile(io.BytesIO(data)) as z:
             unpacked = sum(info.file_size for info in z.infolist())
-        if unpacked > max_bytes:
-            raise UnreadableInput(f"unpacks to {unpacked:,} bytes, more than the {max_bytes:,} esr reads")
+            if unpacked > max_bytes:
+                raise UnreadableInput(f"unpacks to {unpacked:,} bytes, more than the {max_bytes:,} esr reads")
+            for info in z.infolist():
+                _check_array_header(z, info)
         with np.load(io.BytesIO(data), allow_pickle=False) as arrays:
             return {name: arrays[name] for name in arrays.files}
     except UnreadableInput:
         raise
     except (zipfile.BadZipFile, ValueError, OSError, KeyError, EOFError) as e:
         raise UnreadableInput(f"not an .npz file of plain arrays ({str(e)[:80]})") from None
+
+
+def _check_array_header(z: zipfile.ZipFile, info: zipfile.ZipInfo) -> None:
+    """Refuse a member whose .npy header declares an array larger than the member holds: numpy
+    allocates the declared array before it reads a byte of it."""
+    readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+    with z.open(info) as member:
+        version = np.lib.format.read_magic(member)
+        if version not in readers:
+            raise UnreadableInput(f"{info.filename[:60]!r} is an .npy of format {version}, which esr does not write")
+        shape, _, dtype = readers[version](member)
+    if dtype.hasobject:
+        raise UnreadableInput(f"{info.filename[:60]!r} holds Python objects, not a plain array")
+    declared = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    if declared > info.file_size:
+        raise UnreadableInput(f"{info.filename[:60]!r} declares {declared:,} bytes of array in a member of {info.file_size:,}")

@@ -34,7 +34,6 @@ import threading
 import time
 from dataclasses import dataclass
 
-import h11
 import numpy as np
 import uvicorn
 from PIL import Image
@@ -57,13 +56,15 @@ MAX_WAITING = 1024  # messages queued and not yet taken by the game: no person t
 # Close codes with which the websocket layer ends a connection over a bad frame from the browser.
 BAD_FRAMES = {1002: "a malformed frame", 1007: "text that is not UTF-8", 1009: f"a message over {MAX_MESSAGE_BYTES:,} bytes"}
 SCALE = {True: 3, False: 2}  # a small picture (the gridworld's) drawn larger than a large one
-# A request's line and headers must arrive whole this soon after the connection is made (or its
-# last response is sent): a browser sends them at once, while a client trickling a header every
-# few seconds would otherwise hold its connection, and a file descriptor, for ever.
-HEAD_TIMEOUT_S = 10.0
-# Connections open at once, websockets included: a study's participants hold one each (and a page
-# load or two); past this a new connection is closed at once, before it costs more than its socket.
-MAX_CONNECTIONS = 256
+# A plain HTTP connection (the page, and a browser's keep-alive after it) is closed this long
+# after it was made; one upgraded to a websocket lives as long as its participant plays. A
+# browser loads the page in well under a second and reconnects when it needs to, while a client
+# trickling a header or a body byte every few seconds would otherwise hold its connection, and a
+# file descriptor, for ever.
+HTTP_CONNECTION_S = 30.0
+# Connections open at once, websockets included: a participant holds one (and a page load or
+# two); past the limit a new connection is closed at once, before it costs more than its socket.
+MIN_CONNECTIONS, CONNECTIONS_PER_PARTICIPANT = 256, 3
 
 PAGE = """<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>esr play</title>
@@ -434,44 +435,38 @@ def is_loopback(host: str) -> bool:
 
 
 class BoundedH11(H11Protocol):
-    """uvicorn's HTTP/1.1 protocol with the two bounds a server open to many clients needs:
-    at most MAX_CONNECTIONS at once, and each request's head within HEAD_TIMEOUT_S."""
+    """uvicorn's HTTP/1.1 protocol with the two bounds a server open to many clients needs: at
+    most `max_connections` at once, and a plain HTTP connection closed HTTP_CONNECTION_S after it
+    was made, whatever it is doing (one upgraded to a websocket is the websocket's from then on)."""
 
-    head_deadline: asyncio.TimerHandle | None = None
+    max_connections = MIN_CONNECTIONS
+    warned = False  # one server's protocol class (`limited`) says once that it turned connections away
+    deadline: asyncio.TimerHandle | None = None
+
+    @classmethod
+    def limited(cls, max_connections: int) -> type[BoundedH11]:
+        return type(cls.__name__, (cls,), {"max_connections": max_connections, "warned": False})
 
     def connection_made(self, transport) -> None:
         super().connection_made(transport)
-        if len(self.connections) > MAX_CONNECTIONS:
+        if len(self.connections) > self.max_connections:
+            if not type(self).warned:  # said once: a flood of connections must not flood the console
+                type(self).warned = True
+                self.logger.warning(f"{self.max_connections:,} connections are open, the most this server keeps: "
+                                    "new ones are closed at once while they are")
             transport.close()
             return
-        self._await_head()
+        self.deadline = self.loop.call_later(HTTP_CONNECTION_S, self._lived_long_enough)
 
-    def _await_head(self) -> None:
-        self._head_arrived()
-        self.head_deadline = self.loop.call_later(HEAD_TIMEOUT_S, self._head_too_slow)
-
-    def _head_arrived(self) -> None:
-        if self.head_deadline is not None:
-            self.head_deadline.cancel()
-            self.head_deadline = None
-
-    def _head_too_slow(self) -> None:
-        self.head_deadline = None
-        if self.conn.their_state is h11.IDLE and not self.transport.is_closing():
+    def _lived_long_enough(self) -> None:
+        self.deadline = None
+        if self.transport.get_protocol() is self and not self.transport.is_closing():  # not a websocket now
             self.transport.close()
 
-    def data_received(self, data: bytes) -> None:
-        super().data_received(data)
-        if self.conn.their_state is not h11.IDLE:  # a request's head was read (a websocket's upgrade too)
-            self._head_arrived()
-
-    def on_response_complete(self) -> None:
-        super().on_response_complete()
-        if not self.transport.is_closing() and self.conn.their_state is h11.IDLE:  # kept alive: the next head is timed
-            self._await_head()
-
     def connection_lost(self, exc) -> None:
-        self._head_arrived()
+        if self.deadline is not None:
+            self.deadline.cancel()
+            self.deadline = None
         super().connection_lost(exc)
 
 
@@ -479,7 +474,7 @@ class Server(abc.ABC):
     """The page and its websocket served by uvicorn in a thread beside the game loops. Each
     admission token lets one participant in: `admit(token)` -> the Channel its tab plays on."""
 
-    def __init__(self, port: int, console, host: str = HOST, public_url: str | None = None):
+    def __init__(self, port: int, console, host: str = HOST, public_url: str | None = None, participants: int = 1):
         self.port, self.console = port, console
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         probe = socket.socket(family, socket.SOCK_STREAM)
@@ -495,7 +490,8 @@ class Server(abc.ABC):
         self.local = is_loopback(host)
         self.base = public_url or f"http://{host if host not in ('0.0.0.0', '::') else socket.gethostname()}:{port}/"
         app = Starlette(routes=[Route("/", self._page), WebSocketRoute("/ws", self._play)])
-        config = uvicorn.Config(app, host=host.strip("[]"), port=port, log_level="warning", lifespan="off", http=BoundedH11,
+        config = uvicorn.Config(app, host=host.strip("[]"), port=port, log_level="warning", lifespan="off",
+                                http=BoundedH11.limited(max(MIN_CONNECTIONS, CONNECTIONS_PER_PARTICIPANT * participants)),
                                 ws="websockets-sansio", ws_max_size=MAX_MESSAGE_BYTES, log_config=None)  # logs: OneLine
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, name="esr-play-web", daemon=True)
@@ -619,7 +615,7 @@ class Links(Server):
     session has begun lets nobody in again, the same person after closing the tab included."""
 
     def __init__(self, port: int, console, count: int, start, host: str = HOST, public_url: str | None = None):
-        super().__init__(port, console, host, public_url)
+        super().__init__(port, console, host, public_url, participants=count)
         self.tokens = [secrets.token_urlsafe(32) for _ in range(count)]
         self.channels: dict[str, Channel] = {}
         self.start = start

@@ -85,7 +85,7 @@ def load_checkpoint(out: Path, like: ppo.RunnerState) -> tuple[ppo.RunnerState, 
         return None
     leaves, treedef = jax.tree.flatten(like)
     # The state's own size, and room for the metrics of every update: a file that unpacks to more is not this human's.
-    most = sum(np.asarray(leaf).nbytes for leaf in leaves) + CHECKPOINT_METRICS_BYTES
+    most = sum(getattr(leaf, "nbytes", None) or np.asarray(leaf).nbytes for leaf in leaves) + CHECKPOINT_METRICS_BYTES
     try:
         f = bounded_files.load_npz(path, most)
     except (bounded_files.UnreadableInput, OSError) as e:

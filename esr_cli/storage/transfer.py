@@ -158,7 +158,8 @@ def copy_plain_tree(src: Path, dst: Path, ignore=None) -> None:
                                  f"only; `esr verify` checks it, remove what is not the artifact's")
     free = shutil.disk_usage(_existing_parent(dst)).free
     if total > free:
-        raise StoreError(f"{src} holds {total / (1 << 20):,.1f} MiB but {_existing_parent(dst)} has {free / (1 << 20):,.1f} MiB free")
+        raise StoreError(f"not enough free space: {printable(str(src))} holds {total:,} bytes but the disk of "
+                         f"{printable(str(_existing_parent(dst)))} has {free:,} free")
     for rel, size in plan:
         if size is None:
             (dst / rel).mkdir(parents=True, exist_ok=rel != Path())

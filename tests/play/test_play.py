@@ -991,44 +991,55 @@ def test_a_port_left_in_time_wait_is_free_to_serve_on():
         assert web.url.startswith(f"http://127.0.0.1:{port}/?token=")
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def test_a_client_trickling_its_request_head_is_cut_off_and_connections_are_bounded(monkeypatch):
-    """A request whose line and headers do not arrive whole within HEAD_TIMEOUT_S is closed (a
-    client sending a header line every few seconds once held its connection for ever), and past
-    MAX_CONNECTIONS a new connection is closed at once; a browser's request is answered."""
+def test_a_plain_http_connection_is_closed_after_its_time_and_connections_are_bounded(monkeypatch):
+    """A client trickling its request head, or a body after its answer, once held its connection
+    for ever: a plain HTTP connection is closed HTTP_CONNECTION_S after it was made, whatever it
+    is doing, while a websocket lives on. Past the connection limit a new connection is closed
+    at once (said once on the console); a browser's request is answered."""
+    import websocket
     from rich.console import Console
 
     from esr_cli.play import web as web_module
 
-    monkeypatch.setattr(web_module, "HEAD_TIMEOUT_S", 1.0)
-    monkeypatch.setattr(web_module, "MAX_CONNECTIONS", 3)
-    port = _free_port()
-    with web_module.Web(port, Console(file=io.StringIO())) as web:
-        slow = socket.create_connection(("127.0.0.1", port), timeout=10)
-        slow.sendall(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+    monkeypatch.setattr(web_module, "HTTP_CONNECTION_S", 1.0)
+    monkeypatch.setattr(web_module, "MIN_CONNECTIONS", 3)
+    said = io.StringIO()
+    port = free_port()
+    with web_module.Web(port, Console(file=said, width=200)) as web:
+        head = socket.create_connection(("127.0.0.1", port), timeout=10)
+        head.sendall(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+        body = socket.create_connection(("127.0.0.1", port), timeout=10)  # answered before its body is sent
+        body.sendall(f"GET /?token={web.token} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Length: 100000\r\n\r\n".encode())
+        play = websocket.create_connection(f"ws://127.0.0.1:{port}/ws?token={web.token}", timeout=10, origin=f"http://127.0.0.1:{port}")
         t0 = time.monotonic()
-        for _ in range(3):  # a header line now and then: the head is still not whole
+        for _ in range(6):  # a byte now and then: neither the head nor the body is ever whole
             time.sleep(0.3)
-            try:
-                slow.sendall(b"X-Slow: 1\r\n")
-            except OSError:
-                break
-        assert slow.recv(1024) == b"" and time.monotonic() - t0 < 5  # closed by the server, unanswered
-        slow.close()
-        held = [socket.create_connection(("127.0.0.1", port), timeout=10) for _ in range(3)]
+            for conn, byte in ((head, b"X-Slow: 1\r\n"), (body, b"x")):
+                try:
+                    conn.sendall(byte)
+                except OSError:
+                    pass
+        for conn in (head, body):
+            conn.settimeout(5)
+            got = b""
+            while chunk := conn.recv(65536):  # the page, for the second, then the close
+                got += chunk
+            assert time.monotonic() - t0 < 6
+            conn.close()
+        play.ping()  # the websocket is still open past HTTP_CONNECTION_S
+        assert play.connected
+        held = [socket.create_connection(("127.0.0.1", port), timeout=10) for _ in range(2)]  # with the websocket: 3
         extra = socket.create_connection(("127.0.0.1", port), timeout=10)
+        extra.settimeout(5)
         assert extra.recv(1024) == b""  # the fourth at once: closed before its request
-        for c in held + [extra]:
-            c.close()
-        time.sleep(0.2)
+        for conn in held + [extra]:
+            conn.close()
+        play.close()
+        time.sleep(0.3)
         with socket.create_connection(("127.0.0.1", port), timeout=10) as ok:
             ok.sendall(f"GET /?token={web.token} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n".encode())
             assert ok.recv(64).startswith(b"HTTP/1.1 200")
+    assert said.getvalue().count("connections are open, the most this server keeps") == 1
 
 
 # ---------------------------------------------------------------- the data it leaves

@@ -171,8 +171,18 @@ def test_an_npz_is_read_only_to_the_size_its_arrays_may_unpack_to(tmp_path):
     with pytest.raises(bounded_files.UnreadableInput, match=r"^unpacks to 10,\d{3} bytes, more than the 5,000 esr reads$"):
         bounded_files.load_npz(tmp_path / "small.npz", 5000)
     np.savez(tmp_path / "objects.npz", a=np.array([{"x": 1}], dtype=object))
-    with pytest.raises(bounded_files.UnreadableInput, match="not an .npz file of plain arrays"):
+    with pytest.raises(bounded_files.UnreadableInput, match="'a.npy' holds Python objects, not a plain array"):
         bounded_files.load_npz(tmp_path / "objects.npz", 1 << 20)
+    # A header declaring 800 GB over 16 bytes: numpy would allocate it before reading a byte.
+    import io
+    import zipfile
+
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False, "shape": (10**11,)})
+    with zipfile.ZipFile(tmp_path / "claims.npz", "w") as z:
+        z.writestr("a.npy", header.getvalue() + b"\0" * 16)
+    with pytest.raises(bounded_files.UnreadableInput, match=r"'a.npy' declares 800,000,000,000 bytes of array in a member of \d+"):
+        bounded_files.load_npz(tmp_path / "claims.npz", 1 << 20)
 
 
 @pytest.mark.slow

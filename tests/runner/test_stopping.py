@@ -129,22 +129,34 @@ def test_a_second_ctrl_c_exits_at_once_even_while_a_checkpoint_is_written(tmp_pa
 
 
 def test_the_same_signal_twice_at_once_is_one_request_and_a_later_one_a_second(monkeypatch):
+    """`timeout` sends its signal to the process and then to its group: the same signal again
+    within SAME_REQUEST_S is the first request; later, or another signal, is a second one, which
+    leaves at once."""
+    from types import SimpleNamespace
+
     from esr_cli.runner import stop_requests as sr
 
-    exits = []
-    monkeypatch.setattr(sr.os, "_exit", exits.append)
-    monkeypatch.setattr(sr.os, "write", lambda fd, data: len(data))
-    clock = iter([100.0, 100.01, 100.02, 100.5])
-    monkeypatch.setattr(sr.time, "monotonic", lambda: next(clock))
-    requests = sr.StopRequests()
-    requests(signal.SIGTERM, None)
-    requests(signal.SIGTERM, None)  # `timeout`'s second delivery: the same request
-    assert requests.signum == signal.SIGTERM and exits == []
-    requests(signal.SIGINT, None)  # another signal at once: a second request
-    assert exits == [130]
-    exits.clear()
-    requests(signal.SIGTERM, None)  # the same signal half a second later: a second request
-    assert exits == [143]
+    class Left(Exception):
+        pass
+
+    def leave(code):
+        raise Left(code)
+
+    monkeypatch.setattr(sr, "os", SimpleNamespace(_exit=leave, write=lambda fd, data: len(data)))
+    for first, then, after_s, leaves in ((signal.SIGTERM, signal.SIGTERM, 0.01, None),
+                                         (signal.SIGTERM, signal.SIGTERM, 0.5, 143),
+                                         (signal.SIGTERM, signal.SIGINT, 0.01, 130)):
+        clock = iter([100.0, 100.0 + after_s])
+        monkeypatch.setattr(sr, "time", SimpleNamespace(monotonic=lambda: next(clock)))
+        requests = sr.StopRequests()
+        requests(first, None)
+        if leaves is None:
+            requests(then, None)
+            assert requests.signum == first
+        else:
+            with pytest.raises(Left) as left:
+                requests(then, None)
+            assert left.value.args == (leaves,)
 
 
 def test_chunks_are_timed_by_a_one_epoch_warm_up_then_bounded_by_the_checkpoint_interval():
