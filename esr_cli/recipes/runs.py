@@ -97,9 +97,10 @@ def adopt_shorter_run(store: Store, key: str, components: dict, run_dir: Path, e
             except LockBusy:
                 continue
         if adopted:
-            length = "finished at" if entry.status == "complete" else "unfinished, checkpointed at"
-            console.print(f"starting from run {entry.key[:12]} at epoch {adopted}: the same spec but for its length "
-                          f"({length} epoch {done:,})")
+            total = run_length(entry.manifest)
+            state = "finished" if entry.status == "complete" else \
+                f"unfinished ({'' if total is None else f'{total:,} epochs long, '}checkpointed at epoch {done:,})"
+            console.print(f"starting from run {entry.key[:12]} at epoch {adopted}: the same spec but for its length, {state}")
             return
 
 

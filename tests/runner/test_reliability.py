@@ -251,7 +251,7 @@ def test_a_longer_run_continues_a_shorter_one_bit_for_bit(tmp_path, reference):
     store = tmp_path / "store"
     short = Path(esr(*SMOKE, "--set", "train.epochs=1", store=store).stdout.strip())
     longer = esr(*SMOKE, store=store)
-    assert f"starting from run {short.name[:12]} at epoch 1: the same spec but for its length (finished at epoch 1)" in longer.stderr
+    assert f"starting from run {short.name[:12]} at epoch 1: the same spec but for its length, finished" in longer.stderr
     path = Path(longer.stdout.strip())
     assert_same_run(path, reference)
     assert (short / "manifest.json").is_file()  # the shorter artifact is untouched
@@ -264,7 +264,7 @@ def test_an_unfinished_longer_run_gives_a_shorter_one_its_checkpoint(tmp_path, r
     killed = esr(*SMOKE, "--set", "train.epochs=3", store=store, check=False, ESR_FAULT="after_checkpoint@2")
     assert killed.returncode == -signal.SIGKILL
     shorter = esr(*SMOKE, store=store)
-    assert "(partial) at epoch 2" in shorter.stderr
+    assert "at epoch 2: the same spec but for its length, unfinished (3 epochs long, checkpointed at epoch 2)" in shorter.stderr
     path = Path(shorter.stdout.strip())
     assert_same_run(path, reference)
     assert len(partials(store)) == 1  # the 3-epoch run is still there to be resumed
