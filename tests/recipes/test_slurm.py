@@ -101,9 +101,14 @@ def wait_for(what: str, ready, timeout: float = 300, proc=None):
         time.sleep(0.5)
 
 
+LONG_EPOCHS = 200
+
+
 def test_a_cancelled_job_stops_its_run_and_sweeping_again_resumes_it(cluster, tmp_path):
     store = tmp_path / "store"
-    suite = seeds_suite(tmp_path, "slurmlong", "set: {train.epochs: 40}\n")  # one checkpoint per epoch
+    # One checkpoint per epoch, and long enough that run 0 is still training when --status looks
+    # (40 epochs once ended first on a loaded machine).
+    suite = seeds_suite(tmp_path, "slurmlong", f"set: {{train.epochs: {LONG_EPOCHS}}}\n")
     # A waiting sweep, in the background: run 0's job trains, run 1's waits for it (parallelism 1).
     waiting = subprocess.Popen([sys.executable, "-m", "esr_cli.cli.main", "sweep", str(suite), "--budget", "smoke",
                                 "--executor", "slurm", "--wait"], cwd=ROOT, text=True, stdout=subprocess.PIPE,
@@ -142,7 +147,7 @@ def test_a_cancelled_job_stops_its_run_and_sweeping_again_resumes_it(cluster, tm
     (partial,) = store.glob(f"runs/*/{key0}.partial")
     pending = json.loads((partial / "pending.json").read_text())
     kept = pending["stopped"]["epoch"]
-    assert pending["stopped"]["why"] == "interrupted" and 2 <= kept < 40
+    assert pending["stopped"]["why"] == "interrupted" and 2 <= kept < LONG_EPOCHS
 
     # The same sweep again: both runs are submitted; run 0 resumes from its checkpoint.
     proc = sweep(cluster, str(suite), "--executor", "slurm", "--wait", store=store)
@@ -152,7 +157,7 @@ def test_a_cancelled_job_stops_its_run_and_sweeping_again_resumes_it(cluster, tm
     new = job_ids(store, "slurmlong")[key0]["job_id"]
     assert new != first and cluster.job_state(new) == "COMPLETED"
     log = "".join(p.read_text() for p in (store / "sweeps" / "logs").rglob(f"{new}_0_log.err"))
-    assert f"resuming {key0[:12]} from epoch {kept} of 40" in log
+    assert f"resuming {key0[:12]} from epoch {kept} of {LONG_EPOCHS}" in log
     manifest = json.loads((Path(rows[0]["path"]) / "manifest.json").read_text())
     assert len(manifest["sessions"]) == 2  # started by the cancelled job, finished by the next
-    assert len((Path(rows[0]["path"]) / "metrics.jsonl").read_text().splitlines()) == 40
+    assert len((Path(rows[0]["path"]) / "metrics.jsonl").read_text().splitlines()) == LONG_EPOCHS
