@@ -99,11 +99,10 @@ def parse(data: bytes) -> Any:
 def read_json(path: Path, max_bytes: int) -> Any:
     """The JSON value of file `path`. OSError where it cannot be read; JsonInputError where it is
     a link, not a regular file, larger than `max_bytes`, not UTF-8 JSON or nested too deeply."""
-    with _open(path) as f:
-        try:
-            data = bounded_files.read_at_most(f, max_bytes)
-        except bounded_files.UnreadableInput as e:
-            raise JsonInputError(str(e)) from None
+    try:
+        data = bounded_files.read_bytes(path, max_bytes)
+    except bounded_files.UnreadableInput as e:
+        raise JsonInputError(str(e)) from None
     return parse(data)
 
 

@@ -69,10 +69,18 @@ def _copy_figure_file(figure_dir: Path, name, into: Path) -> None:
         raise StoreError(f"damaged figure: {figure_dir / name}: {e}") from None
 
 
+def read_figure_file(path: Path) -> bytes:
+    """One file of a stored figure, as a bounded regular file; StoreError naming it where it is not."""
+    try:
+        return bounded_files.read_bytes(path, MAX_FIGURE_FILE_BYTES)
+    except (bounded_files.UnreadableInput, OSError) as e:
+        raise StoreError(f"damaged figure: {path}: {e}") from None
+
+
 def _figure_text(path: Path) -> str:
     try:
-        return bounded_files.read_bytes(path, MAX_FIGURE_FILE_BYTES).decode()
-    except (bounded_files.UnreadableInput, OSError, UnicodeDecodeError) as e:
+        return read_figure_file(path).decode()
+    except UnicodeDecodeError as e:
         raise StoreError(f"damaged figure: {path}: {e}") from None
 
 

@@ -690,24 +690,16 @@ def estimator_section(index: dict[str, list[Evidence]], store: Store, console, c
     figure = []
     scatter = store.lookup(FIGURE_KIND, trained.estimator) if trained.estimator else None
     if scatter is not None and (scatter / "estimator.png").is_file():
+        from esr_cli.report.paper import read_figure_file  # the figures' own bounded reader
+
         img_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(img_dir / "reproduction_estimator.png", _stored_figure(scatter / "estimator.png"))
+        atomic_write_bytes(img_dir / "reproduction_estimator.png", read_figure_file(scatter / "estimator.png"))
         shown = f", {min(trained.pairs, SCATTER_POINTS):,} of the {trained.pairs:,} drawn at random" if trained.pairs else ""
         figure = ["![ESR's reward against the exact MI](img/reproduction_estimator.png)", "",
                   f"The scatter (`esr plot estimator {trained.exact[:8]}`): one point per (state, robot action) pair{shown}.", ""]
     return lines + [head, "", "| quantity | value |", "|---|---|", *rows, "",
                     f"Artifacts: exact `{trained.exact[:8]}` (trained), `{uniform.exact[:8]}` (uniform), "
                     f"estimator check `{trained.estimator[:8]}`.", ""] + figure
-
-
-def _stored_figure(path: Path) -> bytes:
-    from esr_cli.common import bounded_files
-    from esr_cli.report.paper import MAX_FIGURE_FILE_BYTES
-
-    try:
-        return bounded_files.read_bytes(path, MAX_FIGURE_FILE_BYTES)
-    except (bounded_files.UnreadableInput, OSError) as e:
-        raise StoreError(f"damaged figure: {path}: {e}") from None
 
 
 def _measured(trained: SeedCheck, uniform: SeedCheck) -> bool:
