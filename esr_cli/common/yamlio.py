@@ -21,13 +21,13 @@ bounded work, before anything walks the tree (docs/reliability.md):
 
 from __future__ import annotations
 
-import os
 import re
-import stat
 from pathlib import Path
 from typing import Any, Callable
 
 import yaml
+
+from esr_cli.common import bounded_files
 
 # The largest spec or suite shipped is under 4 KiB; pure-Python parsing of a worst-case file
 # (a flow list of 0s) costs about 4 s a 256 KiB.
@@ -210,18 +210,10 @@ def read(path: str | Path, max_bytes: int = MAX_FILE_BYTES, follow_links: bool =
     size = p.stat().st_size
     if size > max_bytes:
         raise YamlInputError(f"{size:,} bytes: {too_large}")
-    flags = os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC | (0 if follow_links else os.O_NOFOLLOW)
-    try:
-        # Opened without waiting for a writer (a FIFO put in the file's place since the check
-        # above is refused, not waited on), and read to at most one byte past the limit: a file
-        # whose size the system does not report (/proc) cannot make esr read more than that.
-        with open(os.open(p, flags), "rb") as f:
-            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
-                raise YamlInputError("not a file")
-            data = f.read(max_bytes + 1)
-        if len(data) > max_bytes:
-            raise YamlInputError(f"more than {max_bytes:,} bytes: {too_large}")
-        text = data.decode()
+    try:  # a FIFO or a link put in the file's place since the checks above is refused, not read
+        text = bounded_files.read_bytes(p, max_bytes, follow_links).decode()
+    except bounded_files.UnreadableInput as e:
+        raise YamlInputError(f"{e} from {what}") from None
     except (OSError, UnicodeDecodeError) as e:
         raise YamlInputError(f"cannot read file: {e}") from None
     return parse(text)

@@ -27,7 +27,6 @@ instruction files must lie in the study file's folder (a study file from elsewhe
 from __future__ import annotations
 
 import json
-import os
 import re
 import unicodedata
 from dataclasses import dataclass
@@ -36,7 +35,7 @@ from typing import Annotated, Any, Literal, Optional, Union
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from esr_cli.common import specs, yamlio
+from esr_cli.common import bounded_files, specs, yamlio
 from esr_cli.model import spec as spec_model
 from esr_cli.storage.store import digest_bytes
 
@@ -270,13 +269,12 @@ def read_text(folder: Path, name: str, key: str, source: str) -> str:
                                       "participants must lie beside the study file")
     if not path.is_file():
         raise StudyError(source, key, f"no file {name[:60]!r} in the study file's folder")
-    try:  # not waiting for a writer (a FIFO put in its place), and reading at most one byte past the limit
-        with open(os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC), "rb") as f:
-            data = f.read(MAX_TEXT_FILE_BYTES + 1)
+    try:  # `path` is resolved: no link is left to follow
+        data = bounded_files.read_bytes(path, MAX_TEXT_FILE_BYTES, follow_links=True)
+    except bounded_files.UnreadableInput as e:
+        raise StudyError(source, key, f"{name[:60]}: {e}") from None
     except OSError as e:
         raise StudyError(source, key, f"cannot read {name[:60]}: {e.strerror or e}") from None
-    if len(data) > MAX_TEXT_FILE_BYTES:
-        raise StudyError(source, key, f"{name[:60]} is larger than the {MAX_TEXT_FILE_BYTES:,} bytes a text may have")
     try:
         text = data.decode("utf-8").replace("\r\n", "\n")
     except UnicodeDecodeError:

@@ -25,7 +25,6 @@ import fcntl
 import json
 import os
 import re
-import stat
 import subprocess
 import time
 from contextlib import contextmanager
@@ -38,7 +37,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from esr_cli.common import specs
+from esr_cli.common import bounded_files, specs
 from esr_cli.common.printing import plain_console, printable, tagged
 from esr_cli.recipes import check_columns
 from esr_cli.recipes.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
@@ -89,17 +88,11 @@ def read_record(path: Path) -> Optional[dict]:
     """A JSON object esr wrote, or None where `path` is missing, a link, not a regular file (a
     FIFO would block), larger than any esr writes, or not a JSON object."""
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW)
-    except OSError:
+        data = bounded_files.read_bytes(path, MAX_RECORD_BYTES)
+    except (OSError, bounded_files.UnreadableInput):
         return None
     try:
-        data = os.read(fd, MAX_RECORD_BYTES + 1) if stat.S_ISREG(os.fstat(fd).st_mode) else b""
-    except OSError:
-        return None
-    finally:
-        os.close(fd)
-    try:
-        value = json.loads(data) if 0 < len(data) <= MAX_RECORD_BYTES else None
+        value = json.loads(data) if data else None
     except (ValueError, RecursionError):
         return None
     return value if isinstance(value, dict) else None

@@ -12,10 +12,9 @@ from __future__ import annotations
 import hashlib
 import hmac
 import os
-import stat
 from pathlib import Path
 
-from esr_cli.common import tar_reader
+from esr_cli.common import bounded_files, tar_reader
 from esr_cli.storage.store import StoreError, atomic_write_text
 
 KEY_ENV = "ESR_ARCHIVE_KEY"
@@ -70,17 +69,10 @@ def _mac(archive: Path, key: bytes) -> str:
 
 
 def _read_small(path: Path, limit: int, what: str) -> bytes:
-    """A regular file of at most `limit` bytes, opened without waiting (a FIFO is refused)."""
+    """A regular file of at most `limit` bytes (bounded_files.read_bytes: a FIFO is refused)."""
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+        return bounded_files.read_bytes(path, limit, follow_links=True)
+    except bounded_files.UnreadableInput as e:
+        raise StoreError(f"{what}: {e}") from None
     except OSError as e:
         raise StoreError(f"{what}: cannot be read ({e.strerror or e})") from None
-    try:
-        data = os.read(fd, limit + 1) if stat.S_ISREG(os.fstat(fd).st_mode) else None
-    finally:
-        os.close(fd)
-    if data is None:
-        raise StoreError(f"{what}: not a regular file")
-    if len(data) > limit:
-        raise StoreError(f"{what}: more than {limit:,} bytes, larger than it can be")
-    return data

@@ -113,7 +113,7 @@ def test_a_file_whose_size_is_not_reported_is_read_only_to_the_limit(tmp_path, m
 
     monkeypatch.setattr(Path, "stat", unsized)
     assert p.stat().st_size == 0
-    with pytest.raises(specs.SpecError, match="more than 262,144 bytes: larger than the 262,144 bytes"):
+    with pytest.raises(specs.SpecError, match="more than the 262,144"):
         specs.load(p)
 
 
@@ -923,7 +923,7 @@ def test_a_fifo_given_as_a_spec_is_refused_without_waiting(tmp_path, monkeypatch
     monkeypatch.setattr(Path, "is_file", lambda self: True)
     signal.alarm(20)  # a regression would block here; the alarm ends the test instead
     try:
-        with pytest.raises(yamlio.YamlInputError, match="not a file"):
+        with pytest.raises(yamlio.YamlInputError, match="not a regular file"):
             yamlio.read(fifo)
     finally:
         signal.alarm(0)

@@ -145,7 +145,7 @@ def test_hostile_study_files_are_refused_in_one_line(tmp_path):
     (folder / "big.md").write_text("x" * (MAX_TEXT_FILE_BYTES + 1))
     (folder / "escape.md").write_text("fine\nnot \x1b[31mfine\n")
     (folder / "latin1.md").write_bytes("caf\xe9".encode("latin-1"))
-    for name, expected in (("link.md", "is outside the study file's folder"), ("big.md", "larger than the 65,536 bytes"),
+    for name, expected in (("link.md", "is outside the study file's folder"), ("big.md", "more than the 65,536 esr reads"),
                            ("escape.md", "line 2: a control character \\x1b"), ("latin1.md", "is not UTF-8")):
         write_study(folder, study_dict(consent=name))
         with pytest.raises(StudyError) as e:
