@@ -29,8 +29,8 @@ def plot(
     state: Optional[int] = typer.Option(None, "--state", help="geometry: which of the 3 states (default 0)"),
     unfinished: bool = typer.Option(False, "--unfinished", help="paper figures: draw runs still training as far as they "
                                     "have got, marked unfinished (a preview outside the store)"),
-    out_file: Optional[Path] = typer.Option(None, "--out", help="curve: the PNG to write (default: NAME-KEY8-curve.png "
-                                            "here); a paper figure with --unfinished: the folder for the preview"),
+    out_file: Optional[Path] = typer.Option(None, "--out", help="curve: the figure to write, its provenance beside it as "
+                                            "the same name .json (default: NAME-KEY8-curve.png here); a paper figure with --unfinished: the folder for the preview"),
 ):
     """Draw a figure from artifacts (never trains; a missing run is named with its command).
     `esr plot curve RUN` draws a run's learning curves as far as it has got, unfinished or not."""
@@ -107,6 +107,24 @@ def _file_stem(text: str) -> str:
     return text if _FILE_STEM.fullmatch(text) else "run"
 
 
+def _check_sidecar(sidecar: Path) -> None:
+    """The figure's provenance is written beside it as NAME.json: refused before any work where
+    that is a folder, or a file that is not an earlier figure's provenance (a user's own JSON is
+    never overwritten)."""
+    from esr_cli.common import jsonl
+
+    check_output_file(sidecar, "--out")
+    if not sidecar.exists() and not sidecar.is_symlink():
+        return
+    try:
+        earlier = jsonl.read_json(sidecar, 1 << 20)  # a provenance is a few hundred bytes
+    except (jsonl.JsonInputError, OSError):
+        earlier = None
+    if not (isinstance(earlier, dict) and isinstance(earlier.get("artifacts"), dict)):
+        raise Exit(2, f"--out: {sidecar} exists and is not a figure's provenance, which esr writes there; "
+                      "move it or name another --out")
+
+
 def _plot_curve(ref: str, out_file: Optional[Path], store: Store) -> None:
     """A run's learning curves from its metrics so far; an unfinished run says so in the title."""
     if out_file is not None and out_file.suffix.lower() not in FIGURE_SUFFIXES:  # matplotlib would draw, then refuse it
@@ -126,6 +144,7 @@ def _plot_curve(ref: str, out_file: Optional[Path], store: Store) -> None:
     out_png = out_file or Path(f"{_file_stem(name)}-{_file_stem(key[:8])}-curve.png")
     refuse_inside_store(out_png, "--out", store)
     check_output_file(out_png, "--out")
+    _check_sidecar(out_png.with_suffix(".json"))
     warmup = field(record, "key_components", "spec", "learner", "warmup_epochs") or 0
     method = field(record, "key_components", "spec", "method", "kind")
     title = printable(f"{name} [{method}]{state}" if method else f"{name}{state}")

@@ -289,9 +289,7 @@ def plays(
         raise Exit(2, "--export and --csv name the same file")
     writes_a_file = any(path is not None for path in (export, csv_file, answers))  # none written: exit 1
     if study is not None:
-        found = _plays_study(ctx.obj.store, study, participant, session, csv_file, answers, writes_a_file)
-        if export is not None:
-            _export(found, export, ctx.obj.store)
+        _plays_study(ctx.obj.store, study, participant, session, csv_file, answers, export, writes_a_file)
         return
     found = ps.played_episodes(ctx.obj.store, participant, session)
     if not found:
@@ -301,39 +299,37 @@ def plays(
         err.print(what, highlight=False)  # an empty listing, as `esr ls` says of an empty store
         return
     rows = results.episode_rows(found)
+    exported = _prepare_export(found, export, ctx.obj.store) if export is not None else None
     if by_robot:
         _print_by_robot(results.by_robot(rows))
     else:
         _print_plays(found)
     if csv_file is not None:
-        csv_file.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(csv_file, results.episodes_csv(rows).encode())
-        err.print(tagged("written", "green", f" {len(rows)} episode(s): {csv_file}"))
-    if export is not None:
-        _export(found, export, ctx.obj.store)
+        _write(csv_file, results.episodes_csv(rows), f"{len(rows)} episode(s)")
+    if exported is not None:
+        _write(export, *exported, tag="exported")
 
 
-def _export(found, export: Path, store: Store) -> None:
+def _prepare_export(found, export: Path, store: Store) -> tuple[str | bytes, str]:
+    """The file `--export` writes and what to say of it, made before anything is printed, so an
+    export that cannot be made ends the command with its one line alone."""
     if export.suffix != ".jsonl":
-        _export_overcooked(found, export, store)
-        return
+        return _overcooked_export(found, export, store)
     from esr_cli.play.step_export import export_jsonl
 
     text, count = export_jsonl([store.lookup(PLAY_KIND, k) for k, _, _ in found])
-    export.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(export, text.encode())
-    err.print(tagged("exported", "green", f" {len(found)} episode(s), {count} steps: {export}"))
+    return text, f"{len(found)} episode(s), {count} steps"
 
 
-def _write(path: Path, text: str, what: str) -> None:
+def _write(path: Path, content: str | bytes, what: str, tag: str = "written") -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(path, text.encode())
-    err.print(tagged("written", "green", f" {what}: {path}"))
+    atomic_write_bytes(path, content.encode() if isinstance(content, str) else content)
+    err.print(tagged(tag, "green", f" {what}: {path}"))
 
 
 def _plays_study(store: Store, study: str, participant: Optional[str], session: Optional[str],
-                 csv_file: Optional[Path], answers: Optional[Path], writes_a_file: bool) -> list:
-    """`esr plays --study NAME`: the study's table per robot and its sessions; -> its episodes."""
+                 csv_file: Optional[Path], answers: Optional[Path], export: Optional[Path], writes_a_file: bool) -> None:
+    """`esr plays --study NAME`: the study's table per robot and its sessions, and the files asked for."""
     from esr_cli.play import results, study_session as ss
     from esr_cli.play.study import NAME
 
@@ -348,8 +344,9 @@ def _plays_study(store: Store, study: str, participant: Optional[str], session: 
         if writes_a_file:
             raise Exit(1, what)
         err.print(what, highlight=False)  # an empty listing, as `esr plays` and `esr ls` say of one
-        return []
+        return
     rows = results.episode_rows(found)
+    exported = _prepare_export(found, export, store) if export is not None else None
     table, items = results.study_table(rows, records), results.study_items(records)
     _print_study(study, table, items)
     _print_study_sessions(results.study_sessions(rows, records))
@@ -358,7 +355,8 @@ def _plays_study(store: Store, study: str, participant: Optional[str], session: 
     if answers is not None:
         text = results.answers_csv(records)
         _write(answers, text, f"{text.count(chr(10)) - 1} answer(s)")
-    return found
+    if exported is not None:
+        _write(export, *exported, tag="exported")
 
 
 def _print_study(study: str, table: list[dict], items: list[dict]) -> None:
@@ -414,13 +412,12 @@ def _print_plays(found) -> None:
     print_table(out, table)
 
 
-def _export_overcooked(found, export: Path, store: Store) -> None:
+def _overcooked_export(found, export: Path, store: Store) -> tuple[bytes, str]:
     from esr_cli.play import export as px
 
     frame, count = px.export_overcooked(store, [k for k, _, _ in found])
     if count == 0:
         raise Exit(2, "--export: none of these episodes is an Overcooked episode")
-    export.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
     if export.suffix == ".csv":  # a participant's session or a run's name must open as text, never a formula
         from esr_cli.play.results import frame_as_text
@@ -428,6 +425,5 @@ def _export_overcooked(found, export: Path, store: Store) -> None:
         frame_as_text(frame).to_csv(buffer, index=False)
     else:
         frame.to_pickle(buffer)
-    atomic_write_bytes(export, buffer.getvalue())
-    err.print(tagged("exported", "green", f" {count} Overcooked episode(s), {len(frame)} rows: {export}"))
+    return buffer.getvalue(), f"{count} Overcooked episode(s), {len(frame)} rows"
 

@@ -67,7 +67,6 @@ def eval_(
 ):
     """Evaluate a trained robot with its human; writes an evaluation artifact, a GIF and a curve."""
     targets.check_partner_name(human)
-    human = targets.complete_play_partner(ctx.obj.store, human)
     most = spec_model.MAX_EVAL_EPISODES
     if episodes is not None and not 1 <= episodes <= most:
         raise Exit(2, f"--episodes: between 1 and {most:,} (got {episodes:,})")
@@ -78,7 +77,8 @@ def eval_(
         refuse_spec_options(target, budget, set_)
         run_path = targets.stored_run(ctx.obj.store, target)
         spec = targets.run_spec(run_path)
-    targets.partner_spec(targets.seat_spec(spec, seat)[0], human)
+    targets.partner_spec(targets.seat_spec(spec, seat)[0], human)  # a play human fits this run: then its keys
+    human = targets.complete_play_partner(ctx.obj.store, human)
     from esr_cli.common.stats import format_summary  # scipy: +0.9 s, only where a table needs it
     from esr_cli.recipes import runs  # JAX and the training code: after the options are checked
 
@@ -290,7 +290,8 @@ def ablate(
     no_robot_action: bool = typer.Option(False, "--no-robot-action", help="phi and phi' without the robot action"),
     greedy: bool = typer.Option(False, "--greedy", help="critic discount 0, future-state horizon unchanged"),
     budget: str = BudgetOpt,
-    set_: Optional[List[str]] = SetOpt,
+    set_: Optional[List[str]] = typer.Option(None, "--set", "-s", help="one more variant: every --set together "
+                                             "changes the base spec this way (key.path=value, repeatable); the base is unchanged"),
 ):
     """Train (or reuse) base specs and their ablated variants; write one comparison artifact."""
     names = [n for n, on in (("no_robot_action", no_robot_action), ("greedy", greedy)) if on]

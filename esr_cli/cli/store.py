@@ -63,6 +63,10 @@ def ls(
             err.print(f"damaged manifest: {entry.problem}")
         elif entry.kind == RUN_KIND and not r["epochs"] and (problem := listing.metrics_problem(entry.path)):
             err.print(f"unreadable metrics: {problem}")
+        elif r["status"] == "complete" and r["epochs_total"] and (r["epochs"] or 0) < r["epochs_total"]:
+            # a finished run logs every epoch: fewer is a file changed since (`esr verify` says which)
+            err.print(f"metrics short of the run: {entry.path / 'metrics.jsonl'} logs {r['epochs'] or 0:,} of its "
+                      f"{r['epochs_total']:,} epochs; `esr verify` checks its files")
 
 
 @app.command()

@@ -88,7 +88,8 @@ def parse(data: bytes) -> Any:
     except UnicodeDecodeError:
         raise JsonInputError("not UTF-8 JSON") from None
     except json.JSONDecodeError as e:
-        raise JsonInputError(f"not UTF-8 JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
+        # json's messages that name a place end in " at", its position following in str(e) only
+        raise JsonInputError(f"not UTF-8 JSON (line {e.lineno}, column {e.colno}: {e.msg.removesuffix(' at')})") from None
     except ValueError:  # what else json refuses: an integer of more digits than it converts
         raise JsonInputError("JSON with an integer too long to read") from None
     if _depth(value) > MAX_DEPTH:

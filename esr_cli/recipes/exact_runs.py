@@ -47,6 +47,8 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
     space is too large for every pair (above exact.DENSE_STATES), `sample_pairs` more pairs drawn
     uniformly from all of them are computed beside the visited ones, for a rank correlation that
     stands for all pairs (`esr plot estimator`); they do not enter the effective empowerment."""
+    # the cell named in an error: the user's --goal, or the default they did not choose
+    goal_named = "--goal {}" if goal is not None else "the default goal {} (the centre; --goal names another)"
     goal, gamma, robot_manifest = exact_target(spec, store, goal, gamma, robot, seed_index)
     components = {
         "kind": "exact",
@@ -111,7 +113,7 @@ def exact_recipe(spec, store: Store, goal, gamma: float | None, robot: str | Non
 
     def check(store: Store) -> None:  # before anything is written: the goal must leave some start free
         if not len(start_states().t):
-            raise StoreError(f"--goal {goal}: no start state of {spec.name} leaves this cell free "
+            raise StoreError(f"{goal_named.format(goal)}: no start state of {spec.name} leaves this cell free "
                              f"(the human starts there or a block always covers it): choose another cell")
 
     return Recipe(EXACT_KIND, spec.name, components, _discard_on_failure(build), budget=spec.budget, check=check)

@@ -22,12 +22,13 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import io
 import json
 import os
 import re
 import subprocess
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, redirect_stderr
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterable, Optional
@@ -773,6 +774,19 @@ def _run_local(todo: list[RunStatus], store: Store, console: Console, result: Sw
             result.failed.append((s.run, f"{type(e).__name__}: {e}"))
 
 
+def _files_under(folder: Path) -> set[Path]:
+    return {p for p in folder.rglob("*") if not p.is_dir()} if folder.is_dir() else set()
+
+
+def _remove_new_files(folder: Path, earlier: set[Path]) -> None:
+    """What a refused submission left in `folder` (submitit's job script and pickled calls, for
+    jobs that do not exist), and the folder itself where it is then empty."""
+    for p in _files_under(folder) - earlier:
+        p.unlink(missing_ok=True)
+    if folder.is_dir() and not any(folder.iterdir()):
+        folder.rmdir()
+
+
 def _submit(todo, executor, opts, suite, store, console, result, wait) -> None:
     logs = store.root.absolute() / SWEEPS_DIR / "logs" / state_path(store, suite).stem
     try:
@@ -780,15 +794,19 @@ def _submit(todo, executor, opts, suite, store, console, result, wait) -> None:
     except RuntimeError as e:  # submitit: no srun on this machine
         raise SweepError(f"{e} (submit from a SLURM login node, or use --executor local)") from None
     jobs = []
+    earlier = _files_under(logs)
     try:
-        with ex.batch():  # one job array on SLURM
+        # submitit prints sbatch's refusal itself before raising it; the error below names it once
+        with redirect_stderr(io.StringIO()), ex.batch():  # one job array on SLURM
             for s in todo:
                 jobs.append(ex.submit(train_job, str(s.run.spec_path), suite.budget, list(s.run.sets), str(store.root.absolute()),
                                          job_time_budget_s(opts.time_min)))
     except FileNotFoundError as e:
+        _remove_new_files(logs, earlier)
         raise SweepError(f"cannot submit to SLURM from here ({e.filename or e} not found): run on a login node, "
                          "or use --executor local") from None
     except Exception as e:  # noqa: BLE001 - sbatch's own refusal (bad partition, limits): one line
+        _remove_new_files(logs, earlier)
         raise SweepError(f"submission failed: {str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__}") from None
     _record_jobs(store, suite, executor, [(s.run, j.job_id, logs / "%j") for s, j in zip(todo, jobs)])
     result.submitted = [(s.run, j.job_id) for s, j in zip(todo, jobs)]

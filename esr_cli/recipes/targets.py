@@ -219,10 +219,15 @@ def complete_play_keys(spec, store: Store):
     return spec if human is spec.human else spec.model_copy(update={"human": human})
 
 
+def _lower_if_hex(text: str) -> str:
+    return text.lower() if spec_model.is_play_key_ref(text.lower()) else text
+
+
 def complete_play_partner(store: Store, partner: str) -> str:
     """`play:PREFIX,...` with each prefix completed; any other partner as given."""
     if not partner.startswith(PLAY_PARTNER):
         return partner
-    refs = [k.strip().lower() for k in partner[len(PLAY_PARTNER):].split(",") if k.strip()]
+    # a key in capitals is the same key; anything else is named as it was typed
+    refs = [_lower_if_hex(k.strip()) for k in partner[len(PLAY_PARTNER):].split(",") if k.strip()]
     return PLAY_PARTNER + ",".join(complete_play_key(store, k) for k in refs)
 

@@ -66,17 +66,12 @@ def metrics_problem(run_path) -> str | None:
     """Why a run's metrics.jsonl cannot be read at all (a FIFO, a device or a link in its place,
     a file larger than esr reads, a disk error), or None: `ls` and `show` name it in one line,
     where the run's epochs and return are left blank."""
-    from pathlib import Path
-
-    from esr_cli.common.jsonl import JsonInputError
-    from esr_cli.storage.finals import read_rows
+    from esr_cli.storage.finals import UnreadableMetrics, read_rows
 
     try:
         read_rows(run_path)
-    except JsonInputError as e:
-        return f"{Path(run_path) / 'metrics.jsonl'} is {e}"
-    except OSError as e:
-        return f"{Path(run_path) / 'metrics.jsonl'} cannot be read ({e.strerror or e})"
+    except UnreadableMetrics as e:
+        return e.problem
     return None
 
 

@@ -16,8 +16,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from esr_cli.common.jsonl import JsonInputError, read_json, read_jsonl
-from esr_cli.storage.finals import epoch_rows, run_length
+from esr_cli.common.jsonl import JsonInputError, read_json
+from esr_cli.storage.finals import logged_rows, run_length
 from esr_cli.storage.labels import labels_problem
 from esr_cli.storage.store import CHECKPOINT_FOLDER, MANIFEST, MAX_MANIFEST_BYTES, RUN_KIND, Store, atomic_write_text, digest_file, load_manifest, without_checkpoint
 
@@ -83,8 +83,9 @@ def verified_steps(run_dir: Path) -> list[int]:
 
 def logged_epochs(run_dir: Path) -> list[int]:
     """The epochs of a run's sound metrics lines, in order, beyond its length too (what a check
-    compares with its length; tables read `read_rows`)."""
-    return [r["epoch"] for r in epoch_rows(read_jsonl(Path(run_dir) / "metrics.jsonl"))]
+    compares with its length; tables read `read_rows`). UnreadableMetrics where the file cannot
+    be read at all."""
+    return [r["epoch"] for r in logged_rows(run_dir)]
 
 
 def _epochs(values: list[int]) -> str:
@@ -99,8 +100,12 @@ def epochs_problem(run_dir: Path, step: int, total: int | None, held: list[int] 
     beyond = total is not None and step > total
     if not beyond and step in logged and held in (None, [step]):
         return None
-    facts = [f"its state holds {_epochs(held)}"] if held is not None else []
-    facts.append(f"metrics end at {logged[-1]}" if logged else "no epoch is logged")
+    # Only what disagrees with the folder is named: a fact that agrees would read as the problem.
+    facts = [f"its state holds {_epochs(held)}"] if held not in (None, [step]) else []
+    if step not in logged:
+        facts.append(f"metrics end at {logged[-1]}" if logged else "no epoch is logged")
+    if not facts:  # beyond the run's length is all that is wrong
+        return f"checkpoint folder says epoch {step} in a run of {total} epochs"
     return (f"checkpoint folder says epoch {step} but {' and '.join(facts)}"
             + (f", in a run of {total} epochs" if beyond else ""))
 

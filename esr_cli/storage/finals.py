@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from esr_cli.common.failures import Failure
 from esr_cli.common.jsonl import JsonInputError, read_jsonl
 from esr_cli.common.numbers import as_number
 from esr_cli.storage.store import MANIFEST, StoreError, load_manifest, read_pending
@@ -23,12 +24,39 @@ FINAL_FRACTION = 0.1
 MAX_EPOCH = 10**9
 
 
-def read_rows(run_path: Path) -> list[dict]:
+class UnreadableMetrics(Failure):
+    """A run's metrics.jsonl that cannot be read at all (a FIFO, a device or a link in its place,
+    a file larger than esr reads, a disk error). `problem`: what is wrong, naming the file, for
+    a listing's line; `one_line()`: a command's ending."""
+
+    exit_code = 2  # bad input, as a damaged artifact is (storage/store.py::StoreError)
+
+    def __init__(self, problem: str):
+        super().__init__(problem)
+        self.problem = problem
+
+    def one_line(self) -> str:
+        return f"unreadable metrics: {self.problem}"
+
+
+def logged_rows(run_path: Path) -> list[dict]:
     """A run's metrics.jsonl, one dict per epoch, as training writes them: a line cut short by a
-    kill ends it, as does the first row that is not an epoch's (see `epoch_rows`), and so do rows
-    beyond the run's length (its manifest's or pending.json's): no table reads epochs a run was
-    never asked for (`checkpoint_files.logged_epochs` reads them all, for `esr verify` to name)."""
-    rows = epoch_rows(read_jsonl(Path(run_path) / "metrics.jsonl"))
+    kill ends it, as does the first row that is not an epoch's (see `epoch_rows`).
+    UnreadableMetrics where the file cannot be read at all."""
+    path = Path(run_path) / "metrics.jsonl"
+    try:
+        return epoch_rows(read_jsonl(path))
+    except JsonInputError as e:
+        raise UnreadableMetrics(f"{path} is {e}") from None
+    except OSError as e:
+        raise UnreadableMetrics(f"{path} cannot be read ({e.strerror or e})") from None
+
+
+def read_rows(run_path: Path) -> list[dict]:
+    """`logged_rows` without the rows beyond the run's length (its manifest's or pending.json's):
+    no table reads epochs a run was never asked for (`checkpoint_files.logged_epochs` reads them
+    all, for `esr verify` to name)."""
+    rows = logged_rows(run_path)
     length = run_length(_record(Path(run_path)))
     return rows if length is None else [r for r in rows if r["epoch"] <= length]
 
@@ -126,7 +154,7 @@ def run_progress(run_path: Path) -> tuple[int, float | None]:
     follows cannot fail on their contents."""
     try:
         rows = read_rows(run_path)
-    except (JsonInputError, OSError):
+    except UnreadableMetrics:
         return 0, None
     if not rows:
         return 0, None

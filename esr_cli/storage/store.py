@@ -385,7 +385,7 @@ class Store:
         for f in sorted(Path(path).rglob("*")):
             rel = f.relative_to(path).as_posix()
             if f.is_file() and rel != MANIFEST and rel not in listed:
-                problems.append(f"unexpected file {rel}")
+                problems.append(f"unexpected file {printable(rel if len(rel) <= 200 else rel[:200] + '...')}")  # a name from an archive
         return problems
 
 

@@ -219,6 +219,9 @@ def test_a_goal_that_no_start_leaves_free_is_refused_naming_the_goal(tmp_path):
     spec.write_text(TINY_SPEC.replace("start: corner", "start: center"))
     store = tmp_path / "store"
     refused = esr("exact", str(spec), store=store, check=False)
+    said = " ".join(refused.stderr.split())
+    assert refused.returncode == 2 and "the default goal (1, 1) (the centre; --goal names another): no start state of tiny" in said
+    refused = esr("exact", str(spec), "--goal", "1,1", store=store, check=False)
     assert refused.returncode == 2 and "--goal (1, 1): no start state of tiny leaves this cell free" in refused.stderr
     assert not list(store.rglob("*.partial"))
 

@@ -53,6 +53,24 @@ def test_ls_show_verify(smoke_run):
 
 
 @pytest.mark.slow
+def test_ls_names_a_finished_run_whose_metrics_were_cut_short(smoke_run, tmp_path):
+    """A finished run logs every epoch: `ls` lists a copy whose metrics.jsonl was emptied as it
+    is, with one line saying so (and `verify` finds the changed file)."""
+    import shutil
+
+    store = tmp_path / "store"
+    shutil.copytree(smoke_run[0], store)
+    run = store / smoke_run[1].relative_to(smoke_run[0])
+    assert "metrics short" not in esr("ls", store=store).stderr
+    (run / "metrics.jsonl").write_text("")
+    listed = esr("ls", store=store)
+    assert listed.returncode == 0 and run.name[:12] in listed.stdout
+    assert " ".join(listed.stderr.split()) == (f"metrics short of the run: {run / 'metrics.jsonl'} logs 0 of its 2 epochs; "
+                                               "`esr verify` checks its files")
+    assert esr("verify", run.name, store=store, check=False).returncode == 1
+
+
+@pytest.mark.slow
 def test_ls_json_filters_and_piped_cells_in_full(smoke_run):
     store, path, _ = smoke_run
     rows = json.loads(esr("ls", "--json", store=store).stdout)
@@ -209,3 +227,15 @@ def test_plot_curve_draws_an_unfinished_run_and_says_so(tmp_path):
     assert "at epoch 1" in proc.stderr
     bad = esr("plot", "curve", str(partial), "--budget", "quick", store=store, check=False)
     assert bad.returncode == 2 and "--budget does not apply" in bad.stderr
+    # Its provenance goes beside it as curve.json: drawn again, that is replaced; a user's own
+    # JSON of that name, or a folder there, is refused before anything is drawn.
+    assert json.loads(out.with_suffix(".json").read_text())["artifacts"]
+    assert esr("plot", "curve", str(partial), "--out", str(out), store=store).returncode == 0
+    mine = tmp_path / "mine.png"
+    mine.with_suffix(".json").write_text('{"precious": 1}')
+    refused = esr("plot", "curve", str(partial), "--out", str(mine), store=store, check=False)
+    assert refused.returncode == 2 and "mine.json exists and is not a figure's provenance" in " ".join(refused.stderr.split())
+    assert mine.with_suffix(".json").read_text() == '{"precious": 1}' and not mine.exists()
+    (tmp_path / "box.json").mkdir()
+    refused = esr("plot", "curve", str(partial), "--out", str(tmp_path / "box.png"), store=store, check=False)
+    assert refused.returncode == 2 and "box.json is a directory" in refused.stderr and not (tmp_path / "box.png").exists()

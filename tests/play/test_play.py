@@ -1154,6 +1154,10 @@ def test_plays_by_robot_averages_each_participant_first_and_writes_one_csv_row_p
         assert line["robot_label"] == "robot B" and line["env"] == "gridworld" and line["layout"] is None
         assert {k: line[k] for k in step} == step  # the logged step, state included, unchanged
         assert line["human_action_name"] == ("left", "down", "right", "up", "stay")[step["human_action"]]
+    # An Overcooked export of gridworld episodes cannot be made: one line, nothing printed first.
+    refused = esr("plays", "--participant", "p3", "--export", str(tmp_path / "out" / "p3.csv"), store=tmp_path, check=False)
+    assert refused.returncode == 2 and refused.stdout == "" and not (tmp_path / "out" / "p3.csv").exists()
+    assert refused.stderr.strip() == "error: --export: none of these episodes is an Overcooked episode"
 
 
 def test_every_environment_kind_has_a_board_that_meets_its_protocol():

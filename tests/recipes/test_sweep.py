@@ -452,6 +452,27 @@ def test_slurm_submission_builds_one_job_array(tmp_path, monkeypatch):
     assert again.submitted == [] and len(again.skipped) == 3
 
 
+def test_a_refused_submission_is_one_line_and_leaves_no_job_files(tmp_path, monkeypatch, capsys):
+    """sbatch's refusal (a bad partition): the sweep ends with its one line, printed once, and the
+    job script and pickled calls submitit wrote for jobs that do not exist are removed."""
+    from esr_cli.cli.main import main
+
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "sbatch").write_text("#!/bin/sh\necho 'sbatch: error: invalid partition specified: nope' >&2\nexit 1\n")
+    (bin_dir / "srun").write_text("#!/bin/sh\nexit 0\n")
+    for f in bin_dir.iterdir():
+        f.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_dir}:{os.environ['PATH']}")
+    path = write_suite(tmp_path, f"specs: [{GRID_2}]\ngrid: {{train.seeds: [[0], [1]]}}\nslurm: {{partition: nope}}\n")
+    store = tmp_path / "store"
+    assert main(["--store", str(store), "sweep", str(path), "--budget", "smoke", "--executor", "slurm"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("invalid partition specified: nope") == 1
+    assert "error: submission failed: sbatch: error: invalid partition specified: nope" in " ".join(err.split())
+    assert not [p for p in (store / "sweeps" / "logs").rglob("*") if p.is_file()]
+
+
 def test_a_sweep_whose_jobs_stopped_at_their_time_budget_exits_75(tmp_path, monkeypatch, capsys):
     from esr_cli.cli.main import main
 

@@ -18,3 +18,15 @@ def test_a_checkpoint_whose_metadata_is_larger_than_esr_writes_is_not_intact(tmp
         f.truncate(cf.MAX_METADATA_BYTES + 1)
     cf.record_digests(tmp_path, [2], 2)  # digests that match
     assert cf.verified_steps(tmp_path) == []
+
+
+def test_an_epochs_problem_names_only_what_disagrees_with_the_folder(tmp_path):
+    """The folder's epoch against the state's, the metrics' and the run's length: a fact that
+    agrees with the folder is not named as if it were the problem."""
+    (tmp_path / "metrics.jsonl").write_text("".join(f'{{"epoch": {e}, "env_steps": 1, "return": [0.0]}}\n' for e in (1, 2)))
+    assert cf.epochs_problem(tmp_path, 2, 4, [2]) is None
+    assert cf.epochs_problem(tmp_path, 4, 4, [4]) == "checkpoint folder says epoch 4 but metrics end at 2"
+    assert cf.epochs_problem(tmp_path, 2, 4, [1]) == "checkpoint folder says epoch 2 but its state holds epoch 1"
+    assert cf.epochs_problem(tmp_path, 4, 4, [1, 3]) == "checkpoint folder says epoch 4 but its state holds epochs 1, 3 and metrics end at 2"
+    assert cf.epochs_problem(tmp_path, 2, 1, [2]) == "checkpoint folder says epoch 2 in a run of 1 epochs"
+    assert cf.epochs_problem(tmp_path, 9, 4, None) == "checkpoint folder says epoch 9 but metrics end at 2, in a run of 4 epochs"

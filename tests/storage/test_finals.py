@@ -110,3 +110,23 @@ def test_rows_beyond_a_runs_length_are_not_read_as_its_epochs(tmp_path):
     (run / "pending.json").write_text("[]")  # no record of its length: every sound row
     assert len(finals.read_rows(run)) == 5
 
+
+
+
+@pytest.mark.parametrize("intruder", ["fifo", "link"])
+def test_a_metrics_file_that_cannot_be_read_is_one_failure_naming_it(tmp_path, intruder):
+    """A FIFO or a link where metrics.jsonl belongs: every reader of a run's rows (figures,
+    evaluation, the checkpoint checks) ends with the line `esr ls` prints for it, exit 2, and a
+    listing's progress is left blank instead."""
+    import os
+
+    from esr_cli.storage.checkpoint_files import logged_epochs
+
+    path = tmp_path / "metrics.jsonl"
+    os.mkfifo(path) if intruder == "fifo" else path.symlink_to("/dev/zero")
+    for read in (finals.read_rows, finals.logged_rows, logged_epochs):
+        with pytest.raises(finals.UnreadableMetrics) as e:
+            read(tmp_path)
+        assert e.value.exit_code == 2 and e.value.one_line().startswith(f"unreadable metrics: {path} is ")
+        assert ("not a regular file" if intruder == "fifo" else "link") in e.value.problem
+    assert finals.run_progress(tmp_path) == (0, None)

@@ -116,7 +116,8 @@ def test_every_command_refuses_a_store_that_is_a_file(tmp_path):
     assert blocker.read_text() == ""
 
 
-DAMAGED = {b"\xff\xfe{}": "is not UTF-8 JSON", b"{": "is not UTF-8 JSON (line 1, column 2: ", b"[]": "is not a JSON object",
+DAMAGED = {b"\xff\xfe{}": "is not UTF-8 JSON", b"{": "is not UTF-8 JSON (line 1, column 2: ",
+           b'{"kind": "runs", "key": "e7da\n': "is not UTF-8 JSON (line 1, column 30: Invalid control character)", b"[]": "is not a JSON object",
            b'{"kind": ' + b"9" * 5000 + b"}": "is JSON with an integer too long to read",
            b'{"kind": "runs", "files": {"a": 1, "a": 2}}': "is JSON with an object naming the key 'a' twice",
            b"3": "is not a JSON object", b"{}": "has no 'kind'", b'{"kind": "runs", "key": 1}': "has no 'key'"}
