@@ -213,12 +213,12 @@ class BCHumanSpec(_Model):
             return v
         if not v or len(v) > MAX_PLAY_EPISODES:
             raise ValueError(f"between 1 and {MAX_PLAY_EPISODES} played episodes")
+        v = type(v)(k.lower() for k in v)  # a key is hex: ABC... and abc... name the same episode
         # A unique prefix (4 hex digits or more) is completed from the store by the command that
         # reads the spec (targets.complete_play_keys); only whole keys make a human's key.
-        bad = [k for k in v if not is_play_key_ref(k.lower())]
+        bad = [k for k in v if not is_play_key_ref(k)]
         if bad:
-            raise ValueError(not_a_play_key(bad[0]))  # as it was written
-        v = type(v)(k.lower() for k in v)  # a key is hex: ABC... and abc... name the same episode
+            raise ValueError(not_a_play_key(bad[0]))
         if len(set(v)) != len(v):
             raise ValueError("an episode is listed twice")
         return v
@@ -542,8 +542,6 @@ class TrainSpec(_Model):
     def _count_means_range(cls, v):
         if isinstance(v, bool):
             raise ValueError("expected a list of seeds or a count")
-        if isinstance(v, float) and v.is_integer():  # a count of 1e1, as every integer field takes one
-            v = int(v)
         if isinstance(v, int):
             if v < 1:
                 raise ValueError("a seed count must be >= 1")

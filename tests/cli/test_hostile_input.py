@@ -635,7 +635,7 @@ def test_eval_and_report_options_are_checked_before_the_store(tmp_path, capsys):
     store = ["--store", str(tmp_path / "store")]
     for argv, problem in ((["eval", "experiments/cramped_room.yaml", "--seat", "5"], "--seat: 0 or 1, got 5"),
                           (["eval", "experiments/cramped_room.yaml", "-b", "smoke", "--human", "play:zz"], "'zz' is not a play artifact's key"),
-                          (["eval", "experiments/cramped_room.yaml", "-b", "smoke", "--human", "play:ABCD\x1b[2J"], "'ABCD\\x1b[2J' is not a play artifact's key"),
+                          (["eval", "experiments/cramped_room.yaml", "-b", "smoke", "--human", "play:ABCD\x1b[2J"], "'abcd\\x1b[2j' is not a play artifact's key"),
                           (["eval", "experiments/grid_2.yaml", "--human", "play:zz"], "--human play is a BC human (Overcooked)"),
                           (["eval", "experiments/cramped_room.yaml", "--human", "play:zz"], "this run's human is 'ppo'"),
                           (["eval", "experiments/grid_2.yaml", "--seat", "1"], "a gridworld has one robot seat"),
