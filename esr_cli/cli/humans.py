@@ -70,6 +70,8 @@ def human_calibrate(
     and human seed, against the paper's Random column; no robot is trained. The humans are
     made first where the store lacks them, and each calibration is stored (kind calibrations): asked
     again, it is read back. The score is the selection rule's (docs/overcooked.md)."""
+    if as_json and markdown:
+        raise Exit(2, "--json and --markdown: choose one")
     loaded = [_stored_human_spec(f, budget, set_, ctx.obj.store) for f in spec_files]
     from esr_cli.report import human_calibration as hc, stored_calibrations
 

@@ -95,8 +95,9 @@ def _run(argv: list[str], debug: bool, stops: StopSignals) -> int:
         if type(e).__name__ == "Abort":  # the CLI library's Ctrl-C at a prompt
             err.print("aborted")
             return 130
-        if hasattr(e, "show") and hasattr(e, "exit_code"):  # the CLI library's usage errors
-            e.show()
+        if hasattr(e, "format_message") and hasattr(e, "exit_code"):  # the CLI library's usage errors: one line too
+            where = getattr(getattr(e, "ctx", None), "command_path", None) or "esr"
+            err.print(tagged("error:", "red", " ", f"{' '.join(e.format_message().split())} (`{where} --help`)"), highlight=False)
             return int(e.exit_code) if e.exit_code else 2
         if isinstance(e, Failure):  # each says its exit code and its line (esr_cli/common/failures.py)
             code, msg = e.exit_code, e.one_line()

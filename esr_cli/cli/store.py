@@ -260,6 +260,9 @@ def import_(
                       "as far as the archive's or further, so it is kept and nothing is imported")
         elif moved.files == 0:
             err.print(f"{moved.kind} {moved.key[:12]} is already in the store: nothing to import")
+        elif moved.restored:
+            err.print(tagged("imported", "green", f" {moved.kind} {moved.key[:12]}: the store's copy was kept without "
+                                                  f"{' and '.join(moved.restored)}; {moved.files} files put back from the archive"))
         else:
             note = ("; a record without a checkpoint: training it again starts from epoch 0" if moved.record else
                     f"; it replaces this store's unfinished run of the same key, which was at epoch {moved.local_epoch}"

@@ -20,7 +20,10 @@ def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, 
     every other --results option (flag -> given), `plot_only`: each --plot option."""
     for flag, given in plot_only.items():
         if given and not plot:
-            raise Exit(2, f"{flag} applies with --results --plot only")
+            raise Exit(2, f"{flag} applies with --results --plot only" + (" --unfinished" if flag == "--out" else ""))
+    if plot_only.get("--out") and not plot_only.get("--unfinished"):
+        raise Exit(2, "--out is the folder of a preview of unfinished runs: only with --plot --unfinished "
+                      "(the figure of finished runs is an artifact in the store)")
     if show_status and show_results:
         raise Exit(2, "--status and --results: choose one")
     if as_json and markdown:
@@ -126,6 +129,8 @@ def sweep(
                 if recipe.unfinished:
                     draw_preview(recipe, out_dir or Path(f"suite-{suite.name}-{budget}-unfinished"), ctx.obj.store, print_path=False)
                 else:
+                    if out_dir is not None:  # --unfinished, and nothing is: the stored figure, not a preview
+                        err.print(f"every run is finished: the figure is an artifact in the store, not a preview in {out_dir}")
                     built = ensure(recipe, ctx.obj.store)
                     path = built.path
                     err.print(tagged("cache hit" if built.cached else "drawn", "green", f": {path / 'suite.png'}  (table: {path / 'table.md'})"))

@@ -286,7 +286,8 @@ def geometry_recipe(gamma: float, state: int) -> Recipe:
     def build(out: Path, store: Store) -> dict:
         geo = geometry.geometry(geometry.example_mdp(), state, gamma)
         plots.information_geometry(geo, gamma, out / "geometry.png", {"artifacts": {}, "budget": None, "seeds": [],
-                                                                     "mdp": "analysis.geometry.example_mdp", "state": state})
+                                                                     "mdp": "analysis.geometry.example_mdp", "state": state,
+                                                                     "gamma": gamma}, pdf=True)
         return {"gamma": gamma, "state": state, "mutual_information": geo.mutual_information,
                 "uniform_policy_mi": geo.uniform_mi, "capacity_policy": geo.policy.round(6).tolist(),
                 "kl_to_centre": geo.kl.round(6).tolist()}

@@ -31,7 +31,7 @@ from esr_cli.storage import provenance
 from esr_cli.storage.artifacts import Recipe
 from esr_cli.storage.finals import run_length
 from esr_cli.storage.finals import read_rows
-from esr_cli.storage.store import EVAL_KIND, EVAL_ROLLOUT, HUMAN_KIND, RUN_KIND, LockBusy, Store, StoreError, atomic_write_text, content_key, nearest_existing, probe_writable
+from esr_cli.storage.store import EVAL_KIND, EVAL_ROLLOUT, HUMAN_KIND, RUN_KIND, LockBusy, Store, StoreError, atomic_write_text, content_key, nearest_existing, probe_writable, require_networks, without_checkpoint
 
 # Rough upper bound of a checkpoint per seed plus metrics, checked before a run starts.
 MIN_FREE_BYTES_PER_SEED = 32 << 20
@@ -102,6 +102,10 @@ def adopt_shorter_run(store: Store, key: str, components: dict, run_dir: Path, e
                 f"unfinished ({'' if total is None else f'{total:,} epochs long, '}checkpointed at epoch {done:,})"
             console.print(f"starting from run {entry.key[:12]} at epoch {adopted}: the same spec but for its length, {state}")
             return
+    kept = [entry for _, entry in donors if entry.status == "complete" and without_checkpoint(entry.path)]
+    if kept:  # it would have continued from one of these, had its networks been kept
+        console.print(f"run {kept[0].key[:12]} (the same spec but for its length) is kept as metrics only: training starts "
+                      "from epoch 1 (`esr import` of its full archive first would continue from it)")
 
 
 def _check_disk(store: Store, spec) -> None:
@@ -319,6 +323,7 @@ def load_run_so_far(store: Store, path: Path, finished: bool):
 
 
 def _restore_newest(trainer, run_dir: Path, seeds):
+    require_networks(run_dir)
     state, epoch = loop.restore_latest(trainer, run_dir, seeds, repair=False)
     if not epoch:
         raise StoreError(f"{run_dir} has no checkpoint: nothing to inspect")

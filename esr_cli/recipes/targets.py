@@ -17,7 +17,7 @@ from esr_cli.analysis.state_count import TooManyStates, check_size
 from esr_cli.common import specs
 from esr_cli.common.printing import printable
 from esr_cli.model import spec as spec_model
-from esr_cli.storage.store import EXACT_KIND, PLAY_KIND, RUN_KIND, Store, StoreError, load_manifest, parse_dirname, read_pending
+from esr_cli.storage.store import EXACT_KIND, PLAY_KIND, RUN_KIND, Store, StoreError, load_manifest, parse_dirname, read_pending, require_networks
 
 EVAL_PARTNERS = ("training", "proxy")
 PLAY_PARTNER = "play:"  # --human play:KEY,KEY,...: a BC human cloned from played episodes
@@ -180,6 +180,7 @@ def exact_target(spec, store: Store, goal, gamma: float | None, robot: str | Non
         raise StoreError(f"robot {robot} is a {robot_spec.method.kind} run, {why}")
     if not 0 <= seed_index < len(robot_spec.train.seeds):
         raise StoreError(f"--seed-index {seed_index} out of range for a run with {len(robot_spec.train.seeds)} seeds")
+    require_networks(run_path)  # before the state space is built
     return goal, gamma, store.read_manifest(run_path)
 
 

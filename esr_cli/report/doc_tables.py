@@ -79,6 +79,13 @@ class CalibrationTable:
     human_seeds: int
     episodes: int
 
+    def command(self) -> str:
+        """The `esr human calibrate` line that stores what this table reads (the table's own, as a table)."""
+        words = ["human", "calibrate", *map(str, self.specs), "--budget", self.budget,
+                 *(w for s in self.sets for w in ("--set", s)),
+                 "--human-seeds", str(self.human_seeds), "--episodes", str(self.episodes)]
+        return " ".join(["esr", *map(shlex.quote, words)])
+
     def lines(self, store: Store, where: str) -> list[str]:
         from esr_cli.common import specs
         from esr_cli.recipes import targets
@@ -97,7 +104,7 @@ class CalibrationTable:
             found = stored_calibrations.find(store, spec, self.human_seeds, self.episodes)
             if found is None:
                 raise TableError(f"{where}: the store has no calibration of {spec.name}'s human ({hc.describe(spec.human)}, "
-                                 f"{self.human_seeds} human(s), {self.episodes} episodes): `esr human calibrate` makes it")
+                                 f"{self.human_seeds} human(s), {self.episodes} episodes): `{self.command()}` makes it")
             at, commit, same_code = found
             row = stored_calibrations.read_row(at, spec, self.human_seeds)
             if row is None:

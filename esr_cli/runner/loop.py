@@ -46,7 +46,7 @@ from esr_cli.storage.checkpoint_files import (
     verified_steps,
 )
 from esr_cli.storage.finals import read_rows
-from esr_cli.storage.store import StoreError, atomic_write_text, without_checkpoint
+from esr_cli.storage.store import StoreError, atomic_write_text, require_networks
 
 METRICS_FILE = "metrics.jsonl"
 
@@ -95,6 +95,8 @@ def restore_latest(trainer: Trainer, run_dir: Path, seeds, repair: bool = True) 
     is touched, and only the newest checkpoint is acceptable.
     """
     template = initial_state(trainer, seeds)
+    if not repair and not (Path(run_dir) / CHECKPOINT_DIR).is_dir():
+        return template, 0  # reading only: a committed artifact is never given a folder it lacks
     mngr = checkpoint_manager(run_dir)
     try:
         steps = sorted(mngr.all_steps(), reverse=True)
@@ -375,9 +377,7 @@ def initial_state(trainer: Trainer, seeds) -> TrainState:
 
 def final_state(trainer: Trainer, run_dir: Path) -> TrainState:
     """The last checkpoint of a run (read-only)."""
-    if without_checkpoint(run_dir):
-        raise StoreError(f"{run_dir}: this run is kept as metrics only (exported with --without-checkpoint): its "
-                         "networks are not in this store; import its full archive, or train it again, to use them")
+    require_networks(run_dir)
     state, epoch = restore_latest(trainer, run_dir, list(trainer.spec.train.seeds), repair=False)
     if epoch == 0:
         raise FileNotFoundError(f"no checkpoint in {run_dir}")

@@ -469,6 +469,14 @@ def without_checkpoint(path: Path) -> bool:
     return bool(kept_without(RUN_KIND, path))
 
 
+def require_networks(run_dir: Path) -> None:
+    """Raise StoreError where a committed run was kept as metrics only: what reads its networks
+    (evaluation, diagnosis, exact empowerment under its robot) says how to get them back."""
+    if (Path(run_dir) / MANIFEST).is_file() and without_checkpoint(run_dir):  # committed: an unfinished one has none yet
+        raise StoreError(f"{run_dir}: this run is kept as metrics only (exported with --without-checkpoint): its "
+                         "networks are not in this store; `esr import` of its full archive puts them back")
+
+
 def _file_problem(path: Path, rel: str, want) -> str | None:
     """Why the file `rel` that a manifest lists does not match it, or None. Never reads outside
     the artifact (an absolute name, `..`, a link: committed artifacts hold plain files only) and

@@ -33,7 +33,7 @@ from esr_cli.common.jsonl import read_jsonl
 from esr_cli.storage.checkpoint_files import CHECKPOINT_DIR, epochs_problem, state_epochs_problem, verified_steps, verify_artifact
 from esr_cli.storage.finals import epoch_rows, run_length
 from esr_cli.storage.labels import labels_problem
-from esr_cli.storage.store import KINDS, LEFT_OUT, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, load_manifest, parse_dirname, read_pending
+from esr_cli.storage.store import KINDS, LEFT_OUT, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, kept_without, load_manifest, parse_dirname, read_pending
 
 KEY_RE = re.compile(r"[0-9a-f]{32}")
 SNAPSHOT_TRIES = 5
@@ -48,6 +48,7 @@ class Moved:
     path: Path  # the archive written (export) or the artifact's directory (import)
     local_epoch: int | None = None  # import over a local unfinished run: that run's checkpoint epoch
     record: bool = False  # import: an unfinished run without an intact checkpoint (--without-checkpoint)
+    restored: tuple[str, ...] = ()  # import: the parts a local copy was kept without, put back from the archive
 
     @property
     def replaced_partial(self) -> bool:
@@ -276,7 +277,7 @@ def _import(store: Store, f: BinaryIO, archive: Path, made: list[Path], without_
     kind, dirname, members = _checked_members(f, archive)
     key, status = parse_dirname(dirname)
     final, partial = store.final_path(kind, key), store.partial_path(kind, key)
-    if store.lookup(kind, key):  # already here: like a cache hit, nothing to do
+    if _nothing_to_add(store, kind, key, status):  # already here: like a cache hit, nothing to do
         return Moved(kind, key, "complete", 0, final)
     unpacked = sum(m.size for m in members)
     free = shutil.disk_usage(store.root).free
@@ -292,8 +293,10 @@ def _import(store: Store, f: BinaryIO, archive: Path, made: list[Path], without_
         stage = Path(tmp) / kind / key[:2] / dirname
         record, stage_epoch = _check_contents(store, stage, kind, key, status, archive, without_checkpoint)
         with store.lock(kind, key, wait=False):
-            if store.lookup(kind, key):
+            if _nothing_to_add(store, kind, key, status):
                 return Moved(kind, key, "complete", 0, final)
+            if store.lookup(kind, key):  # kept without parts the archive holds
+                return _restore_left_out(store, final, stage, kind, key, archive)
             # One key is one computation, so of two copies the one further along supersedes the
             # other (the local run is not training now: this process holds its lock).
             local_epoch = _checkpoint_epoch(partial) if partial.exists() else None
@@ -320,6 +323,37 @@ def _import(store: Store, f: BinaryIO, archive: Path, made: list[Path], without_
                 shutil.rmtree(partial)
     files = sum(1 for p in target.rglob("*") if p.is_file())
     return Moved(kind, key, status, files, target, local_epoch=local_epoch, record=record)
+
+
+def _nothing_to_add(store: Store, kind: str, key: str, status: str) -> bool:
+    """Whether the store's committed copy of `key` leaves nothing for an archive of it to add:
+    it is whole, or the archive is an unfinished run's (a committed copy supersedes it)."""
+    local = store.lookup(kind, key)
+    return local is not None and (status != "complete" or not kept_without(kind, local))
+
+
+def _restore_left_out(store: Store, final: Path, stage: Path, kind: str, key: str, archive: Path) -> Moved:
+    """Put back into the committed copy `final` the parts it was kept without (`esr export
+    --without-checkpoint`) from the archive's verified copy `stage` of the same key: files its
+    own manifest lists, re-hashed against it once in place. The first part (a run's checkpoints,
+    by which a copy is known as kept without) goes last, so a kill between leaves it still known
+    as kept without, and importing the archive again finishes the job."""
+    missing = kept_without(kind, final)
+    if kept_without(kind, stage):
+        return Moved(kind, key, "complete", 0, final)  # the archive lacks them too
+    for part in reversed(missing):
+        if (stage / part).exists():
+            (stage / part).rename(final / part)
+    fsync_dir(final)
+    problems = store.verify(final)
+    if problems:  # the archive's parts are not the ones this copy's manifest lists: take them out again
+        for part in missing:
+            if (final / part).exists():
+                (final / part).rename(stage / part)
+        raise StoreError(f"{archive}: its {', '.join(missing)} do not match the store's copy of {kind} {key[:12]} "
+                         f"({problems[0]}); nothing imported")
+    files = sum(1 for part in missing for p in (final / part).rglob("*") if p.is_file())
+    return Moved(kind, key, "complete", files, final, restored=missing)
 
 
 def _checkpoint_epoch(run_dir: Path) -> int:

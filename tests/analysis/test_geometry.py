@@ -1,5 +1,7 @@
 """The information-geometry picture's quantities, computed exactly."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -43,6 +45,7 @@ def test_plot_geometry_cli(tmp_path, capsys):
     store = tmp_path / "store"
     assert main(["--store", str(store), "plot", "geometry", "--gamma", "0.5"]) == 0
     png = Path(capsys.readouterr().out.strip())
-    assert png.exists() and png.stat().st_size > 5000 and png.with_suffix(".json").exists()
+    assert png.exists() and png.stat().st_size > 5000 and png.with_suffix(".pdf").exists()
+    assert json.loads(png.with_suffix(".json").read_text())["gamma"] == 0.5  # each discount's figure says which
     assert main(["--store", str(store), "plot", "geometry", "--gamma", "1.5"]) == 2
     assert main(["--store", str(store), "plot", "nope"]) == 2

@@ -164,6 +164,7 @@ def test_the_cli_refuses_a_bad_study_in_one_line_before_any_work(tmp_path, capsy
         (["play", "--study", str(good), "--episodes", "3"], "--episodes: the study file sets this"),
         (["play", "--study", str(good), "experiments/grid_2.yaml"], "--study: the study file names the environment"),
         (["play", "--study", str(good), "--participant", "bad id!"], "--participant: a participant id is 1 to 64"),
+        (["play", "experiments/grid_2.yaml", "--participant", "bad id!"], "--participant: a participant id is 1 to 64"),
         (["play"], "name a trained run or a spec (or give --study STUDY.yaml)"),
         (["plays", "--study", "no such/study"], "--study: a study's name"),
         (["plays", "--answers", str(tmp_path / "a.csv")], "--answers: only with --study NAME"),

@@ -280,3 +280,5 @@ def test_the_calibration_command_refuses_a_human_that_is_not_stored(tmp_path):
     assert proc.returncode == 2 and "not a stored human" in proc.stderr
     proc = esr("human", "calibrate", SPEC, SPEC, "-b", "smoke", store=tmp_path, check=False)
     assert proc.returncode == 2 and "share a layout" in proc.stderr
+    proc = esr("human", "calibrate", SPEC, "--json", "--markdown", store=tmp_path, check=False)
+    assert proc.returncode == 2 and proc.stderr.strip() == "error: --json and --markdown: choose one" and not tmp_path.joinpath("runs").exists()

@@ -1,6 +1,7 @@
 """Generated result tables in markdown (`esr tables`) and `esr sweep --results --any-code`."""
 
 import json
+import shlex
 from pathlib import Path
 
 import pytest
@@ -250,6 +251,7 @@ def test_a_calibration_table_reads_the_stored_calibration_and_plays_nothing(tmp_
         table.lines(store, "page.md:3")
     assert "page.md:3: the store has no calibration of cramped_room's human (bc 64x64 stay_weight=0.1 epochs=60, " \
            "2 human(s), 3 episodes)" in str(e.value)
+    assert f"`esr human calibrate {CRAMPED} --budget paper --set {shlex.quote(BC)} --human-seeds 2 --episodes 3` makes it" in str(e.value)
     mine = _stored_calibration(store, _summary(34.63))
     lines = table.lines(store, "page.md:3")
     assert lines[2] == ("| cramped_room | cramped_room | bc 64x64 stay_weight=0.1 epochs=60 | 34.63 ± 1.00 | 11.00 ± 1.00 "

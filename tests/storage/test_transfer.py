@@ -58,7 +58,8 @@ def test_a_finished_run_travels_as_metrics_only_and_says_what_it_cannot_do(smoke
     """`export --without-checkpoint`: the manifest, spec and metrics, no checkpoint folder and
     no TensorBoard event files (a second copy of the metrics). It imports and verifies as a
     finished run and reports read it, as does one archived before the event files were left out;
-    evaluating it asks for the full archive; a damaged metrics file is still found."""
+    evaluating it asks for the full archive, whose import puts the rest back; a damaged metrics
+    file is still found."""
     store, path, _ = smoke_run
     assert (path / "tensorboard").is_dir()
     full, slim = tmp_path / "full.tar.gz", tmp_path / "slim.tar.gz"
@@ -77,8 +78,17 @@ def test_a_finished_run_travels_as_metrics_only_and_says_what_it_cannot_do(smoke
     assert (copy / "metrics.jsonl").read_bytes() == (path / "metrics.jsonl").read_bytes()
     listed = esr("ls", store=other)
     assert path.name[:12] in listed.stdout
-    refused = esr("eval", path.name[:8], store=other, check=False)
-    assert refused.returncode != 0 and "kept as metrics only" in " ".join(refused.stderr.split())
+    for command in (["eval", path.name[:8]], ["diagnose", path.name[:8]]):
+        refused = esr(*command, store=other, check=False)
+        assert refused.returncode == 2 and "kept as metrics only" in " ".join(refused.stderr.split()), command
+        assert "`esr import` of its full archive puts them back" in " ".join(refused.stderr.split())
+    assert not (copy / "checkpoints").exists()  # reading it gave the committed copy no folder
+    # The full archive of the same run puts back what the metrics-only copy lacks, as the refusal
+    # says; importing it again then has nothing to add.
+    restored = esr("import", str(full), store=other)
+    assert "kept without checkpoints and tensorboard" in " ".join(restored.stderr.split()) and (copy / "checkpoints").is_dir()
+    assert esr("verify", store=other).returncode == 0
+    assert "nothing to import" in esr("import", str(full), store=other).stderr
     (copy / "metrics.jsonl").write_bytes(b"{}\n")
     broken = esr("verify", store=other, check=False)
     assert broken.returncode == 1 and "metrics.jsonl" in broken.stderr
