@@ -10,6 +10,7 @@ import inspect
 import os
 import signal
 import sys
+import threading
 
 from esr_cli.cli import figures, humans, play, runs, store, sweeps  # noqa: F401 (each registers its commands on the app)
 from esr_cli.cli.app import app, err
@@ -126,7 +127,17 @@ def _stopped(signum: int) -> int:
 STOPPED_BY_SIGNAL = (130, 143)
 
 
+def _quiet_at_shutdown(args) -> None:
+    """threading.excepthook: a library's background thread (orbax's checkpoint signalling) that
+    finds the interpreter's executors already shut down, once the command has said its last
+    line, ends without a traceback; any other thread's failure is reported as always."""
+    if isinstance(args.exc_value, RuntimeError) and "cannot schedule new futures after" in str(args.exc_value):
+        return
+    threading.__excepthook__(args)
+
+
 def entry() -> None:
+    threading.excepthook = _quiet_at_shutdown
     code = main()
     if code in STOPPED_BY_SIGNAL:
         # Everything esr does on the way out (removing an unfinished artifact, saving a run) is

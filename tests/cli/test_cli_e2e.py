@@ -239,3 +239,30 @@ def test_plot_curve_draws_an_unfinished_run_and_says_so(tmp_path):
     (tmp_path / "box.json").mkdir()
     refused = esr("plot", "curve", str(partial), "--out", str(tmp_path / "box.png"), store=store, check=False)
     assert refused.returncode == 2 and "box.json is a directory" in refused.stderr and not (tmp_path / "box.png").exists()
+
+
+def test_a_library_thread_that_outlives_the_executors_ends_without_a_traceback(capsys):
+    """After a command's last line, orbax's background thread may find the interpreter's
+    executors shut down: that ends quietly, while any other thread's failure is still shown."""
+    import threading
+
+    from esr_cli.cli.main import _quiet_at_shutdown
+
+    def fail(error):
+        def run():
+            raise error
+
+        before = threading.excepthook
+        threading.excepthook = _quiet_at_shutdown
+        try:
+            t = threading.Thread(target=run)
+            t.start()
+            t.join()
+        finally:
+            threading.excepthook = before
+        return capsys.readouterr().err
+
+    assert fail(RuntimeError("cannot schedule new futures after interpreter shutdown")) == ""
+    assert fail(RuntimeError("cannot schedule new futures after shutdown")) == ""
+    shown = fail(ValueError("a real failure"))
+    assert "Traceback" in shown and "ValueError: a real failure" in shown
