@@ -190,12 +190,15 @@ def verify(
 def _verify_problems(path: Path, store: Store) -> list[str]:
     """What `Store.verify` finds; an artifact it cannot read to the end (a disk error, say) is
     one more problem, never the end of checking the others."""
-    try:
-        from esr_cli.storage.checkpoint_files import verify_artifact
+    from esr_cli.storage.checkpoint_files import verify_artifact
+    from esr_cli.storage.finals import UnreadableMetrics
 
+    try:
         return verify_artifact(store, path)
     except OSError as e:
         return [f"cannot be read to the end: {e.strerror or e}: {e.filename}"]
+    except UnreadableMetrics as e:  # replaced by something unreadable after it was hashed
+        return [e.one_line()]
 
 
 @app.command("export")
@@ -258,11 +261,11 @@ def import_(
         if moved.files == 0 and moved.local_epoch is not None:
             err.print(f"{moved.kind} {moved.key[:12]} is already unfinished in the store, at epoch {moved.local_epoch}: "
                       "as far as the archive's or further, so it is kept and nothing is imported")
-        elif moved.files == 0:
-            err.print(f"{moved.kind} {moved.key[:12]} is already in the store: nothing to import")
         elif moved.restored:
             err.print(tagged("imported", "green", f" {moved.kind} {moved.key[:12]}: the store's copy was kept without "
                                                   f"{' and '.join(moved.restored)}; {moved.files} files put back from the archive"))
+        elif moved.files == 0:
+            err.print(f"{moved.kind} {moved.key[:12]} is already in the store: nothing to import")
         else:
             note = ("; a record without a checkpoint: training it again starts from epoch 0" if moved.record else
                     f"; it replaces this store's unfinished run of the same key, which was at epoch {moved.local_epoch}"

@@ -89,6 +89,8 @@ def logged_epochs(run_dir: Path) -> list[int]:
 
 
 def _epochs(values: list[int]) -> str:
+    if not values:  # a forged state with an empty epoch array
+        return "no epoch"
     return f"epoch {values[0]}" if len(values) == 1 else f"epochs {', '.join(map(str, values))}"
 
 

@@ -381,7 +381,7 @@ class Store:
         listed = manifest["files"]
         for part in kept_without(kind, path):  # kept without its networks or arrays, on purpose (`esr export --without-checkpoint`)
             listed = {rel: want for rel, want in listed.items() if rel != part and not rel.startswith(f"{part}/")}
-        problems += [p for rel, want in sorted(listed.items()) if (p := _file_problem(path, rel, want))]
+        problems += [p for rel, want in sorted(listed.items()) if (p := file_problem(path, rel, want))]
         for f in sorted(Path(path).rglob("*")):
             rel = f.relative_to(path).as_posix()
             if f.is_file() and rel != MANIFEST and rel not in listed:
@@ -477,7 +477,7 @@ def require_networks(run_dir: Path) -> None:
                          "networks are not in this store; `esr import` of its full archive puts them back")
 
 
-def _file_problem(path: Path, rel: str, want) -> str | None:
+def file_problem(path: Path, rel: str, want) -> str | None:
     """Why the file `rel` that a manifest lists does not match it, or None. Never reads outside
     the artifact (an absolute name, `..`, a link: committed artifacts hold plain files only) and
     never stops on a file it cannot read, so one bad file hides no other problem."""

@@ -33,7 +33,7 @@ from esr_cli.common.jsonl import read_jsonl
 from esr_cli.storage.checkpoint_files import CHECKPOINT_DIR, epochs_problem, state_epochs_problem, verified_steps, verify_artifact
 from esr_cli.storage.finals import epoch_rows, run_length
 from esr_cli.storage.labels import labels_problem
-from esr_cli.storage.store import KINDS, LEFT_OUT, MANIFEST, RUN_KIND, Store, StoreError, components_problem, fsync_dir, kept_without, load_manifest, parse_dirname, read_pending
+from esr_cli.storage.store import KINDS, LEFT_OUT, MANIFEST, RUN_KIND, Store, StoreError, components_problem, file_problem, fsync_dir, kept_without, load_manifest, parse_dirname, read_pending
 
 KEY_RE = re.compile(r"[0-9a-f]{32}")
 SNAPSHOT_TRIES = 5
@@ -334,26 +334,47 @@ def _nothing_to_add(store: Store, kind: str, key: str, status: str) -> bool:
 
 def _restore_left_out(store: Store, final: Path, stage: Path, kind: str, key: str, archive: Path) -> Moved:
     """Put back into the committed copy `final` the parts it was kept without (`esr export
-    --without-checkpoint`) from the archive's verified copy `stage` of the same key: files its
-    own manifest lists, re-hashed against it once in place. The first part (a run's checkpoints,
-    by which a copy is known as kept without) goes last, so a kill between leaves it still known
-    as kept without, and importing the archive again finishes the job."""
+    --without-checkpoint`) from the archive's copy `stage` of the same key. Every file of those
+    parts is checked against `final`'s own manifest before anything moves (the archive's
+    manifest could list other files under the same key), so what goes in is what the manifest
+    lists. The first part (a run's checkpoints, by which a copy is known as kept without) goes
+    in last: a kill between leaves checked files in place and the copy still known as kept
+    without, and importing the archive again finishes the job."""
     missing = kept_without(kind, final)
-    if kept_without(kind, stage):
+    present = tuple(part for part in missing if (stage / part).exists())
+    if kept_without(kind, stage) or not present:
         return Moved(kind, key, "complete", 0, final)  # the archive lacks them too
-    for part in reversed(missing):
-        if (stage / part).exists():
+    problem = _parts_problem(final, stage, present)
+    if problem:
+        raise StoreError(f"{archive}: its {' and '.join(present)} are not the files the store's copy of {kind} "
+                         f"{key[:12]} lists ({problem}); nothing imported")
+    moved = []
+    try:
+        for part in reversed(present):
             (stage / part).rename(final / part)
-    fsync_dir(final)
-    problems = store.verify(final)
-    if problems:  # the archive's parts are not the ones this copy's manifest lists: take them out again
-        for part in missing:
-            if (final / part).exists():
-                (final / part).rename(stage / part)
-        raise StoreError(f"{archive}: its {', '.join(missing)} do not match the store's copy of {kind} {key[:12]} "
-                         f"({problems[0]}); nothing imported")
-    files = sum(1 for part in missing for p in (final / part).rglob("*") if p.is_file())
-    return Moved(kind, key, "complete", files, final, restored=missing)
+            moved.append(part)
+        fsync_dir(final)
+    except BaseException:  # Ctrl-C or a failed rename: the copy is left as it was
+        for part in moved:
+            (final / part).rename(stage / part)
+        raise
+    files = sum(1 if (final / part).is_file() else sum(1 for p in (final / part).rglob("*") if p.is_file())
+                for part in present)
+    return Moved(kind, key, "complete", files, final, restored=present)
+
+
+def _parts_problem(final: Path, stage: Path, parts: tuple[str, ...]) -> str | None:
+    """Why the files under `parts` of `stage` are not exactly those `final`'s manifest lists
+    there, with their digests; None where they are."""
+    listed = load_manifest(final)["files"]
+    inside = lambda rel: any(rel == part or rel.startswith(f"{part}/") for part in parts)  # noqa: E731
+    want = {rel: digest for rel, digest in listed.items() if inside(rel)}
+    have = {p.relative_to(stage).as_posix() for part in parts
+            for p in ([stage / part] if (stage / part).is_file() else (stage / part).rglob("*")) if not p.is_dir()}
+    extra = sorted(have - set(want))
+    if extra:
+        return f"unexpected file {printable(extra[0][:200])}"
+    return next((p for rel, digest in sorted(want.items()) if (p := file_problem(stage, rel, digest))), None)
 
 
 def _checkpoint_epoch(run_dir: Path) -> int:

@@ -30,3 +30,8 @@ def test_an_epochs_problem_names_only_what_disagrees_with_the_folder(tmp_path):
     assert cf.epochs_problem(tmp_path, 4, 4, [1, 3]) == "checkpoint folder says epoch 4 but its state holds epochs 1, 3 and metrics end at 2"
     assert cf.epochs_problem(tmp_path, 2, 1, [2]) == "checkpoint folder says epoch 2 in a run of 1 epochs"
     assert cf.epochs_problem(tmp_path, 9, 4, None) == "checkpoint folder says epoch 9 but metrics end at 2, in a run of 4 epochs"
+
+
+def test_a_state_that_holds_no_epoch_is_named_not_a_crash(tmp_path):
+    (tmp_path / "metrics.jsonl").write_text('{"epoch": 1, "env_steps": 1, "return": [0.0]}\n')
+    assert cf.epochs_problem(tmp_path, 1, 4, []) == "checkpoint folder says epoch 1 but its state holds no epoch"

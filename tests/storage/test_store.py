@@ -477,12 +477,12 @@ def test_json_readers_open_only_regular_files_and_read_a_bounded_amount(tmp_path
 def test_a_manifest_listing_a_name_too_long_for_the_file_system_is_a_problem_not_a_crash(tmp_path):
     """A manifest (of an archive being imported, say) may list a name no file system holds: verify
     names it as that file's problem and goes on with the others."""
-    from esr_cli.storage.store import _file_problem
+    from esr_cli.storage.store import file_problem
 
     (tmp_path / "metrics.jsonl").write_text("{}\n")
-    problem = _file_problem(tmp_path, "n" * 300, "0" * 64)
+    problem = file_problem(tmp_path, "n" * 300, "0" * 64)
     assert problem.startswith("unreadable file " + "n" * 200 + "...") and "too long" in problem.lower()
-    assert _file_problem(tmp_path, "d/" + "n" * 300, "0" * 64).startswith("missing file d/")  # no such folder
+    assert file_problem(tmp_path, "d/" + "n" * 300, "0" * 64).startswith("missing file d/")  # no such folder
 
 
 def test_a_played_episodes_header_is_read_bounded(tmp_path):

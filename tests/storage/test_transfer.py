@@ -83,6 +83,21 @@ def test_a_finished_run_travels_as_metrics_only_and_says_what_it_cannot_do(smoke
         assert refused.returncode == 2 and "kept as metrics only" in " ".join(refused.stderr.split()), command
         assert "`esr import` of its full archive puts them back" in " ".join(refused.stderr.split())
     assert not (copy / "checkpoints").exists()  # reading it gave the committed copy no folder
+    # A full archive of the same key whose checkpoint files are not the ones this copy's manifest
+    # lists (its own manifest rewritten to match them) is refused before anything moves.
+    forger = tmp_path / "forger"
+    forged = forger / "runs" / path.name[:2] / path.name
+    shutil.copytree(path, forged)
+    victim = next(p for p in sorted((forged / "checkpoints").rglob("*")) if p.is_file())
+    victim.write_bytes(victim.read_bytes() + b"x")
+    manifest = json.loads((forged / "manifest.json").read_text())
+    manifest["files"][victim.relative_to(forged).as_posix()] = digest_file(victim)
+    (forged / "manifest.json").write_text(json.dumps(manifest))
+    esr("export", path.name[:8], "--out", str(tmp_path / "forged.tar.gz"), store=forger)
+    refused = esr("import", str(tmp_path / "forged.tar.gz"), store=other, check=False)
+    said = " ".join(refused.stderr.split())
+    assert refused.returncode == 2 and "are not the files the store's copy of runs" in said and "changed file checkpoints/" in said
+    assert not (copy / "checkpoints").exists() and not (copy / "tensorboard").exists()
     # The full archive of the same run puts back what the metrics-only copy lacks, as the refusal
     # says; importing it again then has nothing to add.
     restored = esr("import", str(full), store=other)
@@ -824,3 +839,28 @@ def test_fuzzed_archives_are_imported_whole_and_intact_or_refused_in_one_line_le
         event("imported")
         assert moved.key == key and moved.status == "complete" and verify_artifact(store, moved.path) == []
         assert not [p for p in moved.path.parent.iterdir() if p.name.startswith(STAGING_PREFIX)]
+
+
+def test_an_evaluation_kept_without_its_rollout_gets_it_back_from_the_full_archive(tmp_path):
+    """A left-out part that is one file (an evaluation's rollout GIF): the full archive puts it
+    back and says how many files it restored."""
+    from esr_cli.storage.store import EVAL_ROLLOUT
+    from esr_cli.storage.transfer import export
+
+    here = Store(tmp_path / "here")
+    components = {"kind": "evals", "run": "0" * 32, "episodes": 2}
+    key = content_key(components)
+    d = here.begin("evals", key, {"name": "ev", "key": key, "key_components": components})
+    (d / "summary.json").write_text('{"return": {"mean": 1.0}}')
+    (d / EVAL_ROLLOUT).write_bytes(b"GIF89a" + bytes(100))
+    here.commit("evals", key, {"kind": "evals", "name": "ev", "key": key, "key_components": components})
+    slim, full = tmp_path / "slim.tar.gz", tmp_path / "full.tar.gz"
+    export(here, key, slim, without_checkpoint=True)
+    export(here, key, full)
+    there = Store(tmp_path / "there")
+    copy = import_archive(there, slim).path
+    assert not (copy / EVAL_ROLLOUT).exists() and verify_artifact(there, copy) == []
+    moved = import_archive(there, full)
+    assert (moved.restored, moved.files) == ((EVAL_ROLLOUT,), 1)
+    assert (copy / EVAL_ROLLOUT).read_bytes() == (here.lookup("evals", key) / EVAL_ROLLOUT).read_bytes()
+    assert verify_artifact(there, copy) == [] and import_archive(there, full).files == 0
