@@ -70,8 +70,8 @@ def play(
         raise Exit(2, f"--countdown: between 0 and 30 seconds (got {countdown})")
     from esr_cli.play.study import participant_problem  # the same rule as a study's: ids name files and rows
 
-    if participant_problem(participant):
-        raise Exit(2, f"--participant: {participant_problem(participant)}")
+    if problem := participant_problem(participant):
+        raise Exit(2, f"--participant: {problem}")
     if not 0 <= seed <= spec_model.MAX_SEED - (episodes - 1):  # episode i plays seed + i, an int32 PRNG seed
         raise Exit(2, f"--seed: between 0 and {spec_model.MAX_SEED - (episodes - 1):,} for {episodes} episode(s) (got {seed})")
     refs = [r.strip() for r in robots.split(",") if r.strip()] if robots else []

@@ -87,7 +87,8 @@ def adopt_shorter_run(store: Store, key: str, components: dict, run_dir: Path, e
             next((s for s in loop.verified_steps(entry.path) if s <= epochs), 0)
         if 0 < done <= epochs:
             donors.append((done, entry))
-    for done, entry in sorted(donors, key=lambda d: (-d[0], d[1].status != "complete")):
+    donors.sort(key=lambda d: (-d[0], d[1].status != "complete"))  # the longest first, a finished one before
+    for done, entry in donors:
         if entry.status == "complete":
             adopted = loop.adopt_checkpoint(entry.path, run_dir, epochs)
         else:
@@ -102,7 +103,7 @@ def adopt_shorter_run(store: Store, key: str, components: dict, run_dir: Path, e
                 f"unfinished ({'' if total is None else f'{total:,} epochs long, '}checkpointed at epoch {done:,})"
             console.print(f"starting from run {entry.key[:12]} at epoch {adopted}: the same spec but for its length, {state}")
             return
-    kept = [entry for _, entry in sorted(donors, key=lambda d: -d[0]) if entry.status == "complete" and without_checkpoint(entry.path)]
+    kept = [entry for _, entry in donors if entry.status == "complete" and without_checkpoint(entry.path)]
     if kept:  # it would have continued from one of these, had its networks been kept
         console.print(f"run {kept[0].key[:12]} (the same spec but for its length) is kept as metrics only: training starts "
                       "from epoch 1 (`esr import` of its full archive first would continue from it)")

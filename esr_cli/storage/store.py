@@ -385,7 +385,7 @@ class Store:
         for f in sorted(Path(path).rglob("*")):
             rel = f.relative_to(path).as_posix()
             if f.is_file() and rel != MANIFEST and rel not in listed:
-                problems.append(f"unexpected file {printable(rel if len(rel) <= 200 else rel[:200] + '...')}")  # a name from an archive
+                problems.append(f"unexpected file {shown_name(rel)}")
         return problems
 
 
@@ -477,6 +477,12 @@ def require_networks(run_dir: Path) -> None:
                          "networks are not in this store; `esr import` of its full archive puts them back")
 
 
+def shown_name(rel: str) -> str:
+    """A file name from an archive or a manifest as a message shows it: escaped, one line, at
+    most 200 characters."""
+    return printable(rel if len(rel) <= 200 else rel[:200] + "...")
+
+
 def file_problem(path: Path, rel: str, want) -> str | None:
     """Why the file `rel` that a manifest lists does not match it, or None. Never reads outside
     the artifact (an absolute name, `..`, a link: committed artifacts hold plain files only) and
@@ -484,7 +490,7 @@ def file_problem(path: Path, rel: str, want) -> str | None:
     inside = PurePosixPath(rel)
     if inside.is_absolute() or ".." in inside.parts:
         return f"{MANIFEST} lists {rel[:80]!r}, which is not a file inside the artifact"
-    shown = printable(rel if len(rel) <= 200 else rel[:200] + "...")  # a name from an archive: escaped, one line
+    shown = shown_name(rel)
     try:  # a name the file system cannot hold (too long) is a problem of this file, not a crash
         if any((path / PurePosixPath(*inside.parts[:i])).is_symlink() for i in range(1, len(inside.parts) + 1)):
             return f"{shown} is a link, not a plain file"

@@ -33,7 +33,7 @@ from esr_cli.common.jsonl import read_jsonl
 from esr_cli.storage.checkpoint_files import CHECKPOINT_DIR, epochs_problem, state_epochs_problem, verified_steps, verify_artifact
 from esr_cli.storage.finals import epoch_rows, run_length
 from esr_cli.storage.labels import labels_problem
-from esr_cli.storage.store import KINDS, LEFT_OUT, MANIFEST, RUN_KIND, Store, StoreError, components_problem, file_problem, fsync_dir, kept_without, load_manifest, parse_dirname, read_pending
+from esr_cli.storage.store import KINDS, LEFT_OUT, MANIFEST, RUN_KIND, Store, StoreError, components_problem, file_problem, fsync_dir, kept_without, load_manifest, parse_dirname, read_pending, shown_name
 
 KEY_RE = re.compile(r"[0-9a-f]{32}")
 SNAPSHOT_TRIES = 5
@@ -344,7 +344,8 @@ def _restore_left_out(store: Store, final: Path, stage: Path, kind: str, key: st
     present = tuple(part for part in missing if (stage / part).exists())
     if kept_without(kind, stage) or not present:
         return Moved(kind, key, "complete", 0, final)  # the archive lacks them too
-    problem = _parts_problem(final, stage, present)
+    want = _listed_under(final, present)
+    problem = _parts_problem(stage, present, want)
     if problem:
         raise StoreError(f"{archive}: its {' and '.join(present)} are not the files the store's copy of {kind} "
                          f"{key[:12]} lists ({problem}); nothing imported")
@@ -358,22 +359,23 @@ def _restore_left_out(store: Store, final: Path, stage: Path, kind: str, key: st
         for part in moved:
             (final / part).rename(stage / part)
         raise
-    files = sum(1 if (final / part).is_file() else sum(1 for p in (final / part).rglob("*") if p.is_file())
-                for part in present)
-    return Moved(kind, key, "complete", files, final, restored=present)
+    return Moved(kind, key, "complete", len(want), final, restored=present)  # checked: exactly the listed files
 
 
-def _parts_problem(final: Path, stage: Path, parts: tuple[str, ...]) -> str | None:
-    """Why the files under `parts` of `stage` are not exactly those `final`'s manifest lists
-    there, with their digests; None where they are."""
-    listed = load_manifest(final)["files"]
-    inside = lambda rel: any(rel == part or rel.startswith(f"{part}/") for part in parts)  # noqa: E731
-    want = {rel: digest for rel, digest in listed.items() if inside(rel)}
+def _listed_under(final: Path, parts: tuple[str, ...]) -> dict[str, str]:
+    """{file: digest} of what `final`'s manifest lists under `parts` (a folder or one file each)."""
+    return {rel: digest for rel, digest in load_manifest(final)["files"].items()
+            if any(rel == part or rel.startswith(f"{part}/") for part in parts)}
+
+
+def _parts_problem(stage: Path, parts: tuple[str, ...], want: dict[str, str]) -> str | None:
+    """Why the files under `parts` of `stage` are not exactly `want`, with their digests; None
+    where they are."""
     have = {p.relative_to(stage).as_posix() for part in parts
             for p in ([stage / part] if (stage / part).is_file() else (stage / part).rglob("*")) if not p.is_dir()}
     extra = sorted(have - set(want))
     if extra:
-        return f"unexpected file {printable(extra[0][:200])}"
+        return f"unexpected file {shown_name(extra[0])}"
     return next((p for rel, digest in sorted(want.items()) if (p := file_problem(stage, rel, digest))), None)
 
 

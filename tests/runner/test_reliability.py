@@ -256,6 +256,14 @@ def test_a_longer_run_continues_a_shorter_one_bit_for_bit(tmp_path, reference):
     assert_same_run(path, reference)
     assert (short / "manifest.json").is_file()  # the shorter artifact is untouched
     assert esr("verify", store=store).returncode == 0
+    # Kept as metrics only elsewhere, the shorter run has no networks to continue from: said.
+    slim = tmp_path / "short.tar.gz"
+    esr("export", short.name[:8], "--without-checkpoint", "--out", str(slim), store=store)
+    esr("import", str(slim), store=tmp_path / "slim")
+    again = esr(*SMOKE, store=tmp_path / "slim")
+    said = " ".join(again.stderr.split())
+    assert f"run {short.name[:12]} (the same spec but for its length) is kept as metrics only: training starts from epoch 1" in said
+    assert_same_run(Path(again.stdout.strip()), reference)
 
 
 @pytest.mark.slow
