@@ -637,22 +637,29 @@ def devices_line(runs: list[Evidence]) -> str:
     return "Made on: " + "; ".join(parts) + " (each run's device as its manifest records it)."
 
 
+def _world(e: Evidence) -> str:
+    """A run's environment and human: runs that share them are compared with each other."""
+    part = e.spec.training_part()
+    return json.dumps({"env": part["env"], "human": part["human"]}, sort_keys=True)
+
+
 def estimator_run(index: dict[str, list[Evidence]]) -> Optional[Evidence]:
     """The finished ESR gridworld run with the most epochs (then seeds) that learned (its final
-    return above Random's at its N), among the gridworlds small enough for exact empowerment
-    (N <= 2 blocks); ties go to the paper's own settings, then to the key, so the choice never
-    depends on the order of the store."""
+    return above the Random run's on its own gridworld with its own human), among the gridworlds
+    small enough for exact empowerment (N <= 2 blocks); ties go to the paper's own settings, then
+    to the key, so the choice never depends on the order of the store."""
+    runs = [ev for evs in index.values() for ev in evs]
     learned = []
-    for runs in index.values():
-        for ev in runs:
-            if ev.spec.method.kind != "esr" or ev.spec.env.kind != "gridworld" or ev.spec.env.blocks > 2 or ev.status != "complete":
-                continue
-            rnd = best(index, claim_spec((f"grid_{ev.spec.env.blocks}_random", ())))
-            if rnd is not None and ev.finals()["mean"] > rnd.finals()["mean"]:
-                learned.append(ev)
+    for ev in runs:
+        if ev.spec.method.kind != "esr" or ev.spec.env.kind != "gridworld" or ev.spec.env.blocks > 2 or ev.status != "complete":
+            continue
+        rnd = max((r for r in runs if r.spec.method.kind == "random" and _world(r) == _world(ev)), key=_rank, default=None)
+        if rnd is not None and ev.finals()["mean"] > rnd.finals()["mean"]:
+            learned.append(ev)
 
     def paper_settings(e: Evidence) -> bool:
-        return _without_train(e.spec) == _without_train(claim_spec((f"grid_{e.spec.env.blocks}", ())))
+        stem = f"grid_{e.spec.env.blocks}"
+        return (EXPERIMENTS / f"{stem}.yaml").is_file() and _without_train(e.spec) == _without_train(claim_spec((stem, ())))
 
     return max(learned, key=lambda e: (e.epochs_done, e.seeds, paper_settings(e), e.key), default=None)
 

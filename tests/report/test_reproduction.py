@@ -182,6 +182,20 @@ def test_the_estimator_check_takes_the_longest_finished_n2_esr_run_that_learned(
     assert rep.estimator_run(_index(paper)) is None  # no Random run to have learned against
 
 
+def test_the_estimator_check_compares_a_run_with_the_random_robot_of_its_own_gridworld():
+    """A run on a gridworld no paper spec describes (one block, from the centre) is compared with
+    the Random run on that gridworld, never with the paper's, and needs no spec of its own."""
+    one_block = ("env.blocks=1", "env.start=center")
+    random_1 = _evidence("grid_2_random", one_block, finals=(25.0,))
+    below_its_random = _evidence("grid_2", one_block, finals=(20.0,), epochs=4000)
+    random_2 = _evidence("grid_2_random", finals=(13.0,))
+    paper = _evidence("grid_2", finals=(17.0,), epochs=1000)
+    assert rep.estimator_run(_index(random_2, random_1, below_its_random, paper)) is paper
+    assert rep.estimator_run(_index(random_2, below_its_random)) is None  # the paper's Random is another gridworld's
+    above_its_random = _evidence("grid_2", one_block, finals=(30.0,), epochs=4000)
+    assert rep.estimator_run(_index(random_2, random_1, above_its_random, paper)) is above_its_random
+
+
 class _Figures:
     """A store holding the estimator scatters in `folders` (key -> folder), and nothing else."""
 
