@@ -80,12 +80,13 @@ def load_opponents(target: str, refs: list[str], budget: str, sets, seed_index: 
     chosen = refs or [target]
     labels = robot_labels(len(chosen), participant)
     env = make_env(spec.env)
+    paths = [None if ref == RANDOM_ROBOT else find_run(ref, budget, sets, store) for ref in chosen]
+    _named_once(chosen, paths)
     opponents = []
-    for ref, label in zip(chosen, labels):
-        if ref == RANDOM_ROBOT:
+    for ref, path, label in zip(chosen, paths, labels):
+        if path is None:
             opponents.append(Opponent(RANDOM_ROBOT, label, Robot(RANDOM_ROBOT, env)))
             continue
-        path = find_run(ref, budget, sets, store)
         _, manifest, trainer, state = load_run(store, str(path))
         if trainer.spec.env != spec.env:
             raise StoreError(f"robot {ref} was trained on another environment than {spec.name}: all robots of a session share one")
@@ -94,6 +95,17 @@ def load_opponents(target: str, refs: list[str], budget: str, sets, seed_index: 
         lstate = seed_slice(state.learner, seed_index)
         opponents.append(Opponent(manifest["key"], label, Robot(manifest["key"], trainer.env, trainer, lstate)))
     return spec, opponents
+
+
+def _named_once(refs: list[str], paths: list[Path | None]) -> None:
+    """A session's robots are told apart by their labels: one robot under two would be counted as two."""
+    first: dict[str, str] = {}
+    for ref, path in zip(refs, paths):
+        robot = path.name if path is not None else RANDOM_ROBOT
+        if robot in first:
+            same = "" if first[robot] == ref else f" (as {first[robot]} and {ref})"
+            raise StoreError(f"--robots: robot {robot[:12]} is named twice{same}: name each robot once")
+        first[robot] = ref
 
 
 def _spec_of(target: str, budget: str, sets, store: Store, need_run: bool):

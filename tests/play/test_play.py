@@ -30,7 +30,7 @@ from esr_cli.play import session as ps
 from esr_cli.play.boards import BOARDS
 from esr_cli.play.game import CLOSED, QUIT, Game, KeyPress, Robot
 from esr_cli.storage.play_log import state_from_record
-from esr_cli.storage.store import PLAY_KIND, Store
+from esr_cli.storage.store import PLAY_KIND, Store, StoreError
 
 # An open 5 x 5 grid (no blocks) with the random robot: the way to the goal is known in advance.
 GRID = ["experiments/grid_2.yaml", "--set", "env.blocks=0", "--set", "env.start=random", "--robots", "random",
@@ -481,12 +481,24 @@ def test_terminal_quit_keeps_the_episode_as_incomplete(tmp_path):
     assert not summary["completed"] and summary["steps"] == 1
 
 
+def test_a_robot_named_twice_is_refused_however_it_is_named():
+    """Two names of one run (a key prefix and a longer prefix) are one robot: the session would
+    show it under two blind labels and count it as two."""
+    run = Path("/store/runs/grid_2/13abd656" + "0" * 24)
+    ps._named_once(["random", "13ab"], [None, run])
+    with pytest.raises(StoreError, match=r"robot 13abd6560000 is named twice \(as 13ab and 13abd656\): name each robot once"):
+        ps._named_once(["13ab", "random", "13abd656"], [run, None, run])
+    with pytest.raises(StoreError, match="robot random is named twice: name each robot once"):
+        ps._named_once(["random", "random"], [None, None])
+
+
 @pytest.mark.slow
 def test_bad_input_is_one_line_and_writes_nothing(tmp_path):
     for args, message in [
         (["play", "deadbeef", "--web"], "no artifact with key 'deadbeef'"),
         (["play", "experiments/grid_2.yaml", "--set", "train.seeds=7", "--web"], "is not trained"),
         (["play", "experiments/grid_2.yaml", "--robots", ",", "--web"], "--robots: name at least one robot"),
+        (["play", "experiments/grid_2.yaml", "--robots", "random,random", "--web"], "--robots: robot random is named twice"),
         (["play", "experiments/grid_2.yaml", "--robots", "random"], "needs a terminal"),
         (["play", "deadbeef", "--episodes", "99999999999"], "--episodes: between 1 and 10,000"),
         (["play", "deadbeef", "--budget", "smoke", "--web"], "--budget applies to a spec file target only"),
