@@ -125,9 +125,10 @@ class TrainingReport:
     def estimate(self, epoch: int, total: int, epoch_seconds: float) -> None:
         """The lines after the warm-up chunk: an epoch's time, the run's, --budget quick's."""
         seeds, left = len(self.spec.train.seeds), (total - epoch) * epoch_seconds
-        # (said once the first chunk is done, which timed an epoch: what is left is after it)
-        run = (f"{total:,} epochs: about {duration(total * epoch_seconds)} here" if not self.started else
-               f"the {total - epoch:,} epochs left: about {duration(left)} here" if epoch < total else "no epoch left")
+        # Said once the first chunk has timed an epoch; the run is counted from where it (re)started,
+        # that chunk included, so a resumed run's last epoch is not called "no epoch left" as it runs.
+        todo = total - self.started
+        run = f"{todo:,} epoch{'s' * (todo != 1)}{' left' if self.started else ''}: about {duration(todo * epoch_seconds)} here"
         line = f"{self.label}: {duration(epoch_seconds)} an epoch ({seeds} seed{'s' * (seeds != 1)}); {run}"
         if self.quick is not None:
             quick, differ = quick_estimate(self.spec, self.quick, epoch_seconds)

@@ -189,6 +189,13 @@ def test_the_estimate_names_the_epoch_time_the_run_the_quick_budget_and_a_run_ov
     assert "note: this run needs more than a day on this machine (5.2 days); it goes on" in text
     assert "epoch 1/10,000  last-epoch return 1.00" in text and "ETA 5.2 days" in text  # a log file's line per chunk
 
+    resumed = Console(file=io.StringIO(), width=400)  # the run's epoch 4 of 4 is its one chunk
+    report = TrainingReport(spec, make_trainer(spec), resumed, progress_bar(resumed), "k" * 64, None)
+    report.on_start(3, 4)
+    report.on_chunk(4, 4, {"return": [1.0] * 20}, 45.0)
+    assert "resuming kkkkkkkkkkkk from epoch 3 of 4\ngrid_2 [paper]: 45 s an epoch (20 seeds); 1 epoch left: about 45 s here" \
+           in resumed.file.getvalue()
+
     coop = specs.load("experiments/cramped_room.yaml", "paper")
     assert quick_estimate(coop, specs.load("experiments/cramped_room.yaml", "quick"), 1.0)[0] is None
 
