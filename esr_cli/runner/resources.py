@@ -4,9 +4,10 @@
   replay buffers  seeds x (buffer episodes x (steps + 1) x observation bytes + 12 bytes a step)
   rollouts        environments x (steps + 1) x (observation bytes x 5 + 64) per seed in flight
   networks        seeds x 20 copies of the largest network's parameters (the critic, its target,
-                  ESR's encoders, optimiser moments and gradients), and per seed in flight:
-                  batch x 8 copies of one input's activations, ESR's batch x batch logits x 4
-                  AvE's batch x rollouts x (length + 1) observations x 2; ESR's
+                  ESR's encoders, optimiser moments and gradients), and per seed in flight
+                  batch x 8 copies of one input's activations
+  updates         what a method's update holds besides, per seed in flight: ESR's batch x batch
+                  logits x 4, AvE's batch x rollouts x (length + 1) observations x 2; ESR's
                   representation table (buffer x 3 x repr_dim floats per seed in flight)
                   counts with the replay buffers, since learner.buffer_size sets it
   working copies  x2 on all (a chunk's input and output state, XLA's temporaries)
@@ -48,19 +49,26 @@ class Estimate:
     buffers: int
     rollouts: int
     networks: int = 0
+    updates: int = 0
 
     @property
     def total(self) -> int:
-        return 2 * (self.buffers + self.rollouts + self.networks) + RUNTIME_BYTES
+        return 2 * (self.buffers + self.rollouts + self.networks + self.updates) + RUNTIME_BYTES
 
     @property
     def field_to_lower(self) -> str:
-        largest = max(self.buffers, self.rollouts, self.networks)
+        largest = max(self.buffers, self.rollouts, self.networks, self.updates)
         if largest == self.buffers:
             return "learner.buffer_size or train.seeds"
         if largest == self.rollouts:
             return "train.num_envs"
-        return "the network's widths (network.*, method.repr_dim, AvE's rollouts) or learner.batch_size"
+        if largest == self.networks:
+            return "the network's widths (network.*, method.repr_dim) or learner.batch_size"
+        return "learner.batch_size, or AvE's method.num_rollouts or method.rollout_length"
+
+    def parts(self) -> str:
+        return (f"replay buffers {self.buffers / GIB:,.2f} GiB, environment rollouts {self.rollouts / GIB:,.2f} GiB, "
+                f"networks {self.networks / GIB:,.2f} GiB, the method's updates {self.updates / GIB:,.2f} GiB")
 
 
 def _network_floats(network_spec, obs_shape: tuple, out: int) -> tuple[int, int]:
@@ -79,11 +87,9 @@ def _network_floats(network_spec, obs_shape: tuple, out: int) -> tuple[int, int]
     return params, acts + flat + network_spec.hidden + out
 
 
-def network_bytes(spec, obs_shape: tuple, obs_bytes: int, seeds_at_once: int, num_actions: int) -> int:
-    method = spec.method
-    params, acts = _network_floats(spec.network, obs_shape, max(num_actions, method.network_outputs()))
-    batch = spec.learner.batch_size
-    in_flight = 4 * batch * acts * ACTIVATION_COPIES + method.update_bytes(batch, obs_bytes)
+def network_bytes(spec, obs_shape: tuple, seeds_at_once: int, num_actions: int) -> int:
+    params, acts = _network_floats(spec.network, obs_shape, max(num_actions, spec.method.network_outputs()))
+    in_flight = 4 * spec.learner.batch_size * acts * ACTIVATION_COPIES
     return 4 * len(spec.train.seeds) * PARAMETER_COPIES * params + seeds_at_once * in_flight
 
 
@@ -111,17 +117,17 @@ def observation_bytes(spec) -> int:
 
 
 def estimate(spec, obs_bytes: int, seeds_at_once: int, obs_shape: tuple | None = None, num_actions: int = 0) -> Estimate:
-    """`obs_shape` (and `num_actions`) add the networks' share; without them it is left out."""
+    """`obs_shape` (and `num_actions`) add the networks' and updates' shares; without them they are left out."""
     steps = spec.env.episode_steps
     seeds = len(spec.train.seeds)
     episodes = max(1, spec.learner.buffer_size // steps)
     buffers = seeds * episodes * ((steps + 1) * obs_bytes + 12 * steps)
     rollouts = seeds_at_once * spec.train.num_envs * (steps + 1) * (5 * obs_bytes + 64)
-    networks = 0
-    if obs_shape:
-        networks = network_bytes(spec, obs_shape, obs_bytes, seeds_at_once, num_actions)
-        buffers += representation_table_bytes(spec, seeds_at_once)
-    return Estimate(buffers, rollouts, networks)
+    if not obs_shape:
+        return Estimate(buffers, rollouts)
+    networks = network_bytes(spec, obs_shape, seeds_at_once, num_actions)
+    updates = seeds_at_once * spec.method.update_bytes(spec.learner.batch_size, obs_bytes)
+    return Estimate(buffers + representation_table_bytes(spec, seeds_at_once), rollouts, networks, updates)
 
 
 def available_host_bytes() -> int | None:
@@ -255,8 +261,7 @@ def check_run_fits(spec) -> Estimate:
     where = "host memory" if on_cpu else "accelerator memory"
     if have is not None and est.total > have:
         raise ResourceError(
-            f"{spec.name} needs about {est.total / GIB:,.1f} GiB of {where} (replay buffers {est.buffers / GIB:,.2f} GiB, "
-            f"rollouts {est.rollouts / GIB:,.2f} GiB, networks {est.networks / GIB:,.2f} GiB, doubled for working copies, plus 1.5 GiB) but {have / GIB:,.1f} GiB "
-            f"are available: lower {est.field_to_lower}"
+            f"{spec.name} needs about {est.total / GIB:,.1f} GiB of {where} ({est.parts()}, doubled for working "
+            f"copies, plus 1.5 GiB) but {have / GIB:,.1f} GiB are available: lower {est.field_to_lower}"
         )
     return est

@@ -155,6 +155,19 @@ def test_memory_estimate_by_hand():
     assert est.total == 2 * (est.buffers + est.rollouts) + resources.RUNTIME_BYTES
 
 
+def test_the_memory_estimate_names_aves_rollouts_as_the_part_to_lower():
+    """AvE's simulated rollouts are its update's memory, not the networks': a refusal says so."""
+    spec = specs.load(ROOT / "experiments/grid_2_ave.yaml", "paper",
+                      ["train.seeds=1", "method.num_rollouts=10000", "method.rollout_length=10000"])
+    shape, obs_bytes, actions = resources.observation(spec)
+    est = resources.estimate(spec, obs_bytes, 1, shape, actions)
+    assert est.updates == 2 * spec.learner.batch_size * 10_000 * 10_001 * 50  # batch x rollouts x (length + 1) x 2 observations
+    assert est.updates > 1000 * est.networks
+    assert est.field_to_lower == "learner.batch_size, or AvE's method.num_rollouts or method.rollout_length"
+    assert f"the method's updates {est.updates / resources.GIB:,.2f} GiB" in est.parts()
+    assert est.total == 2 * (est.buffers + est.rollouts + est.networks + est.updates) + resources.RUNTIME_BYTES
+
+
 @pytest.mark.slow
 def test_huge_buffer_is_refused_before_anything_is_compiled_or_written(tmp_path):
     t0 = child_cpu_seconds()
