@@ -51,7 +51,7 @@ def shown_name(text: object) -> str:
     written; anything else (a line of a file that is not a spec, a value, something long) only
     by its length, so that a page or suite naming another file never prints that file's text."""
     text = str(text)
-    return text if reads_as_name(text) else f"(a key of {len(text):,} characters that is not a name)"
+    return text if reads_as_name(text) else f"(a key of {len(text):,} character{'s' * (len(text) != 1)} that is not a name)"
 
 
 def key_path(loc: tuple, tag: Callable[[int, object], bool] = lambda i, part: False, last_is_key: bool = False) -> str:
@@ -67,6 +67,19 @@ def key_path(loc: tuple, tag: Callable[[int, object], bool] = lambda i, part: Fa
         elif key or not tag(i, part):
             out += ("." if out else "") + shown_name(part)
     return out
+
+
+_SCALAR_KINDS = {type(None): "null", bool: "a boolean", int: "a number", float: "a number"}
+
+
+def _not_text(node, key) -> str:
+    """What a key that is not text is, as a message says it: a null, boolean or number key as
+    written (those read as such only when short and plain), anything else by its kind."""
+    if not isinstance(node, yaml.ScalarNode):
+        return "is a list or mapping"
+    kind = _SCALAR_KINDS.get(type(key), "not text")
+    written = node.value or "(empty)"
+    return f"{written if len(written) <= 40 else shown_name(written)} is {kind}"
 
 
 class _BoundedLoader(yaml.SafeLoader):
@@ -94,8 +107,7 @@ class _BoundedLoader(yaml.SafeLoader):
                 where = f"line {line}" if first == line else f"lines {first} and {line}"
                 raise YamlInputError(f"key {shown_name(key)!r} appears twice in one mapping ({where}); keep one")
             if not isinstance(key, str):  # `1:`, `true:` or `null:` would read as a list index or None
-                shown = shown_name(key_node.value or "(empty)") if isinstance(key_node, yaml.ScalarNode) else "a list or mapping"
-                raise YamlInputError(f"line {line}: the key {shown} is not a name: keys are text "
+                raise YamlInputError(f"line {line}: the key {_not_text(key_node, key)}, not a name: keys are text "
                                      "(write it in quotes if it must be a number)")
             seen[key] = line
         return super().construct_mapping(node, deep=deep)

@@ -551,7 +551,10 @@ def test_scalars_read_as_yaml_1_2_not_1_1(text, value):
     ("9" * 5000, "an integer of 5,000 digits; at most 4,000"),
     ("!!float abc", "'abc' is not a number"), ("!!bool yes", "'yes' is not true or false"),
     ("!!null x", "'x' is not null"),
-    ("{1: 2}", "the key 1 is not a name"), ("{null: 2}", "the key null is not a name"),
+    ("{1: 2}", "the key 1 is a number, not a name"), ("{null: 2}", "the key null is null, not a name"),
+    ("{~: 2}", "the key ~ is null, not a name"), ("{? : 2}", r"the key \(empty\) is null, not a name"),
+    ("{True: 2}", "the key True is a boolean, not a name"), ("{[1]: 2}", "the key is a list or mapping, not a name"),
+    ("{" + "1" * 70 + ": 2}", "the key \\(a key of 70 characters that is not a name\\) is a number, not a name"),
 ])
 def test_values_that_are_not_spec_values_are_refused_by_line(text, problem):
     with pytest.raises(yamlio.YamlInputError, match=f"line 1: {problem}"):

@@ -130,7 +130,7 @@ def test_baselines_quick_suite_is_every_method_on_grid_2_and_grid_5_with_five_se
     ("name: t\nenv: {kind: gridworld}\nmethod: {kind: esr}\n", "", "this is a spec file, not a suite"),
     (f"specs: [{ROOT / 'experiments/suites/gridworld.yaml'}]\n", "specs[0].spec", "is a suite, not a spec file"),
     (f"specs: [{GRID_2}]\nslurm: {{setup: 'module load x'}}\n", "slurm.setup", "expected a list"),
-    (f"specs: [{GRID_2}]\nset: {{1: 2}}\n", "", "the key 1 is not a name"),
+    (f"specs: [{GRID_2}]\nset: {{1: 2}}\n", "", "the key 1 is a number, not a name"),
 ])
 def test_bad_suites_name_the_key(tmp_path, text, where, problem):
     path = write_suite(tmp_path, text)
