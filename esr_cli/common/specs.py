@@ -14,7 +14,7 @@ import copy
 import difflib
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import yaml
 from pydantic import ValidationError
@@ -162,6 +162,10 @@ def _is_tag(i: int, part: object, loc: tuple) -> bool:
     return (i == 1 and loc[0] in KIND_MODELS and part in KIND_MODELS[loc[0]]) or _VALIDATOR_TAG.fullmatch(str(part)) is not None
 
 
+def _spec_path(loc: tuple) -> str:
+    return yamlio.key_path(loc, lambda i, part: _is_tag(i, part, loc))
+
+
 SECTIONS_WITHOUT_KINDS = ("network", "learner", "train", "eval")
 
 
@@ -227,10 +231,21 @@ def _described(value: Any) -> str:
     return f"a {'mapping' if isinstance(value, dict) else type(value).__name__}"
 
 
-def other_problems(e: ValidationError) -> str:
-    """' (and N more problem(s))' after the first problem's message, or nothing."""
-    n = len(e.errors()) - 1
-    return f" (and {n} more problem(s))" if n else ""
+SHOWN_PLACES = 3
+
+
+def other_problems(e: ValidationError, where: Callable[[tuple], str] = yamlio.key_path) -> str:
+    """' (and N more problem(s), at A, B)' after the first problem's message, or nothing: where
+    the others are (`where` writes a location as the message's key path; at most SHOWN_PLACES),
+    so that one reading names every key to mend."""
+    errors = e.errors()
+    if len(errors) < 2:
+        return ""
+    first = where(tuple(first_problem(e)[0]["loc"]))
+    places = list(dict.fromkeys(where(tuple(x["loc"])) for x in errors))
+    places.remove(first)
+    shown = ", ".join(p or "the top level" for p in places[:SHOWN_PLACES]) + (", ..." if len(places) > SHOWN_PLACES else "")
+    return f" (and {len(errors) - 1} more problem(s), at {shown})" if places else f" (and {len(errors) - 1} more problem(s) there)"
 
 
 def _not_a_kind(kind, kinds) -> str:
@@ -297,7 +312,7 @@ def validate(raw: dict, source: str = "") -> Spec:
                 loc, msg = loc + (typo[0],), f"unknown key; did you mean `kind`? (the section {msg})"
         elif err["type"] == "union_tag_invalid":
             msg = _not_a_kind(err.get("ctx", {}).get("tag"), section)
-        raise SpecError(source, yamlio.key_path(loc, lambda i, part: _is_tag(i, part, loc), err["type"] == "extra_forbidden"), msg + other_problems(e)) from None
+        raise SpecError(source, yamlio.key_path(loc, lambda i, part: _is_tag(i, part, loc), err["type"] == "extra_forbidden"), msg + other_problems(e, _spec_path)) from None
 
 
 def _merge(base: dict, child: dict) -> dict:

@@ -238,7 +238,12 @@ def validate(raw: dict, source: str) -> StudyModel:
         elif err["type"] == "string_pattern_mismatch":
             rule = PATTERN_RULES.get(loc[-1], f"a name here is {PARTICIPANT_RULE}")
             msg = f"{str(err['input'])[:40]!r}: {rule}"
-        raise StudyError(source, yamlio.key_path(loc, lambda i, part: i == 2 and loc[0] == "questionnaire" and part in ITEM_MODELS), msg + specs.other_problems(e)) from None
+        raise StudyError(source, _study_path(loc), msg + specs.other_problems(e, _study_path)) from None
+
+
+def _study_path(loc: tuple) -> str:
+    """A location as the study file's key path (a questionnaire item's kind tag left out)."""
+    return yamlio.key_path(loc, lambda i, part: i == 2 and loc[0] == "questionnaire" and part in ITEM_MODELS)
 
 
 ITEM_MODELS = {"likert": LikertItem, "text": TextItem}

@@ -685,10 +685,11 @@ def slurm_options(base: SlurmOptions, overrides: Optional[dict], source: str) ->
         return SlurmOptions.model_validate({**base.model_dump(), **given})
     except ValidationError as e:
         err, msg = specs.first_problem(e)
-        loc, msg = tuple(err["loc"]), msg + specs.other_problems(e)
-        field = str(loc[0]) if loc else ""
-        where = _SLURM_FLAGS.get(field, f"--{field}") if field in given else ("slurm." + ".".join(map(str, loc))).rstrip(".")
-        raise SuiteError(source, where, msg) from None
+        def where(loc: tuple) -> str:
+            field = str(loc[0]) if loc else ""
+            return _SLURM_FLAGS.get(field, f"--{field}") if field in given else ("slurm." + ".".join(map(str, loc))).rstrip(".")
+
+        raise SuiteError(source, where(tuple(err["loc"])), msg + specs.other_problems(e, where)) from None
 
 
 def run_suite(

@@ -341,6 +341,23 @@ def test_setting_a_kind_starts_that_section_again_as_extends_does():
     assert same.method.repr_dim == 8 and same.method.repr_lr == specs.load("experiments/grid_2.yaml").method.repr_lr
 
 
+def test_the_other_problems_are_named_by_place_beside_the_first(tmp_path):
+    f = tmp_path / "m.yaml"
+    f.write_text(f"extends: {ROOT / 'experiments/grid_2.yaml'}\nmethd: {{}}\ntrain: {{epochs: x, seeds: y}}\n")
+    with pytest.raises(specs.SpecError) as e:
+        specs.load(f)
+    assert e.value.path == "methd"
+    assert e.value.problem.endswith("(and 2 more problem(s), at train.epochs, train.seeds)")
+    f.write_text("name: m\nenv: {kind: gridworld}\nhuman: {kind: noisy_greedy}\nmethd: {}\n")
+    with pytest.raises(specs.SpecError, match=re.escape("(and 1 more problem(s), at method)")):  # the typo's consequence
+        specs.load(f)
+    many = ", ".join(f"bad{i}: 1" for i in range(5))
+    f.write_text(f"name: m\nenv: {{kind: gridworld, {many}}}\nhuman: {{kind: noisy_greedy}}\nmethod: {{kind: random}}\n")
+    with pytest.raises(specs.SpecError) as e:
+        specs.load(f)
+    assert e.value.path == "env.bad0" and e.value.problem.endswith("(and 4 more problem(s), at env.bad1, env.bad2, env.bad3, ...)")
+
+
 def test_a_misspelt_kind_and_wrong_types_are_named_in_plain_words(tmp_path):
     f = tmp_path / "k.yaml"
     f.write_text("name: y\nenv: {knd: gridworld}\nhuman: {kind: noisy_greedy}\nmethod: {kind: random}\n")
