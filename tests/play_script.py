@@ -37,4 +37,4 @@ class Scripted:
             return None
         if name.startswith(STALE):
             name, frame = name[len(STALE):], frame - 1
-        return KeyPress(name, frame, now, now - 0.25, now)
+        return KeyPress(name, frame, now, now - 0.25, now + 0.25)  # shown 0.25 s before the press, as esr's clock allows

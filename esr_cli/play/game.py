@@ -32,7 +32,9 @@ from esr_cli.storage.play_log import state_record
 
 KEYS = ("up", "down", "left", "right", "space")
 QUIT = "quit"  # the person asks to end the session (confirmed before it ends)
-CLOSED = "closed"  # the tab or the terminal went away: the session ends at once
+# The tab or the terminal went away: the session ends at once. A control character no front
+# end passes on in a key's name, so that no page can pose as a closed tab by naming this key.
+CLOSED = "\x00closed"
 START_KEY = "space"
 RANDOM_ROBOT = "random"
 
@@ -95,6 +97,22 @@ class KeyPress:
         if self.pressed_at is None or self.shown_at is None:
             return None
         return round(self.pressed_at - self.shown_at, 6)  # the stamps' own precision (a microsecond)
+
+
+CLOCK_SLACK_S = 0.01  # the front end's stamps' rounding (a browser's may be coarsened to a millisecond or more)
+
+
+def possible_reaction(press: KeyPress, frame_sent_at: float | None) -> float | None:
+    """The key's reaction time where it can be one: never below zero, and never longer than esr
+    waited between sending the frame and getting the key (the frame was shown after it was
+    sent, the key pressed before it came). A front end's stamps are its own (a page's script
+    sends them), so others are recorded as they came and the reaction as unknown."""
+    reaction = press.reaction_s
+    if reaction is None or reaction < 0:
+        return None
+    if frame_sent_at is not None and reaction > press.received_at - frame_sent_at + CLOCK_SLACK_S:
+        return None
+    return reaction
 
 
 @dataclass
@@ -174,7 +192,8 @@ class Game:
             if press.shown_at is not None:
                 timing["frame_shown_at"] = press.shown_at
         return Step(self.t - 1, None if press is None else press.name, human_action, robot_action, float(reward),
-                    self.score, time.time(), None if press is None else press.reaction_s, before, **timing)
+                    self.score, time.time(), None if press is None else possible_reaction(press, timing.get("frame_sent_at")),
+                    before, **timing)
 
     def state_record(self) -> dict:
         return state_record(self.state)

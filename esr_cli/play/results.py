@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import io
+import re
 from collections import defaultdict
 
 from esr_cli.common.stats import describe
@@ -46,9 +47,19 @@ def episode_rows(found: list[tuple[str, dict, dict]]) -> list[dict]:
 FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
 
 
+# Characters a terminal or a spreadsheet acts on rather than shows (escape sequences, a bell, a
+# carriage return that overwrites the line, bidirectional overrides that reorder it): written
+# as their \u escapes. A newline and a tab are text a free answer may hold.
+UNSHOWN = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u200e\u200f\u202a-\u202e\u2066-\u2069]")
+
+
 def as_text(value):
-    """`value` as a spreadsheet shows it: a text that would be read as a formula gets a leading quote."""
-    return "'" + value if isinstance(value, str) and value.startswith(FORMULA_STARTS) else value
+    """`value` as a spreadsheet shows it: characters that act rather than show as their escapes,
+    and a text that would be read as a formula with a leading quote."""
+    if not isinstance(value, str):
+        return value
+    value = UNSHOWN.sub(lambda m: f"\\u{ord(m.group()):04x}", value)
+    return "'" + value if value.startswith(FORMULA_STARTS) else value
 
 
 def _as_text(row: dict) -> dict:

@@ -55,6 +55,7 @@ class StudyServer:
         self.served: list[Served] = []
         self.threads: list[threading.Thread] = []
         self.lock = threading.Lock()
+        self.ids: dict[str, int] = {}  # participant id -> the link it was given on
         self.server = Links(port, console, participants, self._start, host, public_url)
 
     def _start(self, channel, link: int) -> None:
@@ -66,7 +67,8 @@ class StudyServer:
     def _run(self, channel, link: int) -> None:
         served = Served(link)
         try:
-            served.outcome = StudySession(self.study, self.robots, channel, "web", self.store).run()
+            served.outcome = StudySession(self.study, self.robots, channel, "web", self.store,
+                                          lambda participant: self._claim(participant, link)).run()
         except (StoreError, OSError) as e:  # the store, not the person: this session ends, the others go on
             served.problem = printable(str(e))
         except Exception as e:  # noqa: BLE001 - a fault in one session must not hang the server
@@ -76,6 +78,12 @@ class StudyServer:
             with self.lock:
                 self.served.append(served)
         self.console.print(outcome_line(self.study.name, served), highlight=False, markup=False)
+
+    def _claim(self, participant: str, link: int) -> str:
+        """Two links' sessions under one id would be counted as one person's: the second is asked again."""
+        with self.lock:
+            first = self.ids.setdefault(participant, link)
+        return "" if first == link else f"the id {participant} is in use on another link: check your id with the researcher"
 
     def _all_ended(self) -> bool:
         with self.lock:

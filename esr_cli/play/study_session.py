@@ -16,6 +16,7 @@ import secrets
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 from esr_cli.common.jsonl import read_json
 from esr_cli.model.envs import make_env
@@ -135,17 +136,24 @@ def _button(reply: dict) -> tuple[str, str]:
 class StudySession:
     """One participant's way through a study on one front end."""
 
-    def __init__(self, study: Study, robots: list[StudyRobot], front, front_name: str, store: Store):
+    def __init__(self, study: Study, robots: list[StudyRobot], front, front_name: str, store: Store,
+                 claim: Callable[[str], str] = lambda participant: ""):
+        """`claim(id)`: why this id may not play here ("" if it may), e.g. another link's participant."""
         self.study, self.robots, self.front, self.front_name, self.store = study, robots, front, front_name, store
+        self.claim = claim
         self.practice = Opponent(RANDOM_ROBOT, PRACTICE_LABEL, Robot(RANDOM_ROBOT, make_env(study.spec.env)))
         self.outcome = Outcome(None, new_session_id())
         self.played = 0
+
+    def _participant(self, reply: dict) -> tuple[str | None, str]:
+        participant, problem = _participant(reply)
+        return participant, problem or self.claim(participant)
 
     def run(self, participant: str | None = None) -> Outcome:
         out = self.outcome
         self.front.ready()
         try:
-            out.participant = participant or ask(self.front, pages.participant_page(), _participant)
+            out.participant = participant or ask(self.front, pages.participant_page(), self._participant)
             out.consent = ask(self.front, pages.consent_page(self.study.consent), _button) == "agree"
             if not out.consent:
                 self._record("consent declined", {})

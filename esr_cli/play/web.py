@@ -27,6 +27,7 @@ import io
 import ipaddress
 import json
 import logging
+import math
 import queue
 import secrets
 import socket
@@ -43,6 +44,7 @@ from starlette.responses import HTMLResponse, PlainTextResponse
 from starlette.routing import Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect
 from uvicorn.protocols.http.h11_impl import H11Protocol
+from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
 from esr_cli.play.game import CLOSED, KeyPress, View
 from esr_cli.play.study import MAX_TEXT_ANSWER
@@ -65,6 +67,10 @@ HTTP_CONNECTION_S = 30.0
 # Connections open at once, websockets included: a participant holds one (and a page load or
 # two); past the limit a new connection is closed at once, before it costs more than its socket.
 MIN_CONNECTIONS, CONNECTIONS_PER_PARTICIPANT = 256, 3
+NOTICES_PER_MINUTE = 20  # lines on the console about clients (refusals, bad requests)
+# At a stop, connections still busy this long after they were asked to close are dropped: a
+# client that sends requests and never reads the answers would otherwise hold the stop.
+GRACEFUL_SHUTDOWN_S = 1.0
 
 PAGE = """<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>esr play</title>
@@ -208,20 +214,53 @@ class PortInUse(Exception):
     pass
 
 
-class OneLine(logging.Handler):
-    """uvicorn's log records on esr's console, one line each, never a traceback. Its record of a
-    text frame that is not UTF-8 is left out: the connection's close code (1007) reports that."""
+class Notices:
+    """What a server says of its clients (refusals, the web server's records), one line each, at
+    most NOTICES_PER_MINUTE a minute: a client sending bad requests as fast as it can must neither
+    bury the addresses and outcomes esr prints nor grow a log without bound. Lines left out are
+    counted, and the count is said when the next minute's first line is, or at the stop."""
 
     def __init__(self, console):
-        super().__init__(logging.WARNING)
         self.console = console
+        self.lock = threading.Lock()
+        self.since, self.shown, self.hidden = -math.inf, 0, 0
+
+    def say(self, text: str) -> None:
+        with self.lock:
+            if time.monotonic() - self.since >= 60:
+                self._say_hidden()
+                self.since, self.shown = time.monotonic(), 0
+            if self.shown < NOTICES_PER_MINUTE:
+                self.shown += 1
+                self.console.print(text)
+            else:
+                self.hidden += 1
+
+    def close(self) -> None:
+        with self.lock:
+            self._say_hidden()
+
+    def _say_hidden(self) -> None:
+        if self.hidden:
+            self.console.print(f"esr play: {self.hidden:,} more line(s) like these were left out (more than "
+                               f"{NOTICES_PER_MINUTE} a minute)")
+            self.hidden = 0
+
+
+class OneLine(logging.Handler):
+    """uvicorn's log records as the server's notices, one line each, never a traceback. Its record
+    of a text frame that is not UTF-8 is left out: the connection's close code (1007) reports that."""
+
+    def __init__(self, notices: Notices):
+        super().__init__(logging.WARNING)
+        self.notices = notices
 
     def emit(self, record: logging.LogRecord) -> None:
         error = record.exc_info[1] if record.exc_info else None
         if isinstance(error, UnicodeDecodeError):
             return
         text = " ".join(record.getMessage().split())[:200]
-        self.console.print(f"esr play: web server: {text}" + (f" ({type(error).__name__}: {error})"[:200] if error else ""))
+        self.notices.say(f"esr play: web server: {text}" + (f" ({type(error).__name__}: {error})"[:200] if error else ""))
 
 
 def _stamp(value) -> float | None:
@@ -237,11 +276,14 @@ def _frame(value) -> int | None:
 
 def key_of(message: dict) -> KeyPress | None:
     """The key a page's message names ({"key": "up", "frame": 3, "t": ms, "shown": ms}), its name
-    cut to MAX_KEY_TEXT and stamps that are not numbers left unknown; None for any other object."""
+    cut to MAX_KEY_TEXT (a name with a control character as its escapes, as the terminal names
+    such a key, so that none is game.CLOSED) and stamps that are not numbers left unknown; None
+    for any other object."""
     if "key" not in message:
         return None
-    return KeyPress(str(message["key"])[:MAX_KEY_TEXT], _frame(message.get("frame")), _stamp(message.get("t")),
-                    _stamp(message.get("shown")), time.monotonic())
+    name = str(message["key"])[:MAX_KEY_TEXT]
+    return KeyPress(name if name.isprintable() else f"control key {name!r}", _frame(message.get("frame")),
+                    _stamp(message.get("t")), _stamp(message.get("shown")), time.monotonic())
 
 
 @dataclass(frozen=True)
@@ -434,14 +476,39 @@ def is_loopback(host: str) -> bool:
         return host == "localhost"
 
 
+class AnsweringWebSocket(WebSocketsSansIOProtocol):
+    """uvicorn's websocket protocol, except that an upgrade request the websockets library
+    refuses (one with a body, too many or too long headers) is answered and closed at once:
+    uvicorn leaves it open and unanswered, so a few hundred such requests would hold every
+    connection the server keeps, and its shutdown would stop on them with a traceback."""
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        if self.conn.handshake_exc is not None and not self.handshake_initiated and not self.close_sent:
+            answer = b"".join(self.conn.data_to_send())  # the library's 414 or 431, or nothing
+            self.handshake_complete = self.close_sent = True  # nothing more to say: a shutdown only closes it
+            self.transport.write(answer or BAD_UPGRADE)
+            self.transport.close()
+
+    @property
+    def open(self) -> bool:
+        """Whether the handshake has made this a websocket a page plays on."""
+        return self.handshake_complete and not self.close_sent
+
+
+BAD_UPGRADE = b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
+
+
 class BoundedH11(H11Protocol):
     """uvicorn's HTTP/1.1 protocol with the two bounds a server open to many clients needs: at
-    most `max_connections` at once, and a plain HTTP connection closed HTTP_CONNECTION_S after it
-    was made, whatever it is doing (one upgraded to a websocket is the websocket's from then on)."""
+    most `max_connections` at once, and a connection closed HTTP_CONNECTION_S after it was made,
+    whatever it is doing, unless it has become an open websocket by then (which lives as long as
+    its participant plays)."""
 
     max_connections = MIN_CONNECTIONS
     warned = False  # one server's protocol class (`limited`) says once that it turned connections away
     deadline: asyncio.TimerHandle | None = None
+    made = 0.0
 
     @classmethod
     def limited(cls, max_connections: int) -> type[BoundedH11]:
@@ -449,18 +516,27 @@ class BoundedH11(H11Protocol):
 
     def connection_made(self, transport) -> None:
         super().connection_made(transport)
+        self.made = time.monotonic()
         if len(self.connections) > self.max_connections:
             if not type(self).warned:  # said once: a flood of connections must not flood the console
                 type(self).warned = True
                 self.logger.warning(f"{self.max_connections:,} connections are open, the most this server keeps: "
-                                    "new ones are closed at once while they are")
-            transport.close()
-            return
+                                    "each new one closes the oldest that is not a websocket playing")
+            # The oldest plain HTTP connection gives way: clients holding connections open (a
+            # header a byte at a time) cannot keep a participant's page load out, and a page
+            # loads in well under a second, so it is not the oldest for long.
+            oldest = min((c for c in self.connections if isinstance(c, BoundedH11) and c is not self
+                          and not c.transport.is_closing()), key=lambda c: c.made, default=None)
+            if oldest is None:  # every other connection is a participant's websocket
+                transport.close()
+                return
+            oldest.transport.close()
         self.deadline = self.loop.call_later(HTTP_CONNECTION_S, self._lived_long_enough)
 
     def _lived_long_enough(self) -> None:
         self.deadline = None
-        if self.transport.get_protocol() is self and not self.transport.is_closing():  # not a websocket now
+        now = self.transport.get_protocol()
+        if not getattr(now, "open", False) and not self.transport.is_closing():  # not a websocket that plays
             self.transport.close()
 
     def connection_lost(self, exc) -> None:
@@ -476,6 +552,7 @@ class Server(abc.ABC):
 
     def __init__(self, port: int, console, host: str = HOST, public_url: str | None = None, participants: int = 1):
         self.port, self.console = port, console
+        self.notices = Notices(console)
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         probe = socket.socket(family, socket.SOCK_STREAM)
         # As the server's own socket does: a port whose last connections are in TIME_WAIT (a
@@ -492,7 +569,8 @@ class Server(abc.ABC):
         app = Starlette(routes=[Route("/", self._page), WebSocketRoute("/ws", self._play)])
         config = uvicorn.Config(app, host=host.strip("[]"), port=port, log_level="warning", lifespan="off",
                                 http=BoundedH11.limited(max(MIN_CONNECTIONS, CONNECTIONS_PER_PARTICIPANT * participants)),
-                                ws="websockets-sansio", ws_max_size=MAX_MESSAGE_BYTES, log_config=None)  # logs: OneLine
+                                ws=AnsweringWebSocket, ws_max_size=MAX_MESSAGE_BYTES, log_config=None,  # logs: OneLine
+                                timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S)
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, name="esr-play-web", daemon=True)
 
@@ -509,7 +587,7 @@ class Server(abc.ABC):
 
     def __enter__(self):
         # uvicorn's records go to OneLine only: a handler on the root logger would print tracebacks.
-        self.log, uvicorn_log = OneLine(self.console), logging.getLogger("uvicorn")
+        self.log, uvicorn_log = OneLine(self.notices), logging.getLogger("uvicorn")
         self.propagate, uvicorn_log.propagate = uvicorn_log.propagate, False
         uvicorn_log.addHandler(self.log)
         self.thread.start()
@@ -525,6 +603,7 @@ class Server(abc.ABC):
         self.thread.join(timeout=10)
         logging.getLogger("uvicorn").removeHandler(self.log)
         logging.getLogger("uvicorn").propagate = self.propagate
+        self.notices.close()
         return False
 
     def _refusal(self, conn: HTTPConnection) -> str | None:
@@ -541,7 +620,7 @@ class Server(abc.ABC):
         return None
 
     def _refuse(self, conn: HTTPConnection, why: str) -> None:
-        self.console.print(f"esr play: refused a {'websocket' if conn.scope['type'] == 'websocket' else 'page request'}: {why}")
+        self.notices.say(f"esr play: refused a {'websocket' if conn.scope['type'] == 'websocket' else 'page request'}: {why}")
 
     async def _page(self, request):
         if why := self._refusal(request):
@@ -556,7 +635,7 @@ class Server(abc.ABC):
             return
         channel = self.admit(websocket.query_params.get("token", ""))
         if isinstance(channel, str):  # one tab per token at a time; a used link stays used
-            self.console.print(f"esr play: refused a websocket: {channel}")
+            self.notices.say(f"esr play: refused a websocket: {channel}")
             await websocket.close(code=1013)
             return
         await websocket.accept()

@@ -888,8 +888,9 @@ def expected_of(kind: str, payload) -> tuple[str, object]:
         return "bad", "text that is not a key"
     if not isinstance(message, dict):
         return "bad", "text that is not a key"
-    if "key" in message:
-        return "key", str(message["key"])[:MAX_KEY_TEXT]
+    if "key" in message:  # a name with a control character is named by its escapes, as the terminal names one
+        name = str(message["key"])[:MAX_KEY_TEXT]
+        return "key", name if name.isprintable() else f"control key {name!r}"
     frame, at = message.get("shown"), message.get("t")
     frame_ok = type(frame) is int and 0 <= frame < 2**53
     at_ok = type(at) in (int, float) and 0 <= at < 1e13
@@ -1006,8 +1007,9 @@ def test_a_port_left_in_time_wait_is_free_to_serve_on():
 def test_a_plain_http_connection_is_closed_after_its_time_and_connections_are_bounded(monkeypatch):
     """A client trickling its request head, or a body after its answer, once held its connection
     for ever: a plain HTTP connection is closed HTTP_CONNECTION_S after it was made, whatever it
-    is doing, while a websocket lives on. Past the connection limit a new connection is closed
-    at once (said once on the console); a browser's request is answered."""
+    is doing, while a websocket lives on. Past the connection limit a new connection closes the
+    oldest plain one (said once on the console), so held connections keep no page load out; with
+    only websockets playing it is closed at once."""
     import websocket
     from rich.console import Console
 
@@ -1040,18 +1042,113 @@ def test_a_plain_http_connection_is_closed_after_its_time_and_connections_are_bo
             conn.close()
         play.ping()  # the websocket is still open past HTTP_CONNECTION_S
         assert play.connected
-        held = [socket.create_connection(("127.0.0.1", port), timeout=10) for _ in range(2)]  # with the websocket: 3
-        extra = socket.create_connection(("127.0.0.1", port), timeout=10)
+        held = []
+        for _ in range(2):  # with the websocket: 3, the oldest first
+            held.append(socket.create_connection(("127.0.0.1", port), timeout=10))
+            time.sleep(0.1)
+        extra = socket.create_connection(("127.0.0.1", port), timeout=10)  # the fourth: the oldest page connection gives way
+        held[0].settimeout(5)
+        assert held[0].recv(1024) == b""
+        extra.sendall(f"GET /?token={web.token} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode())
         extra.settimeout(5)
-        assert extra.recv(1024) == b""  # the fourth at once: closed before its request
+        assert extra.recv(64).startswith(b"HTTP/1.1 200")
         for conn in held + [extra]:
             conn.close()
+        time.sleep(0.3)
+        web.server.config.http.max_connections = 1  # the websocket alone: a new connection has nothing to take over
+        late = socket.create_connection(("127.0.0.1", port), timeout=10)
+        late.settimeout(5)
+        assert late.recv(1024) == b"" and play.connected
+        late.close()
+        play.ping()
         play.close()
+        web.server.config.http.max_connections = 3
         time.sleep(0.3)
         with socket.create_connection(("127.0.0.1", port), timeout=10) as ok:
             ok.sendall(f"GET /?token={web.token} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n".encode())
             assert ok.recv(64).startswith(b"HTTP/1.1 200")
     assert said.getvalue().count("connections are open, the most this server keeps") == 1
+
+
+@pytest.mark.slow
+def test_an_upgrade_request_the_websocket_layer_refuses_is_answered_and_closed_and_holds_no_stop():
+    """An upgrade request with a body or an over-long header once stayed open unanswered (a few
+    hundred kept every participant out) and made the stop print a traceback; a client that
+    sends requests and never reads the answers once held the stop for 10 s."""
+    from rich.console import Console
+
+    from esr_cli.play.web import Web
+
+    said = io.StringIO()
+    port = free_port()
+    web = Web(port, Console(file=said, width=200)).__enter__()
+    upgrade = (f"GET /ws?token={web.token} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
+               "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n")
+    for extra, status in (("Content-Length: 1\r\n", b"HTTP/1.1 400"), ("X-Long: " + "a" * 9000 + "\r\n", b"HTTP/1.1 431")):
+        with socket.create_connection(("127.0.0.1", port), timeout=5) as conn:
+            conn.sendall((upgrade + extra + "\r\n").encode())
+            got, t0 = b"", time.monotonic()
+            while chunk := conn.recv(65536):
+                got += chunk
+            assert got.startswith(status) and time.monotonic() - t0 < 3, got[:80]
+    stuck = socket.create_connection(("127.0.0.1", port), timeout=5)
+    stuck.sendall((upgrade + "Content-Length: 1\r\n\r\n").encode())  # left open by the client
+    greedy = socket.socket()
+    greedy.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    greedy.connect(("127.0.0.1", port))
+    greedy.setblocking(False)
+    request = f"GET /nothing HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode()
+    try:
+        for _ in range(100_000):  # until the server stops reading: its answers are never read
+            greedy.send(request)
+    except BlockingIOError:
+        pass
+    time.sleep(0.5)
+    t0 = time.monotonic()
+    web.__exit__(None, None, None)
+    assert time.monotonic() - t0 < 4 and not web.thread.is_alive()
+    assert "Traceback" not in said.getvalue() and "Error" not in said.getvalue(), said.getvalue()
+    stuck.close()
+    greedy.close()
+
+
+def test_what_a_server_says_of_its_clients_is_at_most_a_few_lines_a_minute(monkeypatch):
+    from rich.console import Console
+
+    from esr_cli.play import web as web_module
+
+    clock = [1000.0]
+    monkeypatch.setattr(web_module.time, "monotonic", lambda: clock[0])
+    said = io.StringIO()
+    notices = web_module.Notices(Console(file=said, width=200))
+    for i in range(5000):
+        notices.say(f"refused {i}")
+    assert said.getvalue().splitlines() == [f"refused {i}" for i in range(web_module.NOTICES_PER_MINUTE)]
+    clock[0] += 61
+    notices.say("a minute later")
+    assert said.getvalue().splitlines()[-2:] == [
+        f"esr play: {5000 - web_module.NOTICES_PER_MINUTE:,} more line(s) like these were left out (more than "
+        f"{web_module.NOTICES_PER_MINUTE} a minute)", "a minute later"]
+    notices.say("x")
+    for _ in range(web_module.NOTICES_PER_MINUTE):
+        notices.say("y")
+    notices.close()  # the stop says what the last minute left out
+    assert said.getvalue().splitlines()[-1].startswith("esr play: 2 more line(s) like these were left out")  # 22 this minute
+
+
+def test_no_page_can_pose_as_a_closed_tab_and_impossible_reaction_times_are_unknown():
+    from esr_cli.play.game import CLOSED, possible_reaction
+    from esr_cli.play.web import key_of
+
+    assert key_of({"key": "closed"}).name == "closed"  # an unknown key, named back as such
+    assert key_of({"key": CLOSED}).name == "control key '\\x00closed'" != CLOSED
+    assert key_of({"key": "up"}).name == "up"
+    sent, received = 100.0, 100.5  # esr's clock: the frame went out, the key came back half a second later
+    assert possible_reaction(KeyPress("up", 1, 20.3, 20.0, received), sent) == pytest.approx(0.3)
+    assert possible_reaction(KeyPress("up", 1, 20.0, 20.3, received), sent) is None  # pressed before it was shown
+    assert possible_reaction(KeyPress("up", 1, 9e9, 0.0, received), sent) is None  # longer than esr waited
+    assert possible_reaction(KeyPress("up", 1, 20.3, None, received), sent) is None
+    assert possible_reaction(KeyPress("up", 1, 20.3, 20.0, received), None) == pytest.approx(0.3)
 
 
 # ---------------------------------------------------------------- the data it leaves

@@ -616,6 +616,24 @@ def test_a_study_server_keeps_serving_when_one_session_fails_and_stops_when_ever
     assert any(line.startswith("study t_study: link 2: participant ok1") and "finished" in line for line in lines)
 
 
+def test_one_participant_id_on_two_links_of_a_server_is_asked_again(tmp_path):
+    """Two people typing one id would be counted as one participant (and share one robot order):
+    the second link's session asks for its id again; the same link may give it again."""
+    from rich.console import Console
+
+    from esr_cli.play import study_server
+
+    study = load_study(write_study(tmp_path / "s", study_dict()))
+    server = study_server.StudyServer(study, [], Store(tmp_path / "store"), Console(file=io.StringIO()), 3, free_port(),
+                                      "127.0.0.1", None)
+    assert server._claim("p1", 1) == "" and server._claim("p1", 1) == "" and server._claim("p2", 2) == ""
+    assert server._claim("p1", 3) == "the id p1 is in use on another link: check your id with the researcher"
+    session = ss.StudySession(study, [], None, "web", Store(tmp_path / "store"), lambda who: server._claim(who, 3))
+    assert session._participant({"answers": {"participant": "p1"}})[1].startswith("the id p1 is in use")
+    assert session._participant({"answers": {"participant": "p3"}}) == ("p3", "")
+    assert session._participant({"answers": {"participant": "../x"}})[1] != ""  # the id's own rule first
+
+
 @pytest.mark.slow
 def test_sigterm_stops_a_study_server_within_seconds_keeping_the_episode_under_way(tmp_path):
     """A service manager's stop (SIGTERM) ends every session as a closed tab would: the episode
@@ -667,6 +685,11 @@ def test_free_text_that_looks_like_a_formula_opens_as_text_in_a_spreadsheet():
     assert row["value"] == "'" + record["answers"]["why"]
     (episode,) = csv.DictReader(io.StringIO(episodes_csv([{"participant": "@p", "return": -1.5}])))
     assert episode["participant"] == "'@p" and episode["return"] == "-1.5"
+    record["answers"]["why"] = "\x1b[2J\x1b]0;pwn\x07\r\nFORGED,row\u202e\tend\x9b"  # acts on a terminal that shows the file
+    text = answers_csv([record])
+    assert not any(c in text for c in "\x1b\x07\r\u202e\x9b")
+    (row,) = csv.DictReader(io.StringIO(text))
+    assert row["value"] == "\\u001b[2J\\u001b]0;pwn\\u0007\\u000d\nFORGED,row\\u202e\tend\\u009b"
 
 
 def test_the_overcooked_export_csv_opens_its_text_as_text():
