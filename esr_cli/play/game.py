@@ -99,7 +99,9 @@ class KeyPress:
         return round(self.pressed_at - self.shown_at, 6)  # the stamps' own precision (a microsecond)
 
 
-CLOCK_SLACK_S = 0.01  # the front end's stamps' rounding (a browser's may be coarsened to a millisecond or more)
+# The front end's stamps' rounding: a browser coarsens performance.now() to protect its users,
+# to 100 ms at most (Tor Browser; Firefox's fingerprinting protection to 16.7 ms).
+CLOCK_SLACK_S = 0.1
 
 
 def possible_reaction(press: KeyPress, frame_sent_at: float | None) -> float | None:
@@ -263,9 +265,10 @@ class Screen:
         game = self.game
         text = game.text() if self.front.draws_text else None
         self.frame += 1
-        self.front.show(View(self.title, game.score, game.steps_left, game.frame(), text, game.legend(text is not None),
-                             message, over, self.frame))
-        self.sent_at = time.monotonic()
+        view = View(self.title, game.score, game.steps_left, game.frame(), text, game.legend(text is not None),
+                    message, over, self.frame)
+        self.sent_at = time.monotonic()  # as it goes: the front end can show it no sooner
+        self.front.show(view)
 
     def record(self, dropped: int) -> dict:
         """The current frame's Step fields."""

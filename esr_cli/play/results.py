@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import csv
 import io
-import re
+import unicodedata
 from collections import defaultdict
 
 from esr_cli.common.stats import describe
@@ -47,10 +47,19 @@ def episode_rows(found: list[tuple[str, dict, dict]]) -> list[dict]:
 FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
 
 
-# Characters a terminal or a spreadsheet acts on rather than shows (escape sequences, a bell, a
-# carriage return that overwrites the line, bidirectional overrides that reorder it): written
-# as their \u escapes. A newline and a tab are text a free answer may hold.
-UNSHOWN = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u200e\u200f\u202a-\u202e\u2066-\u2069]")
+# Characters a terminal or a spreadsheet acts on rather than shows: controls (escape sequences,
+# a bell, a carriage return that overwrites the line), format characters (bidirectional marks
+# and overrides that reorder it, zero-width and tag characters that hide text) and line or
+# paragraph separators. They are written as their \u escapes (\U for those past U+FFFF); a
+# newline and a tab are text a free answer may hold.
+UNSHOWN_CATEGORIES = ("Cc", "Cf", "Zl", "Zp")
+KEPT = "\n\t"
+
+
+def _escaped(ch: str) -> str:
+    if ch in KEPT or unicodedata.category(ch) not in UNSHOWN_CATEGORIES:
+        return ch
+    return f"\\u{ord(ch):04x}" if ord(ch) <= 0xFFFF else f"\\U{ord(ch):08x}"
 
 
 def as_text(value):
@@ -58,7 +67,8 @@ def as_text(value):
     and a text that would be read as a formula with a leading quote."""
     if not isinstance(value, str):
         return value
-    value = UNSHOWN.sub(lambda m: f"\\u{ord(m.group()):04x}", value)
+    if not value.isprintable():  # (every character UNSHOWN_CATEGORIES names is unprintable)
+        value = "".join(map(_escaped, value))
     return "'" + value if value.startswith(FORMULA_STARTS) else value
 
 

@@ -71,6 +71,7 @@ NOTICES_PER_MINUTE = 20  # lines on the console about clients (refusals, bad req
 # At a stop, connections still busy this long after they were asked to close are dropped: a
 # client that sends requests and never reads the answers would otherwise hold the stop.
 GRACEFUL_SHUTDOWN_S = 1.0
+STOP_TIMEOUT = "Cancel "  # uvicorn's record of those it dropped ("Cancel N running task(s), timeout ...")
 
 PAGE = """<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>esr play</title>
@@ -257,8 +258,8 @@ class OneLine(logging.Handler):
 
     def emit(self, record: logging.LogRecord) -> None:
         error = record.exc_info[1] if record.exc_info else None
-        if isinstance(error, UnicodeDecodeError):
-            return
+        if isinstance(error, (UnicodeDecodeError, asyncio.CancelledError)) or record.getMessage().startswith(STOP_TIMEOUT):
+            return  # a stop that drops busy connections (GRACEFUL_SHUTDOWN_S) is no error
         text = " ".join(record.getMessage().split())[:200]
         self.notices.say(f"esr play: web server: {text}" + (f" ({type(error).__name__}: {error})"[:200] if error else ""))
 
@@ -476,11 +477,46 @@ def is_loopback(host: str) -> bool:
         return host == "localhost"
 
 
-class AnsweringWebSocket(WebSocketsSansIOProtocol):
+class Deadline:
+    """A connection's timer, HTTP_CONNECTION_S after it was made (`lived_long_enough` says what
+    then), cancelled when the connection goes so that it keeps nothing alive."""
+
+    deadline: asyncio.TimerHandle | None = None
+
+    def start_deadline(self) -> None:
+        self.deadline = asyncio.get_running_loop().call_later(HTTP_CONNECTION_S, self._deadline_reached)
+
+    def cancel_deadline(self) -> None:
+        if self.deadline is not None:
+            self.deadline.cancel()
+            self.deadline = None
+
+    def _deadline_reached(self) -> None:
+        self.deadline = None
+        self.lived_long_enough()
+
+    def lived_long_enough(self) -> None:
+        raise NotImplementedError
+
+    def connection_lost(self, exc) -> None:
+        self.cancel_deadline()
+        super().connection_lost(exc)
+
+
+class AnsweringWebSocket(Deadline, WebSocketsSansIOProtocol):
     """uvicorn's websocket protocol, except that an upgrade request the websockets library
     refuses (one with a body, too many or too long headers) is answered and closed at once:
     uvicorn leaves it open and unanswered, so a few hundred such requests would hold every
-    connection the server keeps, and its shutdown would stop on them with a traceback."""
+    connection the server keeps, and its shutdown would stop on them with a traceback. Like a
+    plain connection it is dropped HTTP_CONNECTION_S after it was made unless it is open by then."""
+
+    def connection_made(self, transport) -> None:
+        super().connection_made(transport)
+        self.start_deadline()
+
+    def lived_long_enough(self) -> None:
+        if not self.open:
+            self.transport.abort()
 
     def data_received(self, data: bytes) -> None:
         super().data_received(data)
@@ -499,15 +535,15 @@ class AnsweringWebSocket(WebSocketsSansIOProtocol):
 BAD_UPGRADE = b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
 
 
-class BoundedH11(H11Protocol):
+class BoundedH11(Deadline, H11Protocol):
     """uvicorn's HTTP/1.1 protocol with the two bounds a server open to many clients needs: at
-    most `max_connections` at once, and a connection closed HTTP_CONNECTION_S after it was made,
-    whatever it is doing, unless it has become an open websocket by then (which lives as long as
-    its participant plays)."""
+    most `max_connections` at once, and a connection dropped HTTP_CONNECTION_S after it was made,
+    whatever it is doing (one upgraded to a websocket is AnsweringWebSocket's from then on).
+    Dropped, not closed: a close waits for the client to read what is still to be sent, and a
+    client that never reads would keep the connection, and its place, for ever."""
 
     max_connections = MIN_CONNECTIONS
     warned = False  # one server's protocol class (`limited`) says once that it turned connections away
-    deadline: asyncio.TimerHandle | None = None
     made = 0.0
 
     @classmethod
@@ -525,25 +561,22 @@ class BoundedH11(H11Protocol):
             # The oldest plain HTTP connection gives way: clients holding connections open (a
             # header a byte at a time) cannot keep a participant's page load out, and a page
             # loads in well under a second, so it is not the oldest for long.
-            oldest = min((c for c in self.connections if isinstance(c, BoundedH11) and c is not self
-                          and not c.transport.is_closing()), key=lambda c: c.made, default=None)
-            if oldest is None:  # every other connection is a participant's websocket
-                transport.close()
+            oldest = min((c for c in self.connections if isinstance(c, BoundedH11) and c is not self),
+                         key=lambda c: c.made, default=None)
+            if oldest is None:  # every other connection is a websocket
+                transport.abort()
                 return
-            oldest.transport.close()
-        self.deadline = self.loop.call_later(HTTP_CONNECTION_S, self._lived_long_enough)
+            oldest.transport.abort()
+        self.start_deadline()
 
-    def _lived_long_enough(self) -> None:
-        self.deadline = None
-        now = self.transport.get_protocol()
-        if not getattr(now, "open", False) and not self.transport.is_closing():  # not a websocket that plays
-            self.transport.close()
+    def lived_long_enough(self) -> None:
+        self.transport.abort()
 
-    def connection_lost(self, exc) -> None:
-        if self.deadline is not None:
-            self.deadline.cancel()
-            self.deadline = None
-        super().connection_lost(exc)
+    def handle_websocket_upgrade(self, event) -> None:
+        # The connection is the websocket's now, with its own deadline; this timer would keep
+        # this protocol, and its buffers, alive for the rest of the 30 s.
+        self.cancel_deadline()
+        super().handle_websocket_upgrade(event)
 
 
 class Server(abc.ABC):
@@ -552,7 +585,9 @@ class Server(abc.ABC):
 
     def __init__(self, port: int, console, host: str = HOST, public_url: str | None = None, participants: int = 1):
         self.port, self.console = port, console
-        self.notices = Notices(console)
+        # Refusals of requests without a token are the ones anyone can make by the thousand: they
+        # have their own budget of lines, so they never crowd out those about invited participants.
+        self.notices, self.participant_notices = Notices(console), Notices(console)
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         probe = socket.socket(family, socket.SOCK_STREAM)
         # As the server's own socket does: a port whose last connections are in TIME_WAIT (a
@@ -604,6 +639,7 @@ class Server(abc.ABC):
         logging.getLogger("uvicorn").removeHandler(self.log)
         logging.getLogger("uvicorn").propagate = self.propagate
         self.notices.close()
+        self.participant_notices.close()
         return False
 
     def _refusal(self, conn: HTTPConnection) -> str | None:
@@ -635,7 +671,7 @@ class Server(abc.ABC):
             return
         channel = self.admit(websocket.query_params.get("token", ""))
         if isinstance(channel, str):  # one tab per token at a time; a used link stays used
-            self.notices.say(f"esr play: refused a websocket: {channel}")
+            self.participant_notices.say(f"esr play: refused a websocket: {channel}")
             await websocket.close(code=1013)
             return
         await websocket.accept()

@@ -1112,6 +1112,49 @@ def test_an_upgrade_request_the_websocket_layer_refuses_is_answered_and_closed_a
     greedy.close()
 
 
+def test_clients_that_never_read_are_dropped_at_their_time_and_an_upgrade_keeps_no_timer(monkeypatch):
+    """A connection closed at its time once waited for its client to read what was left to send:
+    clients that never read kept their places past the limit, and every page load was refused.
+    A websocket request once left its HTTP connection's timer, and the connection with it,
+    alive for 30 s: a flood of them held memory."""
+    import gc
+
+    import websocket
+    from rich.console import Console
+
+    from esr_cli.play import web as web_module
+
+    monkeypatch.setattr(web_module, "HTTP_CONNECTION_S", 1.0)
+    monkeypatch.setattr(web_module, "MIN_CONNECTIONS", 3)
+    port = free_port()
+    with web_module.Web(port, Console(file=io.StringIO(), width=200)) as web:
+        request = f"GET /?token={web.token} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode()
+        greedy = []
+        for _ in range(3):
+            conn = socket.socket()
+            conn.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
+            conn.connect(("127.0.0.1", port))
+            conn.setblocking(False)
+            try:
+                for _ in range(20_000):  # pages asked for and never read, until the server stops reading
+                    conn.send(request)
+            except BlockingIOError:
+                pass
+            greedy.append(conn)
+        time.sleep(2.0)
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as ok:
+            ok.sendall(request)
+            assert ok.recv(64).startswith(b"HTTP/1.1 200")
+        for _ in range(5):
+            with pytest.raises(websocket.WebSocketBadStatusException):  # no token: a 403
+                websocket.create_connection(f"ws://127.0.0.1:{port}/ws", timeout=10, origin=f"http://127.0.0.1:{port}")
+        time.sleep(0.3)
+        gc.collect()
+        assert sum(isinstance(o, web_module.BoundedH11) for o in gc.get_objects()) <= 1  # (the page load's, closing)
+        for conn in greedy:
+            conn.close()
+
+
 def test_what_a_server_says_of_its_clients_is_at_most_a_few_lines_a_minute(monkeypatch):
     from rich.console import Console
 

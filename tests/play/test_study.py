@@ -685,11 +685,13 @@ def test_free_text_that_looks_like_a_formula_opens_as_text_in_a_spreadsheet():
     assert row["value"] == "'" + record["answers"]["why"]
     (episode,) = csv.DictReader(io.StringIO(episodes_csv([{"participant": "@p", "return": -1.5}])))
     assert episode["participant"] == "'@p" and episode["return"] == "-1.5"
-    record["answers"]["why"] = "\x1b[2J\x1b]0;pwn\x07\r\nFORGED,row\u202e\tend\x9b"  # acts on a terminal that shows the file
+    record["answers"]["why"] = ("\x1b[2J\x1b]0;pwn\x07\r\nFORGED,row\u202e\tend\x9b\u061c\u2028\u200b\U000e0041"
+                                "é 😀")  # acts on a terminal or viewer that shows the file, or hides text
     text = answers_csv([record])
-    assert not any(c in text for c in "\x1b\x07\r\u202e\x9b")
+    assert not any(c in text for c in "\x1b\x07\r\u202e\x9b\u061c\u2028\u200b\U000e0041")
     (row,) = csv.DictReader(io.StringIO(text))
-    assert row["value"] == "\\u001b[2J\\u001b]0;pwn\\u0007\\u000d\nFORGED,row\\u202e\tend\\u009b"
+    assert row["value"] == ("\\u001b[2J\\u001b]0;pwn\\u0007\\u000d\nFORGED,row\\u202e\tend\\u009b\\u061c\\u2028"
+                            "\\u200b\\U000e0041é 😀")
 
 
 def test_the_overcooked_export_csv_opens_its_text_as_text():
