@@ -65,7 +65,7 @@ SCALE = {True: 3, False: 2}  # a small picture (the gridworld's) drawn larger th
 # file descriptor, for ever.
 HTTP_CONNECTION_S = 30.0
 # Connections open at once, websockets included: a participant holds one (and a page load or
-# two); past the limit a new connection is closed at once, before it costs more than its socket.
+# two); past the limit a new connection drops the oldest that is not a websocket (BoundedH11).
 MIN_CONNECTIONS, CONNECTIONS_PER_PARTICIPANT = 256, 3
 NOTICES_PER_MINUTE = 20  # lines on the console about clients (refusals, bad requests)
 # At a stop, connections still busy this long after they were asked to close are dropped: a
@@ -503,6 +503,9 @@ class Deadline:
         super().connection_lost(exc)
 
 
+BAD_UPGRADE = b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
+
+
 class AnsweringWebSocket(Deadline, WebSocketsSansIOProtocol):
     """uvicorn's websocket protocol, except that an upgrade request the websockets library
     refuses (one with a body, too many or too long headers) is answered and closed at once:
@@ -532,9 +535,6 @@ class AnsweringWebSocket(Deadline, WebSocketsSansIOProtocol):
         return self.handshake_complete and not self.close_sent
 
 
-BAD_UPGRADE = b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
-
-
 class BoundedH11(Deadline, H11Protocol):
     """uvicorn's HTTP/1.1 protocol with the two bounds a server open to many clients needs: at
     most `max_connections` at once, and a connection dropped HTTP_CONNECTION_S after it was made,
@@ -557,10 +557,10 @@ class BoundedH11(Deadline, H11Protocol):
             if not type(self).warned:  # said once: a flood of connections must not flood the console
                 type(self).warned = True
                 self.logger.warning(f"{self.max_connections:,} connections are open, the most this server keeps: "
-                                    "each new one closes the oldest that is not a websocket playing")
+                                    "each new one drops the oldest that is not a websocket")
             # The oldest plain HTTP connection gives way: clients holding connections open (a
-            # header a byte at a time) cannot keep a participant's page load out, and a page
-            # loads in well under a second, so it is not the oldest for long.
+            # header a byte at a time, answers never read) cannot keep a participant's page load
+            # out, and a page loads in well under a second, so it is not the oldest for long.
             oldest = min((c for c in self.connections if isinstance(c, BoundedH11) and c is not self),
                          key=lambda c: c.made, default=None)
             if oldest is None:  # every other connection is a websocket
