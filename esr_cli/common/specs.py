@@ -162,8 +162,9 @@ def _is_tag(i: int, part: object, loc: tuple) -> bool:
     return (i == 1 and loc[0] in KIND_MODELS and part in KIND_MODELS[loc[0]]) or _VALIDATOR_TAG.fullmatch(str(part)) is not None
 
 
-def _spec_path(loc: tuple) -> str:
-    return yamlio.key_path(loc, lambda i, part: _is_tag(i, part, loc))
+def _spec_path(loc: tuple, last_is_key: bool = False) -> str:
+    """A location as the spec's key path (kind and validator tags left out)."""
+    return yamlio.key_path(loc, lambda i, part: _is_tag(i, part, loc), last_is_key)
 
 
 SECTIONS_WITHOUT_KINDS = ("network", "learner", "train", "eval")
@@ -312,7 +313,7 @@ def validate(raw: dict, source: str = "") -> Spec:
                 loc, msg = loc + (typo[0],), f"unknown key; did you mean `kind`? (the section {msg})"
         elif err["type"] == "union_tag_invalid":
             msg = _not_a_kind(err.get("ctx", {}).get("tag"), section)
-        raise SpecError(source, yamlio.key_path(loc, lambda i, part: _is_tag(i, part, loc), err["type"] == "extra_forbidden"), msg + other_problems(e, _spec_path)) from None
+        raise SpecError(source, _spec_path(loc, err["type"] == "extra_forbidden"), msg + other_problems(e, _spec_path)) from None
 
 
 def _merge(base: dict, child: dict) -> dict:
