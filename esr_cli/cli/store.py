@@ -14,6 +14,7 @@ from rich.text import Text
 from esr_cli.cli.app import Exit, app, check_budget, check_output_file, err, out, refuse_inside_store
 from esr_cli.common import jsonl
 from esr_cli.common.printing import print_table, printable, tagged
+from esr_cli.common.stops import SAME_AGAIN, diverged_at
 from esr_cli.storage.provenance import origin, wall_time
 from esr_cli.storage.store import KINDS, RUN_KIND, Store
 
@@ -131,6 +132,8 @@ def _show_lines(r: dict, manifest: dict) -> list[tuple[str, object]]:
                          ("wall time", _wall_time(manifest))):
         if value is not None:
             lines.append((label, value))
+    if diverged := diverged_at(manifest):
+        lines.append(("diverged", f"{diverged}; {SAME_AGAIN}"))
     if r["epochs"] is not None:
         lines.append(("epochs", f"{r['epochs']:,}" + (f" of {r['epochs_total']:,}" if r["epochs_total"] and r["epochs"] != r["epochs_total"] else "")))
     if r["kind"] == RUN_KIND:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import signal
 
 from esr_cli.common.failures import Failure
+from esr_cli.common.printing import printable
 
 
 class Interrupted(Failure):
@@ -54,7 +55,24 @@ class CorruptCheckpoint(Failure):
 
 
 class Diverged(Failure):
-    """A non-finite value appeared; the run stops and is not committed."""
+    """A non-finite value appeared by `epoch`; the run stops and is not committed. Its partial
+    directory keeps the epochs logged up to it and says that it diverged (pending.json)."""
+
+    def __init__(self, what: str, epoch: int):
+        self.epoch = epoch
+        super().__init__(what)
 
     def one_line(self) -> str:
-        return f"run diverged: {self} (the partial run is kept for inspection)"
+        return f"run diverged: {self} (the partial run is kept for inspection; {SAME_AGAIN})"
+
+
+# Training is deterministic: the same spec resumed on the same machine reaches the same value.
+SAME_AGAIN = "training is deterministic, so the same spec diverges again on this machine: change it (a lower learning rate, say)"
+
+
+def diverged_at(pending: object) -> str | None:
+    """What made an unfinished run stop as diverged ("critic_loss became nan at seed 0, epoch
+    12"), as its pending.json records it (bounded, printable); None if it did not."""
+    what = (pending or {}).get("diverged") if isinstance(pending, dict) else None
+    what = what.get("what") if isinstance(what, dict) else None
+    return printable(what[:300]) if isinstance(what, str) and what else None

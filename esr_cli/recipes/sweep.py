@@ -40,6 +40,7 @@ from rich.text import Text
 
 from esr_cli.common import bounded_files, specs
 from esr_cli.common.printing import plain_console, printable, tagged
+from esr_cli.common.stops import SAME_AGAIN, diverged_at
 from esr_cli.recipes import check_columns
 from esr_cli.recipes.suite import Run, SlurmOptions, Suite, SuiteError, load as load_suite
 from esr_cli.storage import provenance
@@ -308,6 +309,9 @@ def _job_status(run: Run, partial: Path, rec: Optional[dict], job_state: str, de
     if partial.is_dir() and isinstance(stop := (read_pending(partial) or {}).get("stopped"), dict):
         note = f"stopped ({stop.get('why')}) after epoch {stop.get('epoch')}; sweep again (or esr train) to continue it"
         return RunStatus(run, "stopped", f"{job}: {note}" if job else note, partial)
+    if partial.is_dir() and (diverged := diverged_at(read_pending(partial))):
+        note = f"diverged: {diverged}; {SAME_AGAIN}"
+        return RunStatus(run, "failed", f"{job}: {note}" if job else note, partial)
     if partial.is_dir():
         note = "partial run with no live writer; sweep again (or esr train) to resume it"
         return RunStatus(run, "failed", f"{job} {job_state}: {note}" if job else note, partial)

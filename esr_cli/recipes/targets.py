@@ -16,6 +16,7 @@ from pydantic import ValidationError
 from esr_cli.analysis.state_count import TooManyStates, check_size
 from esr_cli.common import specs
 from esr_cli.common.printing import printable
+from esr_cli.common.stops import SAME_AGAIN, diverged_at
 from esr_cli.model import spec as spec_model
 from esr_cli.storage.store import EXACT_KIND, PLAY_KIND, RUN_KIND, Store, StoreError, load_manifest, parse_dirname, read_pending, require_networks
 
@@ -80,6 +81,9 @@ def stored_run(store: Store, ref: str) -> Path:
             entry = store.find(ref, include_partial=True)
         except StoreError:
             entry = None
+        if entry is not None and entry.status == "partial" and (diverged := diverged_at(entry.manifest)):
+            raise StoreError(f"{ref} is a training run that diverged ({diverged}; {entry.path}), with no robot to read: "
+                             f"{SAME_AGAIN}") from None
         if entry is not None and entry.status == "partial":
             what = "training run" if entry.kind == RUN_KIND else f"{entry.kind} artifact"
             raise StoreError(f"{ref} is an unfinished {what} ({entry.path}): run the command that started it "

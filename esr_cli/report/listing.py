@@ -1,7 +1,7 @@
 """What `esr ls` and `esr show` say about the store's artifacts, as plain data.
 
 One row per artifact (`ls --json` prints these, docs/store.md lists the fields): its kind,
-name, key, path, budget, seed count, status (complete, partial, stopped or damaged), for a
+name, key, path, budget, seed count, status (complete, partial, stopped, diverged or damaged), for a
 run the epochs done and asked, its final return (the one definition used everywhere: each
 seed's mean over its last 10% of epochs, averaged over seeds; an unfinished run's so far;
 other kinds: the return their summary names), when it was made, its method and environment,
@@ -14,6 +14,7 @@ from __future__ import annotations
 from typing import Iterator
 
 from esr_cli.common.numbers import as_number
+from esr_cli.common.stops import diverged_at
 from esr_cli.storage.store import RUN_KIND, Entry, Store, StoreError
 
 FINAL_RETURN = ("final return: a run's mean over each seed's last 10% of epochs (so far, if unfinished), averaged "
@@ -33,7 +34,10 @@ def status_of(entry: Entry) -> str:
         return "damaged"  # an unreadable manifest
     if entry.status == "partial" and isinstance((entry.manifest or {}).get("stopped"), dict):
         return "stopped"  # saved at a chunk boundary on purpose; the same command continues it
+    if entry.status == "partial" and diverged_at(entry.manifest):
+        return "diverged"  # the same command reaches the same non-finite value again
     return entry.status
+
 
 
 def created_of(manifest: dict) -> str | None:

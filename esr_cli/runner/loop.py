@@ -168,6 +168,11 @@ def _truncate_metrics(run_dir: Path, epoch: int) -> None:
     tmp.replace(Path(run_dir) / METRICS_FILE)
 
 
+def _append_rows(run_dir: Path, rows: list[dict]) -> None:
+    with open(run_dir / METRICS_FILE, "a") as f:
+        f.write("".join(json.dumps(r) + "\n" for r in rows))
+
+
 def _metric_rows(metrics: dict, first_epoch: int, steps_per_epoch: int) -> list[dict]:
     names = sorted(metrics)
     n = next(iter(metrics.values())).shape[1]
@@ -192,13 +197,14 @@ def _watched_metrics(trainer: Trainer) -> list[str]:
     return watched
 
 
-def _check_finite(trainer: Trainer, state: TrainState, metrics: dict, seeds, first_epoch: int) -> None:
-    """Stop on NaN/inf in losses, Q-values or parameters, naming quantity, seed and epoch."""
+def _divergence(trainer: Trainer, state: TrainState, metrics: dict, seeds, first_epoch: int) -> Diverged | None:
+    """A NaN/inf in losses, Q-values or parameters, naming quantity, seed and epoch; None if none."""
     for name in _watched_metrics(trainer):
         bad = ~np.isfinite(metrics[name])
         if bad.any():
             s, e = np.argwhere(bad)[0]
-            raise Diverged(f"{name} became {metrics[name][s, e]} at seed {seeds[s]}, epoch {first_epoch + e + 1}")
+            epoch = first_epoch + int(e) + 1
+            return Diverged(f"{name} became {metrics[name][s, e]} at seed {seeds[s]}, epoch {epoch}", epoch)
     last_epoch = first_epoch + next(iter(metrics.values())).shape[1]
     params = {"critic": state.learner.params, "method": state.method}
     for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
@@ -209,7 +215,8 @@ def _check_finite(trainer: Trainer, state: TrainState, metrics: dict, seeds, fir
         if bad_seed.any():
             s = int(np.argmax(bad_seed))
             where = jax.tree_util.keystr(path)
-            raise Diverged(f"parameter {where} became non-finite at seed {seeds[s]}, by epoch {last_epoch}")
+            return Diverged(f"parameter {where} became non-finite at seed {seeds[s]}, by epoch {last_epoch}", last_epoch)
+    return None
 
 
 def train(
@@ -257,10 +264,14 @@ def train(
                 faults.reached("compile", chunks_done + 1)
                 state, metrics = chunks.run(n, state, epoch)
                 t0 = time.perf_counter()
-                _check_finite(trainer, state, metrics, seeds, epoch)
                 rows = _metric_rows(metrics, epoch, steps_per_epoch)
-                with open(run_dir / METRICS_FILE, "a") as f:
-                    f.write("".join(json.dumps(r) + "\n" for r in rows))
+                diverged = _divergence(trainer, state, metrics, seeds, epoch)
+                if diverged:
+                    # The epochs up to it are kept for inspection (`esr plot curve`); a resume
+                    # drops them again, back to its checkpoint's.
+                    _append_rows(run_dir, [r for r in rows if r["epoch"] <= diverged.epoch])
+                    raise diverged
+                _append_rows(run_dir, rows)
                 for record in records:
                     record.append(rows)
                 epoch += n

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Callable, NamedTuple
 
 from esr_cli.common.jsonl import read_json
-from esr_cli.common.stops import Interrupted, TimeLimitReached
+from esr_cli.common.stops import Diverged, Interrupted, TimeLimitReached
 from esr_cli.storage import provenance
 from esr_cli.storage.store import KINDS, RUN_KIND, Store, StoreError, atomic_write_text, content_key, read_pending
 
@@ -134,12 +134,18 @@ def ensure(recipe: Recipe, store: Store) -> Built:
             store.begin(recipe.kind, key, {**record, "sessions": provenance.with_wall(sessions, time.time() - started),
                                            "stopped": {"epoch": e.epoch, "why": why, "at": provenance.now_iso()}})
             raise
-        except BaseException:
+        except BaseException as e:
             # Only a training run resumes from what it wrote, and only a played episode is
             # recovered from it; any other artifact (an evaluation, a figure, a cloned human)
             # starts again, so an interrupted or failed one leaves nothing.
             if starts_afresh:
                 shutil.rmtree(out, ignore_errors=True)
+            elif isinstance(e, Diverged):
+                # Kept for inspection, and marked: a listing says "diverged", and nothing advises
+                # running it again as if it had only stopped. The next start writes pending.json
+                # afresh, without this mark.
+                store.begin(recipe.kind, key, {**record, "sessions": provenance.with_wall(sessions, time.time() - started),
+                                               "diverged": {"epoch": e.epoch, "what": str(e), "at": provenance.now_iso()}})
             raise
         if recipe.summary_file:
             atomic_write_text(out / SUMMARY_FILE, json.dumps(summary, indent=2, default=float))

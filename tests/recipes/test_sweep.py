@@ -293,6 +293,16 @@ def test_sweep_through_submitit_local(smoke_run, tmp_path):
     assert f"cache hit: {fig_dir / 'suite.png'}" in again.stderr
 
 
+def test_status_says_a_diverged_run_diverged_and_not_to_resume_it(tmp_path):
+    store = Store(tmp_path / "store")
+    suite = sweep.load_suite(seeds_suite(tmp_path, 1), "smoke")
+    what = "critic_loss became nan at seed 0, epoch 3"
+    store.begin("runs", suite.runs[0].key, {"diverged": {"epoch": 3, "what": what, "at": "2026-12-07T00:00:00+0000"}})
+    (row,) = sweep.status(suite, store)
+    assert row.state == "failed" and row.note.startswith(f"diverged: {what}; training is deterministic")
+    assert "resume" not in row.note
+
+
 def test_status_tells_running_failed_queued_missing(tmp_path):
     store = Store(tmp_path / "store")
     suite = sweep.load_suite(seeds_suite(tmp_path, 6), "smoke")

@@ -111,7 +111,18 @@ def test_divergence_stops_with_the_quantity_seed_and_epoch(tmp_path):
     assert proc.returncode == 1
     assert "run diverged" in proc.stderr and "seed 0" in proc.stderr and "epoch" in proc.stderr
     assert "Traceback" not in proc.stderr
-    assert committed(store) == [] and len(partials(store)) == 1  # kept for inspection
+    (part,) = partials(store)  # kept for inspection, never committed
+    assert committed(store) == []
+    # It says that it diverged, and where, to every command that reads it; its epochs up to
+    # the divergence are kept; nothing advises running it again as if it had only stopped.
+    mark = json.loads((part / "pending.json").read_text())["diverged"]
+    rows = [json.loads(line) for line in (part / "metrics.jsonl").read_text().splitlines()]
+    assert mark["what"] in proc.stderr and rows and rows[-1]["epoch"] == mark["epoch"]
+    assert "diverged" in esr("ls", store=store).stdout
+    shown = esr("show", part.name[:8], store=store).stdout
+    assert f"diverged:      {mark['what']}; training is deterministic" in shown
+    ev = esr("eval", part.name[:8], store=store, check=False)
+    assert ev.returncode == 2 and "diverged" in ev.stderr and "run the command" not in ev.stderr
 
 
 @pytest.mark.slow  # trains the shared smoke run
