@@ -14,7 +14,7 @@ import copy
 import difflib
 import re
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable, Iterator
 
 import yaml
 from pydantic import ValidationError
@@ -115,6 +115,32 @@ def _set_path(tree: dict, dotted: str, value: Any, source: str, within: str = ""
             _set_path(old, str(key), item, source, f"{within}{dotted}.")
         return
     node[parts[-1]] = value
+
+
+def _fields_set(dotted: str, value: Any) -> Iterator[str]:
+    """The fields one entry of a mapping of overrides sets: a mapping value sets the keys it names."""
+    if isinstance(value, dict) and value:
+        for key, item in value.items():
+            yield from _fields_set(f"{dotted}.{key}", item)
+    else:
+        yield dotted
+
+
+def set_twice(entries: Iterable[tuple[str, str, Any]]) -> str | None:
+    """Where one mapping (or a suite's `set` beside its `grid`) sets one field twice, as
+    `train: {epochs: 2}` beside `train.epochs: 9`, or a section and a key inside it: which of
+    them would win depends only on the order they are written in. entries: (how each is
+    named, its key path, its value); -> the problem in words, None if there is none."""
+    by_field: dict[str, str] = {}
+    for name, dotted, value in entries:
+        for field in dict.fromkeys(_fields_set(str(dotted), value)):
+            for other, other_name in by_field.items():
+                if other_name != name and (field == other or field.startswith(other + ".") or other.startswith(field + ".")):
+                    shorter = min(field, other, key=len)
+                    return (f"{other_name} and {name} both set {shorter}: keep one (which would win depends only on "
+                            "the order they are written in)")
+            by_field.setdefault(field, name)
+    return None
 
 
 def _kind_has_field(tree: dict, dotted: str) -> bool:
@@ -421,6 +447,9 @@ def resolve(raw: dict, budget: str = "paper", overrides: list[str] | tuple[str, 
     budgets = raw.get("budgets") or {}
     if not isinstance(budgets, dict):
         raise SpecError(source, "budgets", "must be a mapping of budget name to overrides")
+    if "paper" in budgets:  # else the file as written, validated and shown as the paper run, would not be it
+        raise SpecError(source, "budgets.paper", "the paper budget is the spec as written: write these values in its "
+                        "sections (budgets: holds quick and smoke)")
     for name in budgets:  # nor may a budget of the file other than the one chosen
         if name != budget:
             tree = copy.deepcopy(raw)
@@ -451,6 +480,8 @@ def _apply_budget(tree: dict, budget: str, entries: Any, own: bool, switched: se
     where = f"budgets.{budget}" if own else f"the {budget} budget"
     if not isinstance(entries, dict):
         raise SpecError(source, f"budgets.{budget}", "must be a mapping of key.path to value")
+    if twice := set_twice((str(k), str(k), v) for k, v in entries.items()):
+        raise SpecError(source, f"budgets.{budget}", twice)
     given = {}
     for dotted, value in entries.items():
         dotted = str(dotted)
@@ -496,7 +527,16 @@ def _refused(spec: Spec) -> tuple[str, str] | None:
         problem = problem_of(part) if getattr(part, "kind", None) == kind else None
         if problem:
             return problem
+    seeds = list(spec.train.seeds)
+    if seeds != sorted(seeds):  # the order is part of the key, and changes no seed's numbers
+        return ("train.seeds", f"{_listed(seeds)} is not in increasing order: write {_listed(sorted(seeds))} (the "
+                "same seeds in another order would train a second run with the same numbers)")
     return inert_fields.first_inert(spec)
+
+
+def _listed(numbers: list[int], most: int = 6) -> str:
+    shown = ", ".join(map(str, numbers[:most])) + (f", ... ({len(numbers):,} seeds)" if len(numbers) > most else "")
+    return f"[{shown}]"
 
 
 def _switch_kind(tree: dict, dotted: str, value: Any) -> bool:

@@ -9,11 +9,12 @@ bounded work, before anything walks the tree (docs/reliability.md):
   silently keep the last one);
 - scalars are read as YAML 1.2 reads them, not as PyYAML's YAML 1.1: only `true`/`false` are
   booleans (`yes`, `on`, `off` stay text, which a boolean field then refuses), integers are
-  decimal (`010` is 10, not octal 8; `1:30` is text, not 90), `1e-4` without a dot and `+.5`
+  decimal (`010` is 10, not octal 8; `1:30` is text, not 90; unlike YAML 1.2, `0x1f` and `0o17`
+  are text too), `1e-4` without a dot and `+.5`
   are numbers, and `2020-01-01` is text, not a date; an explicit `!!float` or `!!bool` on
   something else is refused, and so is `!!null` on anything but YAML's spellings of null;
 - every key is text: `1:`, `true:` or `null:` as a key is refused (it would read as a list
-  index or nothing);
+  index or nothing), and so is YAML 1.1's merge key `<<:` (YAML 1.2 has none);
 - integers longer than MAX_INT_DIGITS digits are refused (Python refuses to read them);
 - tags that build other Python types (`!!binary`, `!!set`, `!!timestamp`, `!!omap`, `!!pairs`)
   are refused: a spec holds numbers, text, booleans, lists and mappings only.
@@ -97,8 +98,10 @@ class _BoundedLoader(yaml.SafeLoader):
     def construct_mapping(self, node, deep=False):
         seen: dict[Any, int] = {}
         for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=True)
             line = key_node.start_mark.line + 1
+            if key_node.tag == "tag:yaml.org,2002:merge":  # YAML 1.1's `<<:`, which YAML 1.2 does not have
+                raise YamlInputError(f"line {line}: merge keys (<<) are not allowed; write each value out")
+            key = self.construct_object(key_node, deep=True)
             try:
                 first = seen.get(key)
             except TypeError:  # an unhashable key: PyYAML's own error follows
@@ -108,7 +111,7 @@ class _BoundedLoader(yaml.SafeLoader):
                 raise YamlInputError(f"key {shown_name(key)!r} appears twice in one mapping ({where}); keep one")
             if not isinstance(key, str):  # `1:`, `true:` or `null:` would read as a list index or None
                 raise YamlInputError(f"line {line}: the key {_not_text(key_node, key)}, not a name: keys are text "
-                                     "(write it in quotes if it must be a number)")
+                                     "(write it in quotes to make it one)")
             seen[key] = line
         return super().construct_mapping(node, deep=deep)
 
@@ -192,7 +195,10 @@ def parse(text: str) -> Any:
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
-        raise YamlInputError(f"unreadable YAML: {where}{getattr(e, 'problem', None) or e}") from None
+        problem = str(getattr(e, "problem", None) or e)
+        if "'\\t'" in problem:  # PyYAML takes a tab for neither indentation nor a separating space
+            problem += " (a tab: write spaces instead)"
+        raise YamlInputError(f"unreadable YAML: {where}{problem}") from None
     except RecursionError:
         raise YamlInputError("unreadable YAML: nested too deeply") from None
     except (ValueError, TypeError, KeyError) as e:  # a constructor's own refusal of an explicit tag

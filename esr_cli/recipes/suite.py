@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from esr_cli.common import specs, yamlio
 from esr_cli.common.printing import train_line
@@ -131,6 +131,16 @@ class _Overrides(_Model):
     @classmethod
     def _grid_lists(cls, v):
         return _check_grid(v) if isinstance(v, dict) else v
+
+    @model_validator(mode="after")
+    def _each_field_once(self):
+        # The grid's points apply after `set`: a field in both would take the grid's values
+        # whatever `set` says.
+        entries = [(f"{k} (in set)", k, v) for k, v in self.set.items()]
+        entries += [(f"{k} (in grid)", k, v) for k, values in self.grid.items() for v in values]
+        if twice := specs.set_twice(entries):
+            raise ValueError(twice)
+        return self
 
 
 class EntryModel(_Overrides):

@@ -43,6 +43,9 @@ class ResourceError(Failure):
 
 PARAMETER_COPIES, ACTIVATION_COPIES = 20, 8
 
+# What, beside learner.batch_size, sizes a method's updates (its `update_bytes`), by method kind.
+UPDATE_FIELDS = {"ave": "method.num_rollouts or method.rollout_length"}
+
 
 @dataclass(frozen=True)
 class Estimate:
@@ -50,6 +53,7 @@ class Estimate:
     rollouts: int
     networks: int = 0
     updates: int = 0
+    update_fields: str = ""  # what else sizes the method's updates (UPDATE_FIELDS)
 
     @property
     def total(self) -> int:
@@ -64,7 +68,7 @@ class Estimate:
             return "train.num_envs"
         if largest == self.networks:
             return "the network's widths (network.*, method.repr_dim) or learner.batch_size"
-        return "learner.batch_size, or AvE's method.num_rollouts or method.rollout_length"
+        return "learner.batch_size" + (f", or {self.update_fields}" if self.update_fields else "")
 
     def parts(self) -> str:
         return (f"replay buffers {self.buffers / GIB:,.2f} GiB, environment rollouts {self.rollouts / GIB:,.2f} GiB, "
@@ -127,7 +131,8 @@ def estimate(spec, obs_bytes: int, seeds_at_once: int, obs_shape: tuple | None =
         return Estimate(buffers, rollouts)
     networks = network_bytes(spec, obs_shape, seeds_at_once, num_actions)
     updates = seeds_at_once * spec.method.update_bytes(spec.learner.batch_size, obs_bytes)
-    return Estimate(buffers + representation_table_bytes(spec, seeds_at_once), rollouts, networks, updates)
+    return Estimate(buffers + representation_table_bytes(spec, seeds_at_once), rollouts, networks, updates,
+                    UPDATE_FIELDS.get(spec.method.kind, ""))
 
 
 def available_host_bytes() -> int | None:

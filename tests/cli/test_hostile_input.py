@@ -163,9 +163,15 @@ def test_the_memory_estimate_names_aves_rollouts_as_the_part_to_lower():
     est = resources.estimate(spec, obs_bytes, 1, shape, actions)
     assert est.updates == 2 * spec.learner.batch_size * 10_000 * 10_001 * 50  # batch x rollouts x (length + 1) x 2 observations
     assert est.updates > 1000 * est.networks
-    assert est.field_to_lower == "learner.batch_size, or AvE's method.num_rollouts or method.rollout_length"
+    assert est.field_to_lower == "learner.batch_size, or method.num_rollouts or method.rollout_length"
     assert f"the method's updates {est.updates / resources.GIB:,.2f} GiB" in est.parts()
     assert est.total == 2 * (est.buffers + est.rollouts + est.networks + est.updates) + resources.RUNTIME_BYTES
+    # ESR's updates (the batch x batch InfoNCE logits) grow with the batch alone: no AvE field is named
+    esr = specs.load(ROOT / "experiments/grid_2.yaml", "paper",
+                     ["train.seeds=1", "learner.batch_size=1000000", "learner.buffer_size=2000000"])
+    shape, obs_bytes, actions = resources.observation(esr)
+    est = resources.estimate(esr, obs_bytes, 1, shape, actions)
+    assert est.updates == 16 * 1_000_000 ** 2 and est.field_to_lower == "learner.batch_size"
 
 
 @pytest.mark.slow
@@ -538,6 +544,7 @@ def test_durations_by_hand():
 @pytest.mark.parametrize("text, value", [
     ("010", 10), ("1_000", 1000), ("-3", -3), ("1e-4", 1e-4), ("true", True), ("FALSE", False),
     ("yes", "yes"), ("on", "on"), ("off", "off"), ("1:30", "1:30"), ("0b101", "0b101"), ("0x1f", "0x1f"),
+    ("0o17", "0o17"), ("True", True), ("TRUE", True), ("False", False),
     ("2020-01-01", "2020-01-01"), ("~", None), ("+.5", 0.5), ("-.5", -0.5), (".5e3", 500.0), ("._", "._"),
     ("!!float 3", 3.0), ("!!bool true", True), ("!!int \"3\"", 3), ("!!null", None), ("!!null NULL", None),
 ])
@@ -555,6 +562,7 @@ def test_scalars_read_as_yaml_1_2_not_1_1(text, value):
     ("{~: 2}", "the key ~ is null, not a name"), ("{? : 2}", r"the key \(empty\) is null, not a name"),
     ("{True: 2}", "the key True is a boolean, not a name"), ("{[1]: 2}", "the key is a list or mapping, not a name"),
     ("{" + "1" * 70 + ": 2}", "the key \\(a key of 70 characters that is not a name\\) is a number, not a name"),
+    ("{<<: {b: 1}}", r"merge keys \(<<\) are not allowed; write each value out"),
 ])
 def test_values_that_are_not_spec_values_are_refused_by_line(text, problem):
     with pytest.raises(yamlio.YamlInputError, match=f"line 1: {problem}"):
@@ -570,6 +578,11 @@ def test_a_character_yaml_refuses_is_named_by_line_and_column_on_one_line(text, 
     with pytest.raises(yamlio.YamlInputError) as e:
         yamlio.parse(text)
     assert str(e.value) == f"unreadable YAML: {where}: the character {character} is not allowed in YAML"
+
+
+def test_a_tab_between_a_key_and_its_value_is_named_as_a_tab():
+    with pytest.raises(yamlio.YamlInputError, match=r"line 1, column 5: .*'\\t'.* \(a tab: write spaces instead\)$"):
+        yamlio.parse("env:\t{kind: gridworld}\n")
 
 
 def test_yaml_1_1_booleans_and_true_as_a_seat_are_named(tmp_path):

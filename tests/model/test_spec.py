@@ -74,9 +74,16 @@ BAD = {
     "unknown kind": (GOOD.replace("kind: esr", "kind: magic"), "method", "kind"),
     "missing section": ("name: t\nenv: {kind: gridworld}\nhuman: {kind: noisy_greedy}\n", "method", "missing: this key is required"),
     "duplicate seeds": (GOOD + "train: {seeds: [1, 1]}\n", "train.seeds", "distinct"),
+    # the order is part of the run's key and changes no seed's numbers: [1, 0] would be [0, 1] again
+    "seeds out of order": (GOOD + "train: {seeds: [3, 0, 1]}\n", "train.seeds", "[3, 0, 1] is not in increasing order: write [0, 1, 3]"),
     "unreadable yaml": ("name: t\nenv: {kind: gridworld\n", "", "unreadable YAML"),
     "not a mapping": ("- 1\n- 2\n", "", "mapping"),
     "unknown budget entry": (GOOD + "budgets: {huge: {train.epochs: 1}}\n", "budgets", "unknown budget"),
+    "a paper budget entry": (GOOD + "budgets: {paper: {train.epochs: 1}}\n", "budgets.paper", "the spec as written"),
+    "one field set twice by a budget": (GOOD + "budgets: {smoke: {train: {epochs: 1}, train.epochs: 3}}\n", "budgets.smoke",
+                                        "train and train.epochs both set train.epochs: keep one"),
+    "a section and a key inside it": (GOOD + "budgets: {quick: {method.repr_lr: 0.1, method: {kind: esr, repr_lr: 0.2}}}\n",
+                                      "budgets.quick", "both set method.repr_lr"),
 }
 
 

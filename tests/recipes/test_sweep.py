@@ -131,6 +131,11 @@ def test_baselines_quick_suite_is_every_method_on_grid_2_and_grid_5_with_five_se
     (f"specs: [{ROOT / 'experiments/suites/gridworld.yaml'}]\n", "specs[0].spec", "is a suite, not a spec file"),
     (f"specs: [{GRID_2}]\nslurm: {{setup: 'module load x'}}\n", "slurm.setup", "expected a list"),
     (f"specs: [{GRID_2}]\nset: {{1: 2}}\n", "", "the key 1 is a number, not a name"),
+    # one field set twice at one level: which would win depends only on the order of the keys
+    (f"specs: [{GRID_2}]\nset: {{train: {{epochs: 2}}, train.epochs: 9}}\n", "",
+     "train (in set) and train.epochs (in set) both set train.epochs: keep one"),
+    (f"specs: [{{spec: {GRID_2}, set: {{train.epochs: 2}}, grid: {{train: [{{epochs: 3}}]}}}}]\n", "specs[0]",
+     "train.epochs (in set) and train (in grid) both set train.epochs"),
 ])
 def test_bad_suites_name_the_key(tmp_path, text, where, problem):
     path = write_suite(tmp_path, text)
