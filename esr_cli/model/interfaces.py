@@ -1,4 +1,4 @@
-"""The interfaces the one runner (core/train.py) drives: environments, human models, methods.
+"""The interfaces the one runner (model/train.py) drives: environments, human models, methods.
 
 Each is a `typing.Protocol`; implementations are frozen NamedTuples of static facts with pure
 methods (so jitted code can close over them) and declare every optional capability as an
@@ -92,7 +92,7 @@ class Method(Protocol):
 class RuleMethod(Method, Protocol):
     def memory_init(self, obs: jax.Array) -> Any: ...
 
-    def rule_step(self, memory: Any, obs: jax.Array, prev_human_action: jax.Array) -> tuple[jax.Array, Any]: ...
+    def rule_step(self, memory: Any, obs: jax.Array, prev_human_action: jax.Array, key: jax.Array) -> tuple[jax.Array, Any]: ...
 
     def rule_metrics(self, memory: Any, env_state: Any) -> dict: ...
 

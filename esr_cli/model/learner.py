@@ -97,7 +97,7 @@ class SoftQLearner(NamedTuple):
 
     def dual_step_q(self, state: LearnerState, q):
         """The dual step on Q-values of a batch of states (the dual phase does not change Q,
-        so they may come from a table computed once; core/train.py)."""
+        so they may come from a table computed once; model/train.py)."""
         loss, grad = jax.value_and_grad(dual_loss)(state.beta, q, self.spec.target_entropy)
         if self.spec.dual == "linear":
             gap = jnp.mean(entropy(policy_log_probs(q, state.beta))) - self.spec.target_entropy

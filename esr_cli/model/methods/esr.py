@@ -138,7 +138,7 @@ class ESR(NamedTuple):
     metric_names: tuple = BASE_METRICS
     all_metric_names = BASE_METRICS + INFERRED_METRICS  # not a field: those of any ESR spec
     acts_by_rule: bool = False
-    has_reward_table: bool = True  # reward_table / reward_from_table (core/train.reward_table_pays)
+    has_reward_table: bool = True  # reward_table / reward_from_table (model/train.reward_table_pays)
 
     @classmethod
     def from_spec(cls, spec, env, human):
@@ -297,7 +297,7 @@ class ESR(NamedTuple):
         return jax.lax.stop_gradient(RewardTable(phi_s=phi_s, phi_sa=phi_sa, psi=psi))
 
     def reward_from_table(self, table: RewardTable, idx) -> jax.Array:
-        """The reward of the batch at buffer index `idx` (core/buffer.Index)."""
+        """The reward of the batch at buffer index `idx` (model/replay.Index)."""
         if self.spec.reward != "dot":
             return simplified_reward(table.phi_s[idx.episode, idx.t], table.phi_sa[idx.episode, idx.t],
                                      self.spec.reward == "simplified_normalized")

@@ -56,7 +56,7 @@ class IQLearn(NamedTuple):
     metric_names: tuple = ("iq_loss", "iq_reward_taken", "iq_reward_random")
     all_metric_names = metric_names  # not a field (a class attribute): the same for every spec
     acts_by_rule: bool = False
-    has_reward_table: bool = True  # reward_table / reward_from_table (core/train.reward_table_pays)
+    has_reward_table: bool = True  # reward_table / reward_from_table (model/train.reward_table_pays)
 
     @classmethod
     def from_spec(cls, spec, env, human):
