@@ -167,9 +167,9 @@ def check_executor(executor: str, known: tuple[str, ...]) -> None:
 def refuse_inside_store(path: Path, option: str, store: Store) -> None:
     """An output file must not land in the store's artifact folders: inside an artifact it would be
     a file its manifest does not list (`esr verify` fails it), and a committed artifact never changes."""
-    parent = Path(path.parent).absolute()
-    existing = nearest_existing(parent)
-    here = existing.resolve() / parent.relative_to(existing)  # folders yet to be made count too
+    # Where the file really lands: links followed, and a `..` after folders yet to be made taken
+    # as the kernel will take it once they are made (`new/../runs` is `runs`).
+    here = Path(os.path.realpath(path)).parent
     for kind in KINDS:
         folder = (store.root / kind).resolve()
         if here == folder or folder in here.parents:
@@ -181,6 +181,8 @@ def check_output_file(path: Path, option: str) -> None:
     below an existing file."""
     if path.is_dir():
         raise Exit(2, f"{option}: {path} is a directory; name a file")
+    if path.exists() and not path.is_file():  # written through a link as a shell's `>` would; never replaced
+        raise Exit(2, f"{option}: {path} exists and is not a regular file (a device, pipe or socket); name a file")
     parent = nearest_existing(path.parent)
     if not parent.is_dir():
         raise Exit(2, f"{option}: {parent} is a file, not a directory")

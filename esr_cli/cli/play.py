@@ -16,7 +16,7 @@ from esr_cli.cli.app import BudgetOpt, Exit, SetOpt, app, check_output_file, err
 from esr_cli.common.printing import print_table, tagged
 from esr_cli.model import spec as spec_model
 from esr_cli.recipes import targets
-from esr_cli.storage.store import PLAY_KIND, Store, atomic_write_bytes
+from esr_cli.storage.store import PLAY_KIND, Store, write_output_file
 
 MAX_PLAY_EPISODES = 10_000  # a person plays each one: far above any study's session
 
@@ -287,8 +287,12 @@ def plays(
         if path is not None:
             refuse_inside_store(path, option, ctx.obj.store)
             check_output_file(path, option)
-    if export is not None and csv_file is not None and export.resolve() == csv_file.resolve():
-        raise Exit(2, "--export and --csv name the same file")
+    named = [(option, path) for path, option in ((export, "--export"), (csv_file, "--csv"), (answers, "--answers"))
+             if path is not None]
+    for i, (first, a) in enumerate(named):  # one would overwrite the other
+        for second, b in named[i + 1:]:
+            if a.resolve() == b.resolve():
+                raise Exit(2, f"{first} and {second} name the same file")
     writes_a_file = any(path is not None for path in (export, csv_file, answers))  # none written: exit 1
     if study is not None:
         _plays_study(ctx.obj.store, study, participant, session, csv_file, answers, export, writes_a_file)
@@ -325,7 +329,7 @@ def _prepare_export(found, export: Path, store: Store) -> tuple[str | bytes, str
 
 def _write(path: Path, content: str | bytes, what: str, tag: str = "written") -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(path, content.encode() if isinstance(content, str) else content)
+    write_output_file(path, content.encode() if isinstance(content, str) else content)
     err.print(tagged(tag, "green", f" {what}: {path}"))
 
 

@@ -9,7 +9,6 @@ going are ended as a closed tab ends them, what they played and answered is kept
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from dataclasses import dataclass
@@ -20,7 +19,7 @@ from esr_cli.play.study import Study
 from esr_cli.play.study_session import Outcome, StudyRobot, StudySession
 from esr_cli.play.web import Links
 from esr_cli.runner.stop_signals import Terminated
-from esr_cli.storage.store import Store, StoreError
+from esr_cli.storage.store import Store, StoreError, write_output_file
 
 JOIN_S = 30  # how long a stopping server waits for each session to write what it played
 
@@ -99,15 +98,7 @@ class StudyServer:
         path.parent.mkdir(parents=True, exist_ok=True)
         # The links are the study's keys: readable by their owner only. Written beside and
         # renamed, so whoever waits for the file (a script handing links out) reads all of them.
-        tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-        try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-            with os.fdopen(fd, "w") as f:
-                f.write("".join(f"{link}\n" for link in links))
-            os.replace(tmp, path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+        write_output_file(path, "".join(f"{link}\n" for link in links).encode(), mode=0o600)
         self.console.print(f"{len(links)} link(s), one per participant, each usable once: {path}", highlight=False)
 
     def serve(self, links_file: Path | None) -> tuple[list[Served], bool]:

@@ -290,12 +290,12 @@ def check(paths: list[Path], store: Store) -> tuple[list[str], list[int]]:
 
 def update(paths: list[Path], store: Store) -> list[tuple[Path, int, bool]]:
     """Rewrite each file whose tables changed: (path, tables, changed) per file."""
-    from esr_cli.storage.store import atomic_write_text
+    from esr_cli.storage.store import write_output_file
 
     done = []
     for path in paths:
         lines, new, count = refresh(path, store)
         if new != lines:
-            atomic_write_text(path, "\n".join(new))
+            write_output_file(path, "\n".join(new).encode())
         done.append((path, count, new != lines))
     return done

@@ -31,7 +31,7 @@ from esr_cli.storage import provenance
 from esr_cli.storage.artifacts import ensure
 from esr_cli.storage.checkpoint_files import verified_steps
 from esr_cli.storage.finals import FINAL_FRACTION, final_per_seed, read_rows, series
-from esr_cli.storage.store import FIGURE_KIND, RUN_KIND, Store, StoreError, atomic_write_bytes, atomic_write_text
+from esr_cli.storage.store import FIGURE_KIND, RUN_KIND, Store, StoreError, atomic_write_bytes, write_output_file
 
 EXPERIMENTS = provenance.experiments_dir()
 PAPER_EPOCHS = 10_000
@@ -836,7 +836,7 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
         lines += ["## Learning curves", "", f"![learning curves](img/{img.name})", "", devices_line(drawn), ""]
     lines += estimator_section(index, store, console, exact, out.parent / "img")
     out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out, "\n".join(lines))
+    write_output_file(out, "\n".join(lines).encode())
     return findings
 
 

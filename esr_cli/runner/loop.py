@@ -46,7 +46,7 @@ from esr_cli.storage.checkpoint_files import (
     verified_steps,
 )
 from esr_cli.storage.finals import read_rows
-from esr_cli.storage.store import StoreError, atomic_write_text, require_networks
+from esr_cli.storage.store import atomic_write_text, require_networks
 
 METRICS_FILE = "metrics.jsonl"
 
@@ -162,10 +162,7 @@ def adopt_checkpoint(source_dir: Path, run_dir: Path, at_most: int) -> int:
 def _truncate_metrics(run_dir: Path, epoch: int) -> None:
     """Keep only metrics of epochs <= epoch (those covered by the restored checkpoint)."""
     rows = [r for r in read_rows(run_dir) if r["epoch"] <= epoch]
-    text = "".join(json.dumps(r) + "\n" for r in rows)
-    tmp = Path(run_dir) / (METRICS_FILE + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(Path(run_dir) / METRICS_FILE)
+    atomic_write_text(Path(run_dir) / METRICS_FILE, "".join(json.dumps(r) + "\n" for r in rows))
 
 
 def _append_rows(run_dir: Path, rows: list[dict]) -> None:

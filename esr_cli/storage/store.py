@@ -22,6 +22,7 @@ import hashlib
 import json
 import os
 import re
+import secrets
 import shlex
 import shutil
 import stat
@@ -77,12 +78,24 @@ def content_key(components: dict) -> str:
     return digest_bytes(json.dumps(components, sort_keys=True, separators=(",", ":")).encode())
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write via a temporary file, fsync, rename: readers see the old file or the new one."""
+def atomic_write_bytes(path: Path, data: bytes, mode: int | None = None) -> None:
+    """Write via a temporary file, fsync, rename: readers see the old file or the new one. The
+    temporary file is made new under an unguessable name, never opened through a link planted
+    where it would be; `path` itself, a link or not, is replaced. `mode`: its permission bits
+    (default: 0o666 less the umask, as any new file)."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+    while True:
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(8)}.tmp")
+        try:
+            fd = os.open(tmp, flags, 0o666)
+            break
+        except FileExistsError:
+            continue
     try:
-        with open(tmp, "wb") as f:
+        with os.fdopen(fd, "wb") as f:
+            if mode is not None:
+                os.fchmod(f.fileno(), mode)
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
@@ -90,6 +103,27 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
     except BaseException:
         tmp.unlink(missing_ok=True)  # a failed write (full disk, `path` a directory) leaves nothing behind
         raise
+
+
+class NotAFile(Failure):
+    """An output path that names something other than a regular file (a device, a pipe, a socket)."""
+
+    exit_code = 2
+
+
+def write_output_file(path: Path, data: bytes, mode: int | None = None) -> None:
+    """Write a file a user named (a report, a table's page, an export), atomically. A link there
+    is written through, to its target, as a shell's `>` would; an existing file keeps its
+    permission bits (unless `mode` is given); a device, pipe or socket is refused (NotAFile),
+    never replaced."""
+    target = Path(os.path.realpath(path))
+    try:
+        st = os.stat(target)
+    except FileNotFoundError:
+        st = None
+    if st is not None and not stat.S_ISREG(st.st_mode):
+        raise NotAFile(f"{path} exists and is not a regular file (a device, pipe or socket): name a file")
+    atomic_write_bytes(target, data, mode if mode is not None or st is None else stat.S_IMODE(st.st_mode))
 
 
 def atomic_write_text(path: Path, text: str) -> None:

@@ -4,6 +4,7 @@ mistake, resources checked before anything is compiled or written (docs/reliabil
 import copy
 import json
 import os
+import stat
 import re
 import time
 import tracemalloc
@@ -1237,6 +1238,11 @@ def test_the_report_and_tables_refuse_what_they_cannot_read_or_write_before_any_
             (["paper", "--report", "--no-exact", "--check", "--out", "/dev/zero"], "--out: /dev/zero is not a regular file"),
             (["paper", "--report", "--no-exact", "--check", "--out", str(fifo)], "is not a regular file: nothing to check"),
             (["paper", "--report", "--no-exact", "--out", str(store / "runs" / "ab" / "x.md")], "lies inside the store's runs/ folder"),
+            # a folder yet to be made, then `..`: the file would land in the artifact all the same
+            (["paper", "--report", "--no-exact", "--out", str(store / "new" / ".." / "runs" / "ab" / "x.md")],
+             "lies inside the store's runs/ folder"),
+            # a pipe or a device as the report to write is never replaced by a file
+            (["paper", "--report", "--no-exact", "--out", str(fifo)], "exists and is not a regular file"),
             (["--store", str(tmp_path / "typo"), "paper", "--report", "--no-exact", "--out", str(tmp_path / "r.md")],
              f"no store at {tmp_path / 'typo'}: no runs to report on"),
             (["--store", str(tmp_path / "typo"), "tables", str(page)], "no runs to draw tables from")):
@@ -1244,3 +1250,26 @@ def test_the_report_and_tables_refuse_what_they_cannot_read_or_write_before_any_
         assert proc.returncode == 2 and problem in proc.stderr, (args, proc.stderr)
         assert len(proc.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "r.md").exists() and page.read_text() == "# a page\n" and not (store / "runs" / "ab" / "x.md").exists()
+    assert not (store / "new").exists() and stat.S_ISFIFO(os.lstat(fifo).st_mode)
+
+
+def test_an_output_file_is_written_through_its_link_keeps_its_mode_and_is_never_a_device(tmp_path):
+    from esr_cli.storage.store import NotAFile, write_output_file
+
+    target = tmp_path / "elsewhere" / "notes.md"
+    target.parent.mkdir()
+    target.write_text("old")
+    target.chmod(0o600)
+    link = tmp_path / "notes.md"
+    link.symlink_to(target)
+    write_output_file(link, b"new")
+    assert link.is_symlink() and target.read_text() == "new" and stat.S_IMODE(target.stat().st_mode) == 0o600
+    assert [p.name for p in target.parent.iterdir()] == ["notes.md"]  # no temporary file left beside it
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    with pytest.raises(NotAFile, match="exists and is not a regular file"):
+        write_output_file(fifo, b"x")
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
+    fresh = tmp_path / "links.txt"
+    write_output_file(fresh, b"secret", mode=0o600)
+    assert stat.S_IMODE(fresh.stat().st_mode) == 0o600

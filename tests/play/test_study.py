@@ -168,6 +168,8 @@ def test_the_cli_refuses_a_bad_study_in_one_line_before_any_work(tmp_path, capsy
         (["play"], "name a trained run or a spec (or give --study STUDY.yaml)"),
         (["plays", "--study", "no such/study"], "--study: a study's name"),
         (["plays", "--answers", str(tmp_path / "a.csv")], "--answers: only with --study NAME"),
+        (["plays", "--study", "t_study", "--csv", str(tmp_path / "same.csv"), "--answers", str(tmp_path / "same.csv")],
+         "--csv and --answers name the same file"),
         (["play", "--study", str(good), "--participants", "2"], "--participants: only with --web"),
         (["play", "experiments/grid_2.yaml", "--web", "--participants", "2"], "--participants: only with --study"),
         (["play", "--study", str(good), "--web", "--participants", "0"], "--participants: between 1 and 1,000"),
