@@ -253,7 +253,7 @@ def tables(
 
     for path in files:
         if not path.is_file():
-            raise Exit(2, f"{path}: no such file")
+            raise Exit(2, f"{path}: {'not a regular file' if path.exists() else 'no such file'}")
     if not ctx.obj.store.root.is_dir():
         raise Exit(2, f"no store at {ctx.obj.store.root}: no runs to draw tables from (--store names one)")
     try:

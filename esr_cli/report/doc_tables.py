@@ -25,6 +25,7 @@ import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
+from esr_cli.common import bounded_files
 from esr_cli.recipes import check_columns
 from esr_cli.storage.store import Store
 
@@ -213,13 +214,26 @@ class Block:
 
 
 def read_doc(path: Path) -> list[str]:
-    size = path.stat().st_size
-    if size > MAX_DOC_BYTES:
-        raise TableError(f"{path}: {size:,} bytes, more than a markdown page holds ({MAX_DOC_BYTES:,})")
+    """The lines of a markdown page, read bounded (a regular file of at most MAX_DOC_BYTES,
+    whatever its size said), without the CR of a page written with CRLF line ends."""
+    return read_doc_and_newline(path)[0]
+
+
+def read_doc_and_newline(path: Path) -> tuple[list[str], str]:
+    """(the lines, the line end to write them back with: "\r\n" where every line ends so)."""
     try:
-        return path.read_text(encoding="utf-8").split("\n")
+        data = bounded_files.read_bytes(path, MAX_DOC_BYTES, follow_links=True)
+    except bounded_files.UnreadableInput as e:
+        raise TableError(f"{path}: {e}") from None
+    except OSError as e:
+        raise TableError(f"{path}: cannot read it: {e.strerror or e}") from None
+    try:
+        lines = data.decode("utf-8").split("\n")
     except UnicodeDecodeError as e:
         raise TableError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    if len(lines) > 1 and all(line.endswith("\r") for line in lines[:-1]):
+        return [line[:-1] for line in lines[:-1]] + lines[-1:], "\r\n"
+    return lines, "\n"
 
 
 def _fenced(lines: list[str]) -> list[bool]:
@@ -263,7 +277,7 @@ def blocks(path: Path, lines: list[str]) -> list[Block]:
 
 def refresh(path: Path, store: Store) -> tuple[list[str], list[str], int]:
     """(the file's lines, the same with every table generated anew, the number of tables)."""
-    lines = read_doc(path)
+    lines, _ = read_doc_and_newline(path)
     new = list(lines)
     found = blocks(path, lines)
     if len(found) > MAX_TABLES:
@@ -289,13 +303,12 @@ def check(paths: list[Path], store: Store) -> tuple[list[str], list[int]]:
 
 
 def update(paths: list[Path], store: Store) -> list[tuple[Path, int, bool]]:
-    """Rewrite each file whose tables changed: (path, tables, changed) per file."""
+    """Rewrite each file whose tables changed: (path, tables, changed) per file. Every file is
+    read and its tables made before the first is written: a problem in one leaves all as they were."""
     from esr_cli.storage.store import write_output_file
 
-    done = []
-    for path in paths:
-        lines, new, count = refresh(path, store)
+    made = [(path, *refresh(path, store)) for path in paths]
+    for path, lines, new, _ in made:
         if new != lines:
-            write_output_file(path, "\n".join(new).encode())
-        done.append((path, count, new != lines))
-    return done
+            write_output_file(path, read_doc_and_newline(path)[1].join(new).encode())
+    return [(path, count, new != lines) for path, lines, new, count in made]

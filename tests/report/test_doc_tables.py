@@ -1,6 +1,7 @@
 """Generated result tables in markdown (`esr tables`) and `esr sweep --results --any-code`."""
 
 import json
+import os
 import shlex
 from pathlib import Path
 
@@ -86,8 +87,31 @@ def test_a_file_that_is_not_a_markdown_page_is_refused_before_any_work(tmp_path)
     big = tmp_path / "big.md"
     with big.open("wb") as f:
         f.truncate(doc_tables.MAX_DOC_BYTES + 1)
-    with pytest.raises(doc_tables.TableError, match="more than a markdown page holds"):
+    with pytest.raises(doc_tables.TableError, match="4,194,305 bytes, more than the 4,194,304 esr reads"):
         doc_tables.read_doc(big)
+    fifo = tmp_path / "pipe.md"
+    os.mkfifo(fifo)
+    with pytest.raises(doc_tables.TableError, match="pipe.md: not a regular file"):
+        doc_tables.read_doc(fifo)  # never waits for a writer
+
+
+def test_a_page_with_crlf_line_ends_keeps_them_and_a_lone_cr_stays_in_its_line(tmp_path):
+    page = tmp_path / "p.md"
+    page.write_bytes(b"# t\r\na\rb\r\n")
+    assert doc_tables.read_doc_and_newline(page) == (["# t", "a\rb", ""], "\r\n")
+    page.write_bytes(b"# t\na\r\n")
+    assert doc_tables.read_doc_and_newline(page) == (["# t", "a\r", ""], "\n")
+
+
+def test_a_bad_table_in_one_page_leaves_every_page_as_it_was(tmp_path):
+    suite = one_run_suite(tmp_path)
+    good = doc_with(tmp_path, f"esr sweep {suite} --budget smoke --results --markdown", "| a stale table |\n")
+    bad = tmp_path / "bad.md"
+    bad.write_text(f"<!-- esr sweep {suite} --budget smoke --results --markdown --plot -->\n{END}\n")
+    before = good.read_bytes()
+    with pytest.raises(doc_tables.TableError, match="--plot"):
+        doc_tables.update([good, bad], Store(tmp_path / "store"))
+    assert good.read_bytes() == before
 
 
 @pytest.mark.slow
