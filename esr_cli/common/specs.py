@@ -502,8 +502,28 @@ def _apply_budget(tree: dict, budget: str, entries: Any, own: bool, switched: se
     return given
 
 
+def _preset_sets(tree: dict, dotted: str) -> str | None:
+    """Where the human's preset sets the field at `dotted` (human.FIELD) to another value than the
+    tree holds, what it sets it to; None otherwise. A preset replaces the fields it sets (a spec
+    file's own values give way to it), so a value given for one of them would do nothing."""
+    human, env = tree.get("human"), tree.get("env")
+    section, _, field = dotted.partition(".")
+    if section != "human" or not field or "." in field or not isinstance(human, dict):
+        return None
+    settings = HUMAN_PRESETS.get(human.get("preset")) if isinstance(human.get("preset"), str) else None
+    layout = human.get("layout") or (env.get("layout") if isinstance(env, dict) else None)
+    chosen = settings.get(layout) if settings and isinstance(layout, str) else None
+    if not chosen or field not in chosen or human.get(field) == chosen[field]:
+        return None
+    return f"the preset {human['preset']!r} sets it to {chosen[field]!r} on {layout}"
+
+
 def _validated(tree: dict, budget: str, given: dict[str, str], source: str) -> Spec:
     tree["budget"] = budget
+    for dotted, origin in given.items():  # a --set or budget entry the preset would silently undo
+        if preset := _preset_sets(tree, dotted):
+            raise SpecError(origin if origin.startswith("--set") else f"{source}, {origin}" if source else origin, dotted,
+                            f"{preset}, which replaces this value: drop it, or give the human's fields without the preset")
     try:
         spec = validate(tree, source)
         refused = _refused(spec)  # written input only: a stored spec is validated as it is

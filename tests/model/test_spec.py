@@ -109,6 +109,19 @@ def test_an_entropy_target_binds_only_where_a_dual_step_steers_a_policy():
     specs.load(ROOT / "experiments/grid_2.yaml", "smoke", ["learner.target_entropy=9", "learner.dual_lr=0"])
 
 
+def test_a_value_given_for_a_field_the_human_preset_sets_is_refused_not_ignored():
+    """The preset replaces the fields it sets, so a --set of one of them would change nothing:
+    said before any work, naming the --set; the same value as the preset's, or a field the preset
+    leaves alone, is taken."""
+    cramped = ROOT / "experiments/cramped_room.yaml"
+    with pytest.raises(specs.SpecError) as e:
+        specs.load(cramped, "paper", ["human.total_steps=5"])
+    assert e.value.source == "--set human.total_steps=5" and e.value.path == "human.total_steps"
+    assert "the preset 'paper' sets it to 1000000 on cramped_room, which replaces this value" in e.value.problem
+    assert specs.load(cramped, "paper", ["human.total_steps=1000000"]).human.total_steps == 1_000_000
+    assert specs.load(cramped, "paper", ["human.lr=0.001"]).human.lr == 0.001
+
+
 def test_missing_file():
     with pytest.raises(specs.SpecError, match="file not found"):
         specs.load("experiments/nope.yaml")
