@@ -27,7 +27,7 @@ from esr_cli.model import spec as spec_model
 from esr_cli.model.envs import make_env
 from esr_cli.model.envs.overcooked import INTERACT, STAY, Overcooked
 from esr_cli.model.humans import overcooked_data as od
-from esr_cli.storage.play_log import read_header, read_states, read_steps
+from esr_cli.storage.play_log import read_header, read_states, read_steps, reading_episode
 from esr_cli.storage.store import PLAY_KIND
 
 NAME = {od.ONION: "onion", od.PLATE: "dish", od.DISH: "soup"}  # JaxMARL object -> overcooked-ai name
@@ -136,7 +136,8 @@ def frame_of(episodes: list[tuple[Path, Overcooked]], keys: list[str] | None = N
     workers = {pid: n for n, pid in enumerate(sorted({h["participant"] for h in headers}), 1)}
     rows, attrs = [], []
     for i, ((path, env), header) in enumerate(zip(episodes, headers)):
-        part = trajectory_rows(path, env, workers[header["participant"]])
+        with reading_episode(path):
+            part = trajectory_rows(path, env, workers[header["participant"]])
         attrs.append({"play_key": keys[i] if keys else Path(path).name, "first_row": len(rows), "rows": len(part),
                       "workerid_num": workers[header["participant"]], "participant": header["participant"],
                       "session": header["session"], "episode": header["episode"], "robot": header["robot"],
@@ -159,7 +160,8 @@ def export_overcooked(store, keys: list[str]):
         header = read_header(path)
         if header["env"]["kind"] != "overcooked":
             continue
-        spec = spec_model.OvercookedEnvSpec.model_validate(header["env"])
+        with reading_episode(path):  # an environment esr would not have played is named, not dumped
+            spec = spec_model.OvercookedEnvSpec.model_validate(header["env"])
         if (same := spec.model_dump_json()) not in envs:
             envs[same] = make_env(spec)  # one env per spec
         episodes.append((path, envs[same]))

@@ -13,7 +13,7 @@ from pydantic import TypeAdapter
 from esr_cli.model import spec as spec_model
 from esr_cli.model.envs import make_env
 from esr_cli.model.envs.action_labels import LABELS
-from esr_cli.storage.play_log import read_header, read_steps
+from esr_cli.storage.play_log import read_header, read_steps, reading_episode
 
 # Copied from the episode's header onto each of its steps.
 EPISODE_FIELDS = ("participant", "session", "episode", "robot", "robot_label", "seed", "front_end")
@@ -22,9 +22,13 @@ EPISODE_FIELDS = ("participant", "session", "episode", "robot", "robot_label", "
 def step_records(path: Path, envs: dict | None = None) -> list[dict]:
     """One played episode's steps, each with its episode's fields and both actions in words.
     envs: environments already made, by their spec (an export makes each one once)."""
+    with reading_episode(path):
+        return _step_records(path, {} if envs is None else envs)
+
+
+def _step_records(path: Path, envs: dict) -> list[dict]:
     header = read_header(path)
     env_spec = TypeAdapter(spec_model.EnvSpec).validate_python(header["env"])  # the environment it was played on
-    envs = {} if envs is None else envs
     which = json.dumps(header["env"], sort_keys=True)
     if which not in envs:
         envs[which] = make_env(env_spec)

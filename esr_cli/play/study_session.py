@@ -12,18 +12,19 @@ and no episode, so that the store keeps a session's episodes and answers side by
 from __future__ import annotations
 
 import json
+import math
 import secrets
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from esr_cli.common.jsonl import read_json
+from esr_cli.common.jsonl import JsonInputError, read_json
 from esr_cli.model.envs import make_env
 from esr_cli.play import pages
 from esr_cli.play.game import RANDOM_ROBOT, Robot, SessionEnded
 from esr_cli.play.session import Opponent, episode_recipe, latin_square, load_opponents, new_session_id, participant_number, played_episodes, robot_labels
-from esr_cli.play.study import Study
+from esr_cli.play.study import ITEM_MODELS, Study
 from esr_cli.storage.artifacts import Recipe, ensure
 from esr_cli.storage.play_log import MAX_RECORD_BYTES
 from esr_cli.storage.store import PLAY_KIND, Store, StoreError, atomic_write_text
@@ -92,8 +93,44 @@ def study_records(store: Store, study: str) -> list[dict]:
         if entry.kind != PLAY_KIND or entry.status != "complete" or components.get("kind") != STUDY_RECORD:
             continue
         if components.get("study") == study and (entry.path / RECORD_FILE).is_file():
-            found.append(read_json(entry.path / RECORD_FILE, MAX_RECORD_BYTES) | {"key": entry.key})
-    return sorted(found, key=lambda r: r.get("recorded_at", 0))
+            found.append(read_record(entry.path / RECORD_FILE) | {"key": entry.key})
+    return sorted(found, key=lambda r: r["recorded_at"])
+
+
+def read_record(file: Path) -> dict:
+    """A study's record as esr writes it; StoreError naming the file where it is not: the fields
+    every reader relies on, of their types, and a questionnaire's items and answers such as a
+    page would have asked and accepted."""
+    def damaged(what: str) -> StoreError:
+        return StoreError(f"damaged study record: {file}: {what}")
+
+    try:
+        record = read_json(file, MAX_RECORD_BYTES)
+    except (JsonInputError, OSError) as e:
+        raise damaged(str(e)) from None
+    if not isinstance(record, dict):
+        raise damaged("not a JSON object")
+    for name in ("record", "study", "session", "participant"):
+        if not isinstance(record.get(name), str):
+            raise damaged(f"no {name} of the kind esr writes")
+    at = record.get("recorded_at")
+    if isinstance(at, bool) or not isinstance(at, (int, float)) or not math.isfinite(at):
+        raise damaged("no recorded_at of the kind esr writes")
+    if record["record"] == "questionnaire":
+        if not (isinstance(record.get("study_robot"), str) and isinstance(record.get("robot"), str)
+                and type(record.get("block")) is int and isinstance(record.get("robot_label"), (str, type(None)))):
+            raise damaged("its robot or block is not of the kind esr writes")
+        items, answers = record.get("items"), record.get("answers")
+        if not isinstance(items, list) or not isinstance(answers, dict):
+            raise damaged("its items or answers are not of the kind esr writes")
+        try:
+            items = [ITEM_MODELS[item["kind"]].model_validate(item).model_dump(mode="json") for item in items]
+        except (KeyError, TypeError, ValueError):  # a pydantic ValidationError is a ValueError
+            raise damaged("an item esr would not ask") from None
+        clean, problem = pages.check_answers(tuple(items), answers)
+        if problem or set(answers) - {i["id"] for i in items} or clean != answers:
+            raise damaged("answers a page would not have accepted")
+    return record
 
 
 def played_episodes_of(store: Store, study: str, participant: str | None = None, session: str | None = None) -> list:

@@ -10,12 +10,14 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 import jax
 import numpy as np
 
-from esr_cli.common.jsonl import read_json, read_jsonl
+from esr_cli.common.jsonl import JsonInputError, read_json, read_jsonl
 from esr_cli.storage.store import StoreError
 
 STEPS_FILE, EPISODE_FILE, FINAL_STATE_FILE = "steps.jsonl", "episode.json", "final_state.json"
@@ -48,16 +50,40 @@ def read_header(path: Path) -> dict:
     """A played episode's header; StoreError naming the file where it is not the JSON object esr
     writes (a field of HEADER_FIELDS missing or of another type, the environment without its kind)."""
     file = Path(path) / EPISODE_FILE
-    header = read_json(file, MAX_RECORD_BYTES)
+    try:
+        header = read_json(file, MAX_RECORD_BYTES)
+    except JsonInputError as e:
+        raise StoreError(f"damaged played episode: {file}: {e}") from None
     if not isinstance(header, dict):
         raise StoreError(f"damaged played episode: {file} is not a JSON object")
     for field, kind in HEADER_FIELDS.items():
         value = header.get(field)
-        if isinstance(value, bool) or not isinstance(value, kind):
+        if isinstance(value, bool) or not isinstance(value, kind) or (
+                isinstance(value, (int, float)) and not abs(value) < 2 ** 53):  # a count or a time, as float64 holds one
             raise StoreError(f"damaged played episode: {file} has no {field} of the kind esr writes")
     if not isinstance(header["env"].get("kind"), str):
         raise StoreError(f"damaged played episode: {file} names no environment kind")
     return header
+
+
+# What reading a damaged log raises where it assumes what esr writes (a field missing or of another
+# type, an action out of range); a pydantic ValidationError is a ValueError.
+DAMAGE = (KeyError, IndexError, TypeError, ValueError, OverflowError, AttributeError)
+
+
+@contextmanager
+def reading_episode(path: Path) -> Iterator[None]:
+    """Read a played episode's files inside: where they are not what esr writes, one StoreError
+    names the episode, instead of whatever the reading code met first."""
+    try:
+        yield
+    except StoreError:
+        raise
+    except (JsonInputError, OSError) as e:
+        raise StoreError(f"damaged played episode: {path}: {e}") from None
+    except DAMAGE as e:
+        raise StoreError(f"damaged played episode: {path}: its steps or header are not what esr writes "
+                         f"({type(e).__name__})") from None
 
 
 def read_steps(path: Path) -> list[dict]:

@@ -24,7 +24,7 @@ from test_play import ARROW, Pty, browser, chromium, free_port, grid_keys, logge
 from esr_cli.cli.main import main
 from esr_cli.play import pages, study_session as ss
 from esr_cli.play.study import MAX_TEXT_FILE_BYTES, StudyError, blocks_of, load_study, participant_problem
-from esr_cli.storage.store import PLAY_KIND, Store
+from esr_cli.storage.store import PLAY_KIND, Store, StoreError
 
 EXAMPLE = ROOT / "experiments" / "studies" / "grid_pilot.yaml"
 CONSENT = "# Taking part\n\nYou play a grid game. <script>window.pwned = 1</script>\n\n- we keep your keys\n- and answers\n"
@@ -43,6 +43,40 @@ def study_dict(seed: int = 0, **changes) -> dict:
              "instructions": "instructions.md", "questionnaire": QUESTIONS, "countdown": 0, "seed": seed,
              "completion": {"code": "TESTCODE1"}}
     return {**study, **changes}
+
+
+def questionnaire_record(**changes) -> dict:
+    """A questionnaire's record as a session writes it (study_session.record_recipe)."""
+    items = [pages.item_dicts([ss.ITEM_MODELS[q["kind"]].model_validate(q)])[0] for q in QUESTIONS]
+    return {"kind": "study", "record": "questionnaire", "study": "t_study", "session": "s", "participant": "p1",
+            "study_digest": "d", "recorded_at": 1.5, "block": 0, "study_robot": "first", "robot": "random",
+            "robot_label": "robot A", "items": items, "answers": {"helpful": 5, "comments": "fine"}, **changes}
+
+
+@pytest.mark.parametrize("changes, problem", [
+    ({"recorded_at": "x"}, "no recorded_at of the kind esr writes"),
+    ({"recorded_at": float("inf")}, "no recorded_at of the kind esr writes"),
+    ({"participant": None}, "no participant of the kind esr writes"),
+    ({"study_robot": None}, "its robot or block is not of the kind esr writes"),
+    ({"answers": [1, 2]}, "its items or answers are not of the kind esr writes"),
+    ({"items": "xx"}, "its items or answers are not of the kind esr writes"),
+    ({"items": [{"id": "helpful", "kind": "likert"}]}, "an item esr would not ask"),
+    ({"answers": {"helpful": 1e308, "comments": None}}, "answers a page would not have accepted"),
+    ({"answers": {"helpful": "lots", "comments": None}}, "answers a page would not have accepted"),
+    ({"answers": {"helpful": 5, "comments": None, "extra": 1}}, "answers a page would not have accepted"),
+])
+def test_a_damaged_study_record_is_named_with_what_is_wrong(tmp_path, changes, problem):
+    good = tmp_path / "good.json"
+    good.write_text(json.dumps(questionnaire_record(answers={"helpful": 5, "comments": None})))
+    assert ss.read_record(good)["answers"] == {"helpful": 5, "comments": None}
+    bad = tmp_path / "record.json"
+    bad.write_text(json.dumps(questionnaire_record(**changes)))
+    with pytest.raises(StoreError) as e:
+        ss.read_record(bad)
+    assert str(e.value) == f"damaged study record: {bad}: {problem}"
+    bad.write_text("[1, 2]")
+    with pytest.raises(StoreError, match="not a JSON object"):
+        ss.read_record(bad)
 
 
 def write_study(folder: Path, study: dict | str) -> Path:

@@ -490,16 +490,15 @@ def test_a_played_episodes_header_is_read_bounded(tmp_path):
     never whole: a planted huge or non-regular file is refused in one line."""
     import os
 
-    from esr_cli.common.jsonl import JsonInputError
     from esr_cli.storage.play_log import EPISODE_FILE, MAX_RECORD_BYTES, read_header
 
     (tmp_path / EPISODE_FILE).write_text('{"participant": "' + "p" * MAX_RECORD_BYTES + '"}')
-    with pytest.raises(JsonInputError, match="bytes"):
+    with pytest.raises(StoreError, match=f"damaged played episode: {tmp_path / EPISODE_FILE}: .*bytes"):
         read_header(tmp_path)
     fifo = tmp_path / "fifo"
     fifo.mkdir()
     os.mkfifo(fifo / EPISODE_FILE)
-    with pytest.raises(JsonInputError):
+    with pytest.raises(StoreError, match="damaged played episode: .*not a regular file"):
         read_header(fifo)
     header = {"participant": "p1", "session": "s", "episode": 0, "robot": "random", "env": {"kind": "gridworld"}, "started_at": 1.5}
     (tmp_path / EPISODE_FILE).write_text(json.dumps(header))
@@ -507,7 +506,8 @@ def test_a_played_episodes_header_is_read_bounded(tmp_path):
 
 
 @pytest.mark.parametrize("damage", [[1, 2], {"session": 3}, {"episode": True}, {"episode": "0"}, {"env": {}},
-                                    {"env": "gridworld"}, {"started_at": "yesterday"}, {"robot": None}])
+                                    {"env": "gridworld"}, {"started_at": "yesterday"}, {"robot": None},
+                                    {"episode": 10 ** 4000}, {"started_at": float("inf")}])
 def test_a_played_episodes_header_that_esr_did_not_write_is_one_line(tmp_path, damage):
     """A header that is no object, or whose fields the listings read are missing or of another
     type, is refused naming its file, before any reader trips over it."""
@@ -518,6 +518,23 @@ def test_a_played_episodes_header_that_esr_did_not_write_is_one_line(tmp_path, d
     (tmp_path / EPISODE_FILE).write_text(json.dumps(bad))
     with pytest.raises(StoreError, match="damaged played episode: .*episode.json"):
         read_header(tmp_path)
+
+
+def test_reading_a_damaged_played_episode_names_it_in_one_line(tmp_path):
+    """What a reader meets in steps esr did not write (a missing field, an action out of range,
+    text for a number, an environment esr would not play) is one StoreError naming the episode."""
+    from esr_cli.storage.play_log import reading_episode
+
+    for error in (KeyError("reward"), IndexError("tuple index out of range"), ValueError("could not convert"),
+                  TypeError("can't multiply"), OverflowError("int too large")):
+        with pytest.raises(StoreError) as e:
+            with reading_episode(tmp_path):
+                raise error
+        assert str(e.value) == (f"damaged played episode: {tmp_path}: its steps or header are not what esr writes "
+                                f"({type(error).__name__})")
+    with pytest.raises(StoreError, match="^already said$"):  # a StoreError of its own passes as it is
+        with reading_episode(tmp_path):
+            raise StoreError("already said")
 
 
 def test_the_newest_record_is_chosen_by_its_instant_not_its_text():
