@@ -549,17 +549,17 @@ def train_overrides(spec: spec_model.Spec, budget: str, experiments: Path = EXPE
     file = experiments / f"{spec.name}.yaml"
     if not file.is_file():
         return None
-    try:
-        target = spec.training_part()
-        # First the fields that differ from the file's; where that does not resolve (a section the
-        # file names by a preset, which sets its fields whatever is written beside it), each
-        # section that differs starts again from its kind's defaults.
-        for restart in (False, True):
+    target = spec.training_part()
+    # First the fields that differ from the file's; where that does not resolve (a section the
+    # file names by a preset, whose fields a value beside it may not change), each section that
+    # differs starts again from its kind's defaults.
+    for restart in (False, True):
+        try:
             sets = _overrides(file, budget, target, restart)
             if specs.load(file, budget, sets).training_part() == target:
                 return file, sets
-    except (specs.SpecError, yamlio.YamlInputError):
-        pass
+        except (specs.SpecError, yamlio.YamlInputError):
+            continue
     return None
 
 
