@@ -118,28 +118,38 @@ def _set_path(tree: dict, dotted: str, value: Any, source: str, within: str = ""
 
 
 def _fields_set(dotted: str, value: Any) -> Iterator[str]:
-    """The fields one entry of a mapping of overrides sets: a mapping value sets the keys it names."""
-    if isinstance(value, dict) and value:
-        for key, item in value.items():
-            yield from _fields_set(f"{dotted}.{key}", item)
-    else:
-        yield dotted
+    """The fields one entry of a mapping of overrides sets: a mapping value sets the keys it names
+    (walked without recursion: a value may nest as deep as its YAML allows)."""
+    todo = [(dotted, value)]
+    while todo:
+        path, item = todo.pop()
+        if isinstance(item, dict) and item:
+            todo += [(f"{path}.{key}", inner) for key, inner in reversed(item.items())]
+        else:
+            yield path
 
 
 def set_twice(entries: Iterable[tuple[str, str, Any]]) -> str | None:
     """Where one mapping (or a suite's `set` beside its `grid`) sets one field twice, as
     `train: {epochs: 2}` beside `train.epochs: 9`, or a section and a key inside it: which of
     them would win depends only on the order they are written in. entries: (how each is
-    named, its key path, its value); -> the problem in words, None if there is none."""
-    by_field: dict[str, str] = {}
+    named, its key path, its value); -> the problem in words, None if there is none. Each
+    field costs its depth in lookups, however many entries there are."""
+    by_field: dict[str, str] = {}  # each field set -> the entry that set it first
+    above: dict[str, str] = {}  # each section holding a field set -> the entry that set it first
     for name, dotted, value in entries:
-        for field in dict.fromkeys(_fields_set(str(dotted), value)):
-            for other, other_name in by_field.items():
-                if other_name != name and (field == other or field.startswith(other + ".") or other.startswith(field + ".")):
-                    shorter = min(field, other, key=len)
-                    return (f"{other_name} and {name} both set {shorter}: keep one (which would win depends only on "
-                            "the order they are written in)")
+        for field in _fields_set(str(dotted), value):
+            parts = field.split(".")
+            sections = [".".join(parts[:i]) for i in range(1, len(parts))]
+            clash = next(((f, by_field[f]) for f in (*sections, field) if by_field.get(f, name) != name), None)
+            if clash is None and above.get(field, name) != name:
+                clash = (field, above[field])
+            if clash:
+                return (f"{clash[1]} and {name} both set {clash[0]}: keep one (which would win depends only on "
+                        "the order they are written in)")
             by_field.setdefault(field, name)
+            for section in sections:
+                above.setdefault(section, name)
     return None
 
 
