@@ -254,6 +254,8 @@ def tables(
     for path in files:
         if not path.is_file():
             raise Exit(2, f"{path}: {'not a regular file' if path.exists() else 'no such file'}")
+        if not check:  # an artifact's own page is never rewritten
+            refuse_inside_store(path, "FILE", ctx.obj.store)
     if not ctx.obj.store.root.is_dir():
         raise Exit(2, f"no store at {ctx.obj.store.root}: no runs to draw tables from (--store names one)")
     try:

@@ -1234,7 +1234,9 @@ def test_the_report_and_tables_refuse_what_they_cannot_read_or_write_before_any_
     os.mkfifo(fifo)
     page = tmp_path / "page.md"
     page.write_text("# a page\n")
+    (store / "runs" / "ab" / "page.md").write_text("# an artifact's page\n")
     for args, problem in (
+            (["tables", str(store / "runs" / "ab" / "page.md")], "lies inside the store's runs/ folder"),
             (["paper", "--report", "--no-exact", "--check", "--out", "/dev/zero"], "--out: /dev/zero is not a regular file"),
             (["paper", "--report", "--no-exact", "--check", "--out", str(fifo)], "is not a regular file: nothing to check"),
             (["paper", "--report", "--no-exact", "--out", str(store / "runs" / "ab" / "x.md")], "lies inside the store's runs/ folder"),
