@@ -183,7 +183,8 @@ def check_output_file(path: Path, option: str) -> None:
         raise Exit(2, f"{option}: {path} is a directory; name a file")
     if path.exists() and not path.is_file():  # written through a link as a shell's `>` would; never replaced
         raise Exit(2, f"{option}: {path} exists and is not a regular file (a device, pipe or socket); name a file")
-    parent = nearest_existing(path.parent)
+    # The folder the file is really written in: a link's target's (write_output_file follows it).
+    parent = nearest_existing(Path(os.path.realpath(path)).parent)
     if not parent.is_dir():
         raise Exit(2, f"{option}: {parent} is a file, not a directory")
     try:

@@ -11,6 +11,7 @@ Every failure raises `SpecError` naming the file, the key path and the problem.
 from __future__ import annotations
 
 import copy
+import json
 import difflib
 import re
 from pathlib import Path
@@ -123,7 +124,12 @@ def _fields_set(dotted: str, value: Any) -> Iterator[str]:
     todo = [(dotted, value)]
     while todo:
         path, item = todo.pop()
-        if isinstance(item, dict) and item:
+        section, _, field = path.rpartition(".")
+        if path in KIND_MODELS and isinstance(item, dict) and "kind" in item:
+            yield path  # another kind starts the section again (`_switch_kind`): all of it is set
+        elif field == "kind" and section in KIND_MODELS:
+            yield section
+        elif isinstance(item, dict) and item:
             todo += [(f"{path}.{key}", inner) for key, inner in reversed(item.items())]
         else:
             yield path
@@ -150,6 +156,25 @@ def set_twice(entries: Iterable[tuple[str, str, Any]]) -> str | None:
             by_field.setdefault(field, name)
             for section in sections:
                 above.setdefault(section, name)
+    return None
+
+
+def replaced_later(earlier: Iterable[tuple[str, str, Any]], later: Iterable[tuple[str, str, Any]]) -> str | None:
+    """Where a mapping applied after another (a suite's `grid` after a `set`) sets a field the
+    earlier one sets, or the whole section holding it, so that the earlier value never counts;
+    a later field inside a section the earlier one starts (a kind, then its fields) refines it
+    and is fine. Entries as set_twice takes them; -> the problem in words, None if none."""
+    by_field: dict[str, str] = {}
+    for name, dotted, value in earlier:
+        for field in _fields_set(str(dotted), value):
+            by_field.setdefault(field, name)
+            parts = field.split(".")
+            for i in range(1, len(parts)):  # a later value for a section holding it replaces it too
+                by_field.setdefault(".".join(parts[:i]) + ".*", name)
+    for name, dotted, value in later:
+        for field in _fields_set(str(dotted), value):
+            if (earlier_name := by_field.get(field) or by_field.get(field + ".*")) is not None:
+                return (f"{name} replaces what {earlier_name} sets ({field}), which then never counts: keep one")
     return None
 
 
@@ -480,8 +505,9 @@ def resolve(raw: dict, budget: str = "paper", overrides: list[str] | tuple[str, 
     given.update(_apply_budget(tree, budget, budgets[budget] if own else DEFAULT_BUDGETS[budget], own, switched, source))
     for text, dotted, value in parsed:
         _set_path(tree, dotted, value, "--set")
-        given.pop(dotted, None)
-        given[dotted] = f"--set {shown_override(text)}"
+        for field in (dotted, *_fields_set(dotted, value)):  # a mapping's fields too (the preset check reads them)
+            given.pop(field, None)
+            given[field] = f"--set {shown_override(text)}"
     return _validated(tree, budget, given, source)
 
 
@@ -508,7 +534,7 @@ def _apply_budget(tree: dict, budget: str, entries: Any, own: bool, switched: se
             given[dotted.split(".")[0]] = where
         if switches or as_written or _kind_has_field(tree, dotted):
             _set_path(tree, dotted, value, f"{source}, {where}" if source else where)
-            given[dotted] = where
+            given |= dict.fromkeys((dotted, *_fields_set(dotted, value)), where)
     return given
 
 
@@ -523,9 +549,14 @@ def _preset_sets(tree: dict, dotted: str) -> str | None:
     settings = HUMAN_PRESETS.get(human.get("preset")) if isinstance(human.get("preset"), str) else None
     layout = human.get("layout") or (env.get("layout") if isinstance(env, dict) else None)
     chosen = settings.get(layout) if settings and isinstance(layout, str) else None
-    if not chosen or field not in chosen or human.get(field) == chosen[field]:
+    if not chosen or field not in chosen or _as_json(human.get(field)) == _as_json(chosen[field]):
         return None
     return f"the preset {human['preset']!r} sets it to {chosen[field]!r} on {layout}"
+
+
+def _as_json(value: Any) -> str:
+    """A value as JSON text: a list given and a tuple a preset holds compare equal."""
+    return json.dumps(value, sort_keys=True, default=str)
 
 
 def _validated(tree: dict, budget: str, given: dict[str, str], source: str) -> Spec:

@@ -153,6 +153,8 @@ class StudyModel(_Model):
         for dotted in v:
             if not all(dotted.split(".")):
                 raise ValueError(f"{dotted!r} is not a key path like env.blocks")
+        if twice := specs.set_twice((k, k, value) for k, value in v.items()):
+            raise ValueError(twice)
         return v
 
     @field_validator("robots")

@@ -134,11 +134,11 @@ class _Overrides(_Model):
 
     @model_validator(mode="after")
     def _each_field_once(self):
-        # The grid's points apply after `set`: a field in both would take the grid's values
-        # whatever `set` says.
-        entries = [(f"{k} (in set)", k, v) for k, v in self.set.items()]
-        entries += [(f"{k} (in grid)", k, v) for k, values in self.grid.items() for v in values]
-        if twice := specs.set_twice(entries):
+        # Within one mapping the order of its keys would decide; the grid's points apply after
+        # `set`, so a field in both would take the grid's values whatever `set` says.
+        fixed = [(f"{k} (in set)", k, v) for k, v in self.set.items()]
+        crossed = [(f"{k} (in grid)", k, v) for k, values in self.grid.items() for v in values]
+        if twice := specs.set_twice(fixed) or specs.set_twice(crossed) or specs.replaced_later(fixed, crossed):
             raise ValueError(twice)
         return self
 
@@ -306,6 +306,11 @@ def load(path: str | Path, budget: str = "paper") -> Suite:
             raise SuiteError(source, f"{where}.spec", f"{entry.spec} is a suite, not a spec file: suites do not nest "
                              "(list its spec files here)")
         grid = {**model.grid, **entry.grid}
+        # The suite's grid applies after the entry's own `set`: a field in both would take the
+        # suite's values whatever the entry says.
+        over = [(f"{k} (in the suite's grid)", k, v) for k, values in model.grid.items() if k not in entry.grid for v in values]
+        if twice := specs.replaced_later([(f"{k} (in this entry's set)", k, v) for k, v in entry.set.items()], over):
+            raise SuiteError(source, where, twice)
         fixed = [_set_text(k, v) for k, v in {**model.set, **entry.set}.items()]
         names = list(grid)
         for point in itertools.product(*(grid[k] for k in names)):

@@ -195,13 +195,19 @@ def _watched_metrics(trainer: Trainer) -> list[str]:
 
 
 def _divergence(trainer: Trainer, state: TrainState, metrics: dict, seeds, first_epoch: int) -> Diverged | None:
-    """A NaN/inf in losses, Q-values or parameters, naming quantity, seed and epoch; None if none."""
+    """The first NaN/inf in losses, Q-values or parameters, naming quantity, seed and epoch (the
+    earliest epoch of any seed and metric); None if none."""
+    first = None  # (epoch index, metric, seed index)
     for name in _watched_metrics(trainer):
-        bad = ~np.isfinite(metrics[name])
+        bad = ~np.isfinite(metrics[name])  # seeds x epochs
         if bad.any():
-            s, e = np.argwhere(bad)[0]
-            epoch = first_epoch + int(e) + 1
-            return Diverged(f"{name} became {metrics[name][s, e]} at seed {seeds[s]}, epoch {epoch}", epoch)
+            e = int(np.argmax(bad.any(axis=0)))
+            if first is None or e < first[0]:
+                first = (e, name, int(np.argmax(bad[:, e])))
+    if first is not None:
+        e, name, s = first
+        epoch = first_epoch + e + 1
+        return Diverged(f"{name} became {metrics[name][s, e]} at seed {seeds[s]}, epoch {epoch}", epoch)
     last_epoch = first_epoch + next(iter(metrics.values())).shape[1]
     params = {"critic": state.learner.params, "method": state.method}
     for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:

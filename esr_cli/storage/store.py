@@ -86,9 +86,10 @@ def atomic_write_bytes(path: Path, data: bytes, mode: int | None = None) -> None
     path = Path(path)
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
     while True:
-        tmp = path.with_name(f".{path.name}.{secrets.token_hex(8)}.tmp")
+        # not named after `path`: a name near the file system's limit would be too long with it
+        tmp = path.with_name(f".esr-{secrets.token_hex(8)}.tmp")
         try:
-            fd = os.open(tmp, flags, 0o666)
+            fd = os.open(tmp, flags, 0o666 if mode is None else 0o600)  # never readable beyond `mode` meanwhile
             break
         except FileExistsError:
             continue

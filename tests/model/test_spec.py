@@ -82,8 +82,11 @@ BAD = {
     "a paper budget entry": (GOOD + "budgets: {paper: {train.epochs: 1}}\n", "budgets.paper", "the spec as written"),
     "one field set twice by a budget": (GOOD + "budgets: {smoke: {train: {epochs: 1}, train.epochs: 3}}\n", "budgets.smoke",
                                         "train and train.epochs both set train.epochs: keep one"),
-    "a section and a key inside it": (GOOD + "budgets: {quick: {method.repr_lr: 0.1, method: {kind: esr, repr_lr: 0.2}}}\n",
-                                      "budgets.quick", "both set method.repr_lr"),
+    "a section and a key inside it": (GOOD + "budgets: {quick: {train.seeds: 2, train: {seeds: [0, 1]}}}\n",
+                                      "budgets.quick", "train.seeds and train both set train.seeds"),
+    # a kind starts its section again: every field of it is set, whichever key comes first
+    "a kind beside a field of its section": (GOOD + "budgets: {quick: {method.repr_dim: 8, method: {kind: esr}}}\n",
+                                             "budgets.quick", "method.repr_dim and method both set method"),
 }
 
 

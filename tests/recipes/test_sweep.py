@@ -135,7 +135,13 @@ def test_baselines_quick_suite_is_every_method_on_grid_2_and_grid_5_with_five_se
     (f"specs: [{GRID_2}]\nset: {{train: {{epochs: 2}}, train.epochs: 9}}\n", "",
      "train (in set) and train.epochs (in set) both set train.epochs: keep one"),
     (f"specs: [{{spec: {GRID_2}, set: {{train.epochs: 2}}, grid: {{train: [{{epochs: 3}}]}}}}]\n", "specs[0]",
-     "train.epochs (in set) and train (in grid) both set train.epochs"),
+     "train (in grid) replaces what train.epochs (in set) sets (train.epochs), which then never counts: keep one"),
+    # the suite's grid applies after an entry's set: the entry's value would be lost
+    (f"specs: [{{spec: {GRID_2}, set: {{train.seeds: 3}}}}]\ngrid: {{train.seeds: [1, 2]}}\n", "specs[0]",
+     "train.seeds (in the suite's grid) replaces what train.seeds (in this entry's set) sets (train.seeds)"),
+    # a kind set first, then fields of that kind crossed: each point refines the section
+    (f"specs: [{GRID_2}]\nset: {{train.seeds: 3, method: {{kind: ave}}}}\ngrid: {{method.repr_dim: [1, 2]}}\n", "specs[0]",
+     "method.repr_dim: unknown key"),
 ])
 def test_bad_suites_name_the_key(tmp_path, text, where, problem):
     path = write_suite(tmp_path, text)

@@ -424,3 +424,15 @@ def test_a_misspelt_fault_point_is_an_error_not_a_fault_that_never_fires(monkeyp
         faults.reached("after_metrics")
     with pytest.raises(ValueError, match="not a fault point"):
         faults.reached("nowhere")
+
+
+def test_the_divergence_named_is_the_earliest_epoch_of_any_seed_and_metric(monkeypatch):
+    """Metrics are checked in a fixed order and seeds first: the epoch recorded (and the metrics
+    kept up to it) must still be the first at which any watched value went non-finite."""
+    from esr_cli.runner import loop
+
+    monkeypatch.setattr(loop, "_watched_metrics", lambda trainer: ["critic_loss", "q_mean"])
+    metrics = {"critic_loss": np.array([[0.0, 0.0, 0.0, np.nan], [0.0, 0.0, 0.0, 0.0]]),
+               "q_mean": np.array([[0.0, 0.0, 0.0, 0.0], [0.0, np.inf, np.nan, 0.0]])}
+    diverged = loop._divergence(None, None, metrics, [7, 3], 10)
+    assert diverged.epoch == 12 and str(diverged) == "q_mean became inf at seed 3, epoch 12"
