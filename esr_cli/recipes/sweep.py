@@ -732,11 +732,18 @@ def run_suite(
         todo = [s for s in before if s.state != "done"]
     else:
         todo = [s for s in before if s.state in ("missing", "stopped", "failed")]
-    todo_keys = {s.run.key for s in todo}
+    # A run that diverged diverges again (training is deterministic): named, not run again
+    # (`esr train` runs one again on purpose).
+    diverged = [s for s in todo if s.path is not None and s.path.is_dir() and diverged_at(read_pending(s.path))]
+    todo = [s for s in todo if s not in diverged]
+    result.failed += [(s.run, f"{s.note} (not run again by a sweep; `esr train` runs it again)") for s in diverged]
+    todo_keys = {s.run.key for s in todo} | {s.run.key for s in diverged}
     result.skipped = [s for s in before if s.run.key not in todo_keys]
     n_done = sum(s.state == "done" for s in before)
     console.print(f"suite {suite.name} ({suite.budget}): {len(suite.runs)} run(s); {n_done} done, "
-                  f"{len(result.skipped) - n_done} running or queued, {len(todo)} to {'run' if executor == 'local' else 'submit'}"
+                  f"{len(result.skipped) - n_done} running or queued, "
+                  + (f"{len(diverged)} diverged (not run again), " if diverged else "")
+                  + f"{len(todo)} to {'run' if executor == 'local' else 'submit'}"
                   + (f" ({suite.duplicates} duplicate(s) dropped)" if suite.duplicates else ""))
 
     if executor == "local":

@@ -277,7 +277,12 @@ def blocks(path: Path, lines: list[str]) -> list[Block]:
 
 def refresh(path: Path, store: Store) -> tuple[list[str], list[str], int]:
     """(the file's lines, the same with every table generated anew, the number of tables)."""
-    lines, _ = read_doc_and_newline(path)
+    return _refreshed(path, store)[:3]
+
+
+def _refreshed(path: Path, store: Store) -> tuple[list[str], list[str], int, str]:
+    """refresh's, and the line end the file is written back with."""
+    lines, newline = read_doc_and_newline(path)
     new = list(lines)
     found = blocks(path, lines)
     if len(found) > MAX_TABLES:
@@ -287,7 +292,7 @@ def refresh(path: Path, store: Store) -> tuple[list[str], list[str], int]:
         if b.command not in made:
             made[b.command] = b.command.lines(store, f"{path}:{b.line}")
         new[b.start:b.end] = made[b.command]
-    return lines, new, len(found)
+    return lines, new, len(found), newline
 
 
 def check(paths: list[Path], store: Store) -> tuple[list[str], list[int]]:
@@ -307,8 +312,8 @@ def update(paths: list[Path], store: Store) -> list[tuple[Path, int, bool]]:
     read and its tables made before the first is written: a problem in one leaves all as they were."""
     from esr_cli.storage.store import write_output_file
 
-    made = [(path, *refresh(path, store)) for path in paths]
-    for path, lines, new, _ in made:
+    made = [(path, *_refreshed(path, store)) for path in paths]
+    for path, lines, new, _, newline in made:
         if new != lines:
-            write_output_file(path, read_doc_and_newline(path)[1].join(new).encode())
-    return [(path, count, new != lines) for path, lines, new, count in made]
+            write_output_file(path, newline.join(new).encode())
+    return [(path, count, new != lines) for path, lines, new, count, _ in made]

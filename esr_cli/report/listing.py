@@ -39,7 +39,6 @@ def status_of(entry: Entry) -> str:
     return entry.status
 
 
-
 def created_of(manifest: dict) -> str | None:
     created = manifest.get("created_at")
     if isinstance(created, str):

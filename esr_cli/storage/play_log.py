@@ -81,9 +81,10 @@ def reading_episode(path: Path) -> Iterator[None]:
         raise
     except (JsonInputError, OSError) as e:
         raise StoreError(f"damaged played episode: {path}: {e}") from None
-    except DAMAGE as e:
+    except DAMAGE as e:  # what was met, bounded (a pydantic error quotes whole values)
+        said = " ".join(str(e).split())
         raise StoreError(f"damaged played episode: {path}: its steps or header are not what esr writes "
-                         f"({type(e).__name__})") from None
+                         f"({type(e).__name__}: {said[:120] + ('...' if len(said) > 120 else '')})") from None
 
 
 def read_steps(path: Path) -> list[dict]:

@@ -123,6 +123,10 @@ def test_a_value_given_for_a_field_the_human_preset_sets_is_refused_not_ignored(
     assert "the preset 'paper' sets it to 1000000 on cramped_room, which replaces this value" in e.value.problem
     assert specs.load(cramped, "paper", ["human.total_steps=1000000"]).human.total_steps == 1_000_000
     assert specs.load(cramped, "paper", ["human.lr=0.001"]).human.lr == 0.001
+    coord = ROOT / "experiments/coord_ring.yaml"  # a BC clone by the preset: hidden (64, 64), stay_weight 1.0
+    with pytest.raises(specs.SpecError, match="human.stay_weight: the preset 'paper' sets it to 1.0 on coord_ring"):
+        specs.load(coord, "paper", ["human={stay_weight: 0.5}"])  # a mapping's fields count as theirs
+    assert specs.load(coord, "paper", ["human.hidden=[64, 64]"]).human.hidden == (64, 64)  # the preset's own value
 
 
 def test_missing_file():

@@ -312,6 +312,9 @@ def test_status_says_a_diverged_run_diverged_and_not_to_resume_it(tmp_path):
     (row,) = sweep.status(suite, store)
     assert row.state == "failed" and row.note.startswith(f"diverged: {what}; training is deterministic")
     assert "resume" not in row.note
+    # a sweep names it and leaves it: it would only diverge again (nothing is trained here)
+    result = sweep.run_suite(suite, "smoke", "local", store)
+    assert result.submitted == [] and [(r.key, m.split(";")[0]) for r, m in result.failed] == [(suite.runs[0].key, f"diverged: {what}")]
 
 
 def test_status_tells_running_failed_queued_missing(tmp_path):

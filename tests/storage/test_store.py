@@ -531,7 +531,7 @@ def test_reading_a_damaged_played_episode_names_it_in_one_line(tmp_path):
             with reading_episode(tmp_path):
                 raise error
         assert str(e.value) == (f"damaged played episode: {tmp_path}: its steps or header are not what esr writes "
-                                f"({type(error).__name__})")
+                                f"({type(error).__name__}: {str(error)})")
     with pytest.raises(StoreError, match="^already said$"):  # a StoreError of its own passes as it is
         with reading_episode(tmp_path):
             raise StoreError("already said")
