@@ -28,9 +28,11 @@ def _refuse_ignored_sweep_options(executor, show_status, show_results, as_json, 
         raise Exit(2, "--status and --results: choose one")
     if as_json and markdown:
         raise Exit(2, "--json and --markdown: choose one")
-    for flag, given in {"--markdown": markdown, **results_only, "--plot": plot, "--any-code": any_code}.items():
+    for flag, given in {"--markdown": markdown, **results_only, "--plot": plot}.items():
         if given and not show_results:
             raise Exit(2, f"{flag} applies with --results only")
+    if any_code and not (show_status or show_results):
+        raise Exit(2, "--any-code applies with --status or --results only (a sweep trains what this code has not made)")
     if any_code and plot:
         raise Exit(2, "--any-code applies to the table: --plot draws only the runs this code made")
     if as_json and not (show_status or show_results):
@@ -75,8 +77,8 @@ def sweep(
     evals: bool = typer.Option(False, "--eval", help="--results: also each run's evaluations as the store holds them "
                                "(esr eval RUN, and --human proxy for a BC human's run), and the commands that make "
                                "the missing ones; computes nothing"),
-    any_code: bool = typer.Option(False, "--any-code", help="--results: a run this code has not made is read from a "
-                                  "finished run of the same spec, budget and seeds made by other training code "
+    any_code: bool = typer.Option(False, "--any-code", help="--status / --results: a run this code has not made is read "
+                                  "from a finished run of the same spec, budget and seeds made by other training code "
                                   "(another commit, device or jax: an imported archive), its row naming that commit"),
     wait: Optional[bool] = typer.Option(None, "--wait/--no-wait", help="wait for submitted jobs (default: wait, except for slurm)"),
     partition: Optional[str] = typer.Option(None, "--partition", help="slurm: partition (default: the suite's slurm.partition)"),
@@ -137,6 +139,7 @@ def sweep(
             return
         if show_status:
             rows = sw.status(suite, ctx.obj.store)
+            rows = (sw.with_runs_made_elsewhere if any_code else sw.noting_runs_made_elsewhere)(rows, ctx.obj.store)
             if as_json:
                 out.print_json(jsonl.dumps(sw.status_json(rows)))
             else:

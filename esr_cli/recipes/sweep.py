@@ -331,7 +331,7 @@ def status_table(suite: Suite, rows: list[RunStatus]) -> Table:
     for col in ("run", "key", "state", "detail"):
         table.add_column(col, overflow="fold")
     for r in rows:
-        detail = str(r.path) if r.state == "done" else r.note
+        detail = (f"{r.path} ({r.note})" if r.note else str(r.path)) if r.state == "done" else r.note
         table.add_row(r.run.label, r.run.key[:12], Text(r.state, style=_STYLE[r.state]), str(detail))
     return table
 
@@ -413,23 +413,41 @@ def finished_runs_by_training(store: Store) -> dict[str, tuple[str, Path, proven
     return {what: hit[1:] for what, hit in found.items()}
 
 
+def _made_elsewhere(rows: list[RunStatus], store: Store) -> list[Optional[tuple[str, Path, str]]]:
+    """For each row not done under this code, the finished run of exactly its spec and budget that
+    other training code made, where the store has one: (key, path, "commit X, device"); else None."""
+    if all(r.state == "done" for r in rows):
+        return [None] * len(rows)
+    index = finished_runs_by_training(store)
+    hits: list[Optional[tuple[str, Path, str]]] = []
+    for r in rows:
+        hit = None if r.state == "done" else index.get(_trained(r.run.spec.training_part(), r.run.spec.budget))
+        if hit is None:
+            hits.append(None)
+            continue
+        key, path, made = hit
+        where = f"commit {made.commit[:7] if made.commit else 'unknown'}" + (f", {made.device}" if made.device else "")
+        hits.append((key, path, where))
+    return hits
+
+
 def with_runs_made_elsewhere(rows: list[RunStatus], store: Store) -> list[RunStatus]:
     """Each row not done under this code taken from a finished run of exactly its spec and budget
     made by other training code, where the store has one; the row's note names that run's commit
     and device."""
-    if all(r.state == "done" for r in rows):
-        return rows
-    index = finished_runs_by_training(store)
-    out = []
-    for r in rows:
-        hit = None if r.state == "done" else index.get(_trained(r.run.spec.training_part(), r.run.spec.budget))
-        if hit is None:
-            out.append(r)
-            continue
-        key, path, made = hit
-        where = f"commit {made.commit[:7] if made.commit else 'unknown'}" + (f", {made.device}" if made.device else "")
-        out.append(RunStatus(replace(r.run, key=key), "done", f"made by other code: {where}", path, made_by=where))
-    return out
+    return [r if hit is None else
+            RunStatus(replace(r.run, key=hit[0]), "done", f"made by other code: {hit[2]}", hit[1], made_by=hit[2])
+            for r, hit in zip(rows, _made_elsewhere(rows, store))]
+
+
+def noting_runs_made_elsewhere(rows: list[RunStatus], store: Store) -> list[RunStatus]:
+    """Each missing row whose spec and budget other training code has finished, its note naming
+    that run: after a checkout moves on every key changes, and a researcher should see that the
+    run is there (`--any-code` reads it) before training it again for hours."""
+    return [r if hit is None or r.state != "missing" else
+            replace(r, note="; ".join(filter(None, (r.note, f"{hit[0][:12]} made by other code ({hit[2]}): "
+                                                            "--any-code reads it; a sweep trains it again"))))
+            for r, hit in zip(rows, _made_elsewhere(rows, store))]
 
 
 def _shown_from(run: Run, base: Path) -> Run:
@@ -745,6 +763,10 @@ def run_suite(
                   + (f"{len(diverged)} diverged (not run again), " if diverged else "")
                   + f"{len(todo)} to {'run' if executor == 'local' else 'submit'}"
                   + (f" ({suite.duplicates} duplicate(s) dropped)" if suite.duplicates else ""))
+    elsewhere = sum(hit is not None for hit in _made_elsewhere(todo, store))
+    if elsewhere:  # every key changed with the code: say so before hours of training again
+        console.print(f"{elsewhere} of them finished under other training code (`sweep --status` names them, "
+                      f"`sweep --results --any-code` reads them); this code trains them again")
 
     if executor == "local":
         _check_local_runs_fit(todo)  # all of them before the first trains for hours

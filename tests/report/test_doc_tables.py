@@ -171,6 +171,19 @@ def test_any_code_reads_a_run_of_the_same_spec_made_by_other_training_code(smoke
     assert f"| grid_2 ({found['made_by']}) | esr |" in md
     assert sweep.OTHER_CODE_NOTE in md
 
+    # --status names the run while it stays missing under this code; --status --any-code counts it done.
+    (noted,) = sweep.noting_runs_made_elsewhere(sweep.status(suite, Store(store)), Store(store))
+    assert noted.state == "missing" and noted.note.startswith(f"{own[0]['key'][:12]} made by other code ({found['made_by']})")
+    (taken,) = sweep.with_runs_made_elsewhere(sweep.status(suite, Store(store)), Store(store))
+    assert taken.state == "done" and taken.made_by == found["made_by"] and taken.run.key == own[0]["key"]
+    # A sweep says so before it trains the run again under this code.
+    printed: list[str] = []
+    console = type("Console", (), {"print": lambda self, *a, **k: printed.append(" ".join(map(str, a)))})()
+    monkeypatch.setattr(sweep, "_run_local", lambda todo, *a: printed.append(f"trains {[s.run.key for s in todo]}"))
+    sweep.run_suite(suite, "smoke", "local", Store(store), console)
+    assert any(line.startswith("1 of them finished under other training code") for line in printed)
+    assert f"trains {[suite.runs[0].key]}" in printed
+
     # A run of another spec (here other seeds) is never taken for it.
     seeds = tmp_path / "seeds.yaml"
     seeds.write_text(f"name: seeds\nspecs: [{GRID_2}]\nset: {{train.seeds: [7]}}\n")
@@ -211,7 +224,7 @@ def test_any_code_reads_a_run_made_before_a_field_with_a_default_existed(smoke_r
 
 def test_any_code_is_refused_where_it_would_change_nothing(tmp_path):
     suite = one_run_suite(tmp_path)
-    for args, problem in ((["--any-code"], "--any-code applies with --results only"),
+    for args, problem in ((["--any-code"], "--any-code applies with --status or --results only"),
                           (["--results", "--any-code", "--plot"], "--any-code applies to the table")):
         proc = esr("sweep", str(suite), "--budget", "smoke", *args, store=tmp_path / "store", check=False)
         assert proc.returncode == 2 and problem in proc.stderr
