@@ -45,10 +45,25 @@ def train(
     quick = quick_spec(spec_file, set_) if budget != "quick" else None
     from esr_cli.recipes import runs  # JAX and the training code: after the spec is known to be good
 
-    built = ensure(runs.run_recipe(spec, err, stop_at=stop_at, quick=quick, wandb=wandb), ctx.obj.store)
+    recipe = runs.run_recipe(spec, err, stop_at=stop_at, quick=quick, wandb=wandb)
+    if ctx.obj.store.lookup(recipe.kind, recipe.key) is None:
+        _note_run_made_elsewhere(spec, ctx.obj.store)
+    built = ensure(recipe, ctx.obj.store)
     path, cached = built.path, built.cached
     err.print(tagged("cache hit" if cached else "trained", "green", f": {spec.name} ({spec.budget}) -> {path}"))
     out.print(str(path), highlight=False)
+
+
+def _note_run_made_elsewhere(spec, store) -> None:
+    """Keys name the training code: after the checkout's code changes, the store's run of this
+    very spec is not this one. Say so before training it again, perhaps for hours."""
+    from esr_cli.recipes.sweep import finished_elsewhere
+
+    found = finished_elsewhere(spec, store)
+    if found:
+        key, _, where = found
+        err.print(f"note: {key[:12]} in this store is a finished run of this spec, budget and seeds made by other "
+                  f"code ({where}); this code trains it again (`esr sweep --results --any-code` reads that one)")
 
 
 @app.command("eval")

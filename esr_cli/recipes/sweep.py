@@ -419,16 +419,21 @@ def _made_elsewhere(rows: list[RunStatus], store: Store) -> list[Optional[tuple[
     if all(r.state == "done" for r in rows):
         return [None] * len(rows)
     index = finished_runs_by_training(store)
-    hits: list[Optional[tuple[str, Path, str]]] = []
-    for r in rows:
-        hit = None if r.state == "done" else index.get(_trained(r.run.spec.training_part(), r.run.spec.budget))
-        if hit is None:
-            hits.append(None)
-            continue
-        key, path, made = hit
-        where = f"commit {made.commit[:7] if made.commit else 'unknown'}" + (f", {made.device}" if made.device else "")
-        hits.append((key, path, where))
-    return hits
+    return [None if r.state == "done" else _found_elsewhere(index, r.run.spec) for r in rows]
+
+
+def finished_elsewhere(spec, store: Store) -> Optional[tuple[str, Path, str]]:
+    """A finished run of exactly `spec` (its training part and budget) that other training code
+    made: (key, path, "commit X, device"), or None. For a run this code is about to train."""
+    return _found_elsewhere(finished_runs_by_training(store), spec)
+
+
+def _found_elsewhere(index: dict, spec) -> Optional[tuple[str, Path, str]]:
+    hit = index.get(_trained(spec.training_part(), spec.budget))
+    if hit is None:
+        return None
+    key, path, made = hit
+    return key, path, f"commit {made.commit[:7] if made.commit else 'unknown'}" + (f", {made.device}" if made.device else "")
 
 
 def with_runs_made_elsewhere(rows: list[RunStatus], store: Store) -> list[RunStatus]:

@@ -222,6 +222,29 @@ def test_any_code_reads_a_run_made_before_a_field_with_a_default_existed(smoke_r
     assert other["state"] == "missing"
 
 
+@pytest.mark.slow
+def test_train_names_a_finished_run_of_its_spec_made_by_other_code(smoke_run, tmp_path):
+    """A store whose run of the spec has another key (other training code made it): `esr train`
+    says so before it trains again under this code; its own finished run is a cache hit, unremarked."""
+    import shutil
+
+    store, run_path, _ = smoke_run
+    other = tmp_path / "store"
+    key = "cd" * 16
+    copy = other / "runs" / key[:2] / key
+    shutil.copytree(run_path, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["key"] = key
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+
+    proc = esr("train", str(GRID_2), "--budget", "smoke", "--stop-after", "1s", store=other, check=False)
+    commit = provenance.origin(manifest).commit
+    assert (f"note: {key[:12]} in this store is a finished run of this spec, budget and seeds made by other code "
+            f"(commit {commit[:7] if commit else 'unknown'}") in proc.stderr
+    again = esr("train", str(GRID_2), "--budget", "smoke", store=store)
+    assert "cache hit" in again.stderr and "note:" not in again.stderr
+
+
 def test_any_code_is_refused_where_it_would_change_nothing(tmp_path):
     suite = one_run_suite(tmp_path)
     for args, problem in ((["--any-code"], "--any-code applies with --status or --results only"),
