@@ -399,9 +399,9 @@ def finished_runs_by_training(store: Store) -> dict[str, tuple[str, Path, proven
     other keys; this is how `--any-code` finds them. A run whose key components this code no
     longer reads as a spec is passed over."""
     found: dict[str, tuple[float, str, Path, provenance.Origin]] = {}
-    for entry in store.entries():
+    for entry in store.entries((RUN_KIND,)):
         info = entry.manifest
-        if entry.kind != RUN_KIND or entry.status != "complete" or not isinstance(info, dict):
+        if entry.status != "complete" or not isinstance(info, dict):
             continue
         comps = info.get("key_components")
         what = _trained_as_read(comps) if isinstance(comps, dict) else None
