@@ -149,6 +149,20 @@ def test_tables_writes_the_sweeps_own_table_and_check_fails_when_it_is_edited(sm
     assert proc.returncode == 2 and f"{bad}:4: a table's command is" in proc.stderr
 
 
+def copy_run_under_key(run_path: Path, store: Path, key: str, edit=lambda manifest: None) -> tuple[Path, dict]:
+    """A finished run copied into `store` under another key, as other training code would have
+    keyed it, its manifest changed by `edit` -> (the copy, its manifest)."""
+    import shutil
+
+    copy = store / "runs" / key[:2] / key
+    shutil.copytree(run_path, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["key"] = key
+    edit(manifest)
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    return copy, manifest
+
+
 @pytest.mark.slow
 def test_any_code_reads_a_run_of_the_same_spec_made_by_other_training_code(smoke_run, tmp_path, monkeypatch):
     store, run_path, _ = smoke_run
@@ -196,19 +210,16 @@ def test_any_code_reads_a_run_made_before_a_field_with_a_default_existed(smoke_r
     """A run made by code that had no `method.future` yet (its spec.yaml and key components lack
     the field) trained what the field's default trains: --any-code reads it for a spec at the
     default, as the reproduction report does, and never for a spec that sets another value."""
-    import shutil
-
     import yaml
 
     store, run_path, _ = smoke_run
     older = tmp_path / "store"
     key = "ab" * 16
-    copy = older / "runs" / key[:2] / key
-    shutil.copytree(run_path, copy)
-    manifest = json.loads((copy / "manifest.json").read_text())
-    manifest["key"] = key
-    assert manifest["key_components"]["spec"]["method"].pop("future") == "full"
-    (copy / "manifest.json").write_text(json.dumps(manifest))
+
+    def without_future(manifest: dict) -> None:
+        assert manifest["key_components"]["spec"]["method"].pop("future") == "full"
+
+    copy, _ = copy_run_under_key(run_path, older, key, without_future)
     spec = yaml.safe_load((copy / "spec.yaml").read_text())
     del spec["method"]["future"]
     (copy / "spec.yaml").write_text(yaml.safe_dump(spec))
@@ -226,16 +237,10 @@ def test_any_code_reads_a_run_made_before_a_field_with_a_default_existed(smoke_r
 def test_train_names_a_finished_run_of_its_spec_made_by_other_code(smoke_run, tmp_path):
     """A store whose run of the spec has another key (other training code made it): `esr train`
     says so before it trains again under this code; its own finished run is a cache hit, unremarked."""
-    import shutil
-
     store, run_path, _ = smoke_run
     other = tmp_path / "store"
     key = "cd" * 16
-    copy = other / "runs" / key[:2] / key
-    shutil.copytree(run_path, copy)
-    manifest = json.loads((copy / "manifest.json").read_text())
-    manifest["key"] = key
-    (copy / "manifest.json").write_text(json.dumps(manifest))
+    _, manifest = copy_run_under_key(run_path, other, key)
 
     proc = esr("train", str(GRID_2), "--budget", "smoke", "--stop-after", "1s", store=other, check=False)
     commit = provenance.origin(manifest).commit
