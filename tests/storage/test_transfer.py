@@ -777,7 +777,8 @@ def _mutate(data, members: list) -> None:
         info.type = data.draw(st.sampled_from([tarfile.SYMTYPE, tarfile.LNKTYPE, tarfile.FIFOTYPE, tarfile.CHRTYPE,
                                                tarfile.DIRTYPE, tarfile.REGTYPE]))
         info.linkname = data.draw(st.sampled_from(["/etc/passwd", "../../../x", "metrics.jsonl"]))
-        body = body if info.type == tarfile.REGTYPE else None
+        # a folder or link made a regular file holds no bytes: an empty one
+        body = (b"" if body is None else body) if info.type == tarfile.REGTYPE else None
     elif op == "drop":
         del members[i]
         return
