@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 from dataclasses import dataclass, field, replace
 from functools import cache
 from pathlib import Path
@@ -324,13 +325,22 @@ class Finding:
         return [e for e in runs if e is not None]
 
 
-def _mi_summary(ev: Evidence) -> tuple[bool, str]:
-    epochs, vals = series(ev.rows, "mi_estimate")
-    mi = np.nanmean(vals, axis=1)
-    second = mi[len(mi) // 2:]
-    k = max(1, int(round(len(mi) * FINAL_FRACTION)))
-    final = float(np.nanmean(mi[-k:]))
+def _final_mi(ev: Evidence) -> tuple[float, float]:
+    """(the MI estimate's mean over the last FINAL_FRACTION of epochs, the share of the second
+    half's epochs where it is above zero); NaN where the run logs no estimate."""
+    _, vals = series(ev.rows, "mi_estimate")
+    with warnings.catch_warnings():  # a run without the metric is all NaN: its mean is NaN, said so
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mi = np.nanmean(vals, axis=1)
+        second = mi[len(mi) // 2:]
+        k = max(1, int(round(len(mi) * FINAL_FRACTION)))
+        final = float(np.nanmean(mi[-k:]))
     share = float(np.mean(second > 0)) if len(second) else float("nan")
+    return final, share
+
+
+def _mi_summary(ev: Evidence) -> tuple[bool, str]:
+    final, share = _final_mi(ev)
     holds = final > MI_POSITIVE and share >= 0.9
     return holds, f"final MI {final:+.3f} nats; positive in {share:.0%} of the second half's epochs"
 
@@ -511,6 +521,68 @@ def _seed_note(seeds: list[int]) -> str:
     if len(set(seeds)) == 1:
         return f" ({count(seeds[0])}{' each' if len(seeds) > 1 and seeds[0] > 1 else ''})"
     return " (" + " against ".join(count(n) for n in seeds) + ")"
+
+
+# ---------------------------------------------------------------- esr's variants, set against the paper's setting
+# Which way a variant's final return goes against the paper's setting of its spec (the same rule
+# as 'above': the probability-of-improvement interval, or one seed's sign). Not a paper statement.
+VARIANT_LEANINGS = {True: "higher", False: "lower", None: "not distinguishable"}
+
+
+class VariantRow(NamedTuple):
+    """One of esr's variants against the run of the paper's setting its statements are judged on."""
+
+    label: str
+    variant: Evidence
+    paper: Evidence
+    measured: str
+    mi: str
+    reading: str
+
+
+def variant_rows(findings: list[Finding]) -> list[VariantRow]:
+    """Each (paper run, variant run) pair shown under the findings, once."""
+    rows, seen = [], set()
+    for f in findings:
+        for label, ev, _ in f.variants:
+            if ev is None or f.a is None or (f.a.key, ev.key) in seen:
+                continue
+            seen.add((f.a.key, ev.key))
+            holds, measured = _compare("above", ev, f.a)
+            rows.append(VariantRow(label, ev, f.a, measured, _mi_against(ev, f.a), _variant_reading(holds, ev, f.a)))
+    return rows
+
+
+def _mi_against(variant: Evidence, paper: Evidence) -> str:
+    (mv, _), (mp, _) = _final_mi(variant), _final_mi(paper)
+    return "—" if np.isnan(mv) or np.isnan(mp) else f"{mv:+.3f} against {mp:+.3f}"
+
+
+def _variant_reading(holds: bool | None, variant: Evidence, paper: Evidence) -> str:
+    if not (variant.comparable() and paper.comparable()):
+        return NOT_YET
+    seeds = [_scored(variant), _scored(paper)]
+    word = VARIANT_LEANINGS[holds] + _seed_note(seeds)
+    return word if min(seeds) >= MIN_SEEDS else f"{INDICATIVE}: {word}"
+
+
+def variant_section(findings: list[Finding]) -> list[str]:
+    rows = variant_rows(findings)
+    if not rows:
+        return []
+    lines = ["## esr's variants against the paper's setting", "",
+             "Not statements of the paper: each of esr's variants shown above, set against the run of the paper's setting "
+             "that the statements of its spec are judged on. Final return as above, and the final MI estimate (its mean "
+             f"over the last {FINAL_FRACTION:.0%} of epochs, seeds averaged). Which way: *higher* when the lower end of "
+             "the probability-of-improvement interval is above 0.5, *lower* when its upper end is below 0.5, *not "
+             "distinguishable* otherwise; one seed against one, the sign of the difference. With fewer than "
+             f"{MIN_SEEDS} seeds on a side it is only *{INDICATIVE}*. The two runs may come from different devices and "
+             "commits (the runs column).", "",
+             "| variant | measured | final MI | runs | which way |", "|---|---|---|---|---|"]
+    for row in rows:
+        lines.append(f"| {row.paper.spec.name}: `{row.label}` | {row.measured} | {row.mi} | "
+                     f"{_run_cell(row.variant)}<br>vs {_run_cell(row.paper)} | {row.reading} |")
+    return lines + [""]
 
 
 # ---------------------------------------------------------------- the report
@@ -811,6 +883,7 @@ def report(store: Store, out: Path, console, exact: bool = True, now: Optional[s
                 for ev, measured in row.others:
                     lines.append(f"| ↳ another run of this spec, {row.label} | | {measured} | {_run_cell(ev)} | |")
         lines.append("")
+    lines += variant_section(findings)
     behind = {part.key: part for f in findings for ev in f.evidence() for part in (ev.parts or (ev,))}
     if behind:
         lines += ["## The runs behind this report", "",

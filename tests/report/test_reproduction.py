@@ -541,3 +541,37 @@ def test_a_run_of_a_preset_section_is_made_again_from_its_kind():
         assert file.name == "coord_ring.yaml" and specs.load(file, "paper", found).training_part() == spec.training_part()
     spec = specs.load("experiments/coord_ring.yaml", "paper", ["human={kind: bc, stay_weight: 0.3}"])
     assert train_overrides(spec, "paper")[1] == ['human={"kind": "bc"}', "human.stay_weight=0.3"]
+
+
+def test_a_variant_is_set_against_the_paper_setting_of_its_spec_once():
+    """esr's variant and the paper's ESR at N = 5: three seeds each wholly above is 'higher', with
+    the final MI of both; the pair is shown once however many statements show the variant."""
+    paper = _evidence("grid_5", finals=(20.0, 21.0, 22.0), mi=lambda e: 0.0)
+    human = _evidence("grid_5", rep.FUTURE_HUMAN, finals=(30.0, 31.0, 32.0), mi=lambda e: 0.15)
+    index = _index(paper, human, _evidence("grid_5_random", finals=(9.0, 9.0, 9.0)))
+    findings = [rep.judge(c, index) for c in rep.paper_claims() if c.a[0] == "grid_5"]
+    assert sum(1 for f in findings for _, ev, _ in f.variants if ev is human) > 1
+    [row] = rep.variant_rows(findings)
+    assert row.variant is human and row.paper is paper and row.label == "method.future=human"
+    # every variant seed above every paper seed: P(improvement) 1 in every resample
+    assert row.measured.endswith("; P(improvement) 1.00 [1.00, 1.00]")
+    assert row.measured.startswith("ESR (human future) 31.00 ± 0.58")
+    assert row.mi == "+0.150 against +0.000" and row.reading == "higher (3 seeds each)"
+    [line] = [x for x in rep.variant_section(findings) if x.startswith("| grid_5: `method.future=human`")]
+    assert line.endswith("| higher (3 seeds each) |")
+
+
+def test_a_variant_reading_is_indicative_below_three_seeds_and_waits_for_the_length():
+    paper = _evidence("grid_10", finals=(9.0, 10.0, 9.5, 10.5))
+    human = _evidence("grid_10", rep.FUTURE_HUMAN, finals=(14.0, 23.0))
+    claim = _claim("N = 10: ESR ends above Random")
+    finding = rep.judge(claim, _index(paper, human, _evidence("grid_10_random", finals=(3.5,))))
+    [row] = rep.variant_rows([finding])
+    assert row.reading == "indicative: higher (2 seeds against 4 seeds)" and row.mi == "—"
+    # seeds on both sides of the paper's: open, whatever the means say
+    mixed = _evidence("grid_10", rep.FUTURE_HUMAN, finals=(5.0, 12.0, 30.0))
+    [row] = rep.variant_rows([rep.judge(claim, _index(paper, mixed, _evidence("grid_10_random", finals=(3.5,))))])
+    assert row.reading == "not distinguishable (3 seeds against 4 seeds)"
+    short = _evidence("grid_10", rep.FUTURE_HUMAN, finals=(30.0, 31.0, 32.0), epochs=2000, status="partial")
+    [row] = rep.variant_rows([rep.judge(claim, _index(paper, short, _evidence("grid_10_random", finals=(3.5,))))])
+    assert row.reading == rep.NOT_YET
