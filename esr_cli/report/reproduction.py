@@ -954,5 +954,8 @@ def findings_json(findings: list[Finding]) -> list[dict]:
              "baselines": [{"baseline": r.label, "verdict": r.verdict, "measured": r.measured, "run": ev(r.evidence)}
                            for r in f.baselines],
              "conditions": [{"condition": c.label, "verdict": c.verdict, "measured": c.measured, "a": ev(c.a), "b": ev(c.b)}
-                            for c in f.conditions]} for f in findings]
+                            for c in f.conditions],
+             # esr's variants of `a`, each against `a` itself (not a verdict on the paper)
+             "variants": [{"variant": r.label, "which_way": r.reading, "measured": r.measured, "final_mi": r.mi,
+                           "run": ev(r.variant)} for r in variant_rows([f])]} for f in findings]
 
