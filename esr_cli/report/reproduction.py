@@ -571,13 +571,14 @@ def variant_section(findings: list[Finding]) -> list[str]:
     if not rows:
         return []
     lines = ["## esr's variants against the paper's setting", "",
-             "Not statements of the paper: each of esr's variants shown above, set against the run of the paper's setting "
-             "that the statements of its spec are judged on. Final return as above, and the final MI estimate (its mean "
+             "Not statements of the paper: each of esr's variants shown above, set against the statements' own ESR run "
+             "(the paper's setting of the variant's spec). Final return as above, and the final MI estimate (its mean "
              f"over the last {FINAL_FRACTION:.0%} of epochs, seeds averaged). Which way: *higher* when the lower end of "
              "the probability-of-improvement interval is above 0.5, *lower* when its upper end is below 0.5, *not "
              "distinguishable* otherwise; one seed against one, the sign of the difference. With fewer than "
-             f"{MIN_SEEDS} seeds on a side it is only *{INDICATIVE}*. The two runs may come from different devices and "
-             "commits (the runs column).", "",
+             f"{MIN_SEEDS} seeds on a side it is only *{INDICATIVE}*; where either run is shorter than "
+             f"{COMPARABLE_EPOCHS['gridworld']:,} epochs (gridworld) or {COMPARABLE_EPOCHS['overcooked']:,} (Overcooked) it "
+             f"is *{NOT_YET}*. The two runs may come from different devices and commits (the runs column).", "",
              "| variant | measured | final MI | runs | which way |", "|---|---|---|---|---|"]
     for row in rows:
         lines.append(f"| {row.paper.spec.name}: `{row.label}` | {row.measured} | {row.mi} | "
