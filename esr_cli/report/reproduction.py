@@ -469,11 +469,12 @@ def _condition_row(claim: Claim, label: str, sets: tuple[str, ...], index) -> Co
     return ConditionRow(label, a, b, measured, _pair_verdict(holds, a, b), more)
 
 
-def _pair_verdict(holds: bool | None, a: Evidence, b: Evidence) -> str:
-    """The tiered verdict of a comparison of two runs, once both are at a comparable length."""
+def _pair_verdict(holds: bool | None, a: Evidence, b: Evidence, tiers=None) -> str:
+    """The tiered verdict of a comparison of two runs (by `tiers`, tiered_verdict unless named),
+    once both are at a comparable length."""
     if not (a.comparable() and b.comparable()):
         return NOT_YET
-    return tiered_verdict(holds, [_scored(a), _scored(b)])
+    return (tiers or tiered_verdict)(holds, [_scored(a), _scored(b)])
 
 
 class BaselineRow(NamedTuple):
@@ -549,7 +550,8 @@ def variant_rows(findings: list[Finding]) -> list[VariantRow]:
                 continue
             seen.add((f.a.key, ev.key))
             holds, measured = _compare("above", ev, f.a)
-            rows.append(VariantRow(label, ev, f.a, measured, _mi_against(ev, f.a), _variant_reading(holds, ev, f.a)))
+            rows.append(VariantRow(label, ev, f.a, measured, _mi_against(ev, f.a),
+                                    _pair_verdict(holds, ev, f.a, _variant_tiers)))
     return rows
 
 
@@ -558,10 +560,8 @@ def _mi_against(variant: Evidence, paper: Evidence) -> str:
     return "—" if np.isnan(mv) or np.isnan(mp) else f"{mv:+.3f} against {mp:+.3f}"
 
 
-def _variant_reading(holds: bool | None, variant: Evidence, paper: Evidence) -> str:
-    if not (variant.comparable() and paper.comparable()):
-        return NOT_YET
-    seeds = [_scored(variant), _scored(paper)]
+def _variant_tiers(holds: bool | None, seeds: list[int]) -> str:
+    """Which way, with the seeds it rests on; only indicative below MIN_SEEDS a side."""
     word = VARIANT_LEANINGS[holds] + _seed_note(seeds)
     return word if min(seeds) >= MIN_SEEDS else f"{INDICATIVE}: {word}"
 
